@@ -1,0 +1,577 @@
+"""Room layouts: the JSON format, its parser and validator, and the geometry used to check it.
+
+A layout file holds one room object or a JSON list of them. Units are metres and radians; the room's
+interior is centred on the origin, x to the east, y to the north, and walls are added around it::
+
+    {
+      "name": "office-a",
+      "room": {"size": [6.0, 5.0], "wall_height": 0.5},
+      "robot": {"pos": [0.0, 0.0], "yaw": 0.0},
+      "obstacles": [
+        {"type": "box", "pos": [1.2, 0.5], "size": [0.6, 0.4], "yaw": 0.3, "height": 0.5},
+        {"type": "cylinder", "pos": [-1.0, 1.0], "radius": 0.15, "height": 0.8}
+      ]
+    }
+
+`name`, `room.wall_height`, `robot`, `obstacles` and each obstacle's `yaw`/`height` are
+optional. Without `robot` the spawn is sampled in free space every episode; with it, `robot.pos` is
+required. `box.size` is the full extent along the box's own axes. Every mistake raises
+`LayoutError`, whose one-line message names the file, the room and the field in JSON path style
+(`obstacles[2].size`).
+
+The dataclasses check themselves on construction, so a `RoomLayout` built in code obeys the same
+rules as one read from a file: positive sizes, obstacles inside the room, a spawn where the robot
+fits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import difflib
+import functools
+import json
+import math
+import numbers
+import os
+import uuid
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from jaxnav.robot import BASE_RADIUS
+
+_TOL = (
+    1e-9  # m; obstacles may touch a wall exactly, float round-off must not turn that into an error
+)
+_WALLS = ("east", "west", "north", "south")  # order of the columns of `_wall_distances`
+
+
+class LayoutError(ValueError):
+    """A bad layout; the one-line message names the file, the room and the field."""
+
+    def __init__(
+        self,
+        field: str | None,
+        detail: str,
+        *,
+        source: str | None = None,
+        room: str | None = None,
+        index: int | None = None,
+    ):
+        self.field = field  # JSON path of the bad value, e.g. "obstacles[2].size"; None: the file
+        self.detail = detail  # what is wrong with it
+        self.source = source  # file name (or "<layout>" for objects built in code)
+        self.room = room  # room name; None for unnamed rooms, which are named by index only
+        self.index = index  # position of the room in the file
+        super().__init__(self._message())
+
+    def _message(self) -> str:
+        parts = [self.source] if self.source else []
+        if self.room is not None and self.index is not None:
+            parts.append(f"room {self.room!r} (#{self.index})")
+        elif self.room is not None:
+            parts.append(f"room {self.room!r}")
+        elif self.index is not None:
+            parts.append(f"room #{self.index}")
+        if self.field:
+            parts.append(self.field)
+        return ": ".join([*parts, self.detail])
+
+    def located(
+        self, *, source: str | None, room: str | None, index: int | None = None
+    ) -> LayoutError:
+        """The same error, placed in a file and a room."""
+        return LayoutError(self.field, self.detail, source=source, room=room, index=index)
+
+    def under(self, prefix: str) -> LayoutError:
+        """The same error with its field nested under `prefix` (e.g. "obstacles[2]")."""
+        field = f"{prefix}.{self.field}" if self.field else prefix
+        return LayoutError(field, self.detail, source=self.source, room=self.room, index=self.index)
+
+
+# ------------------------------------------------------------------------------
+# Value checks shared by the dataclasses and the parser
+
+
+def _show(value, limit: int = 60) -> str:
+    """A short one-line rendering of a (JSON) value for error messages."""
+    try:
+        text = json.dumps(value, ensure_ascii=False)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _kind(value) -> str:
+    """The JSON type of a value, with an article: 'a string', 'an object'."""
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, numbers.Real):
+        return "a number"
+    kinds = {
+        str: "a string",
+        dict: "an object",
+        list: "a list",
+        tuple: "a list",
+        type(None): "null",
+    }
+    return next((k for t, k in kinds.items() if isinstance(value, t)), type(value).__name__)
+
+
+def _is_number(value) -> bool:
+    # JSON booleans are Python ints: `true` must not pass as 1.
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def _number(value, field: str, *, positive: bool = False) -> float:
+    """`value` as a finite float (positive if asked), or a LayoutError naming `field`."""
+    what = "a positive number" if positive else "a number"
+    if not _is_number(value):
+        raise LayoutError(field, f"must be {what}, got {_show(value)}")
+    if not math.isfinite(value):
+        raise LayoutError(field, f"must be a finite number, got {_show(value)}")
+    if positive and value <= 0:
+        raise LayoutError(field, f"must be {what}, got {_show(value)}")
+    return float(value)
+
+
+def _pair(value, field: str, *, positive: bool = False) -> tuple[float, float]:
+    """`value` as two finite floats (positive if asked), or a LayoutError naming `field`."""
+    what = "two positive numbers" if positive else "two numbers [x, y]"
+    ok = isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2
+    if not ok or not all(_is_number(v) for v in value):
+        raise LayoutError(field, f"must be {what}, got {_show(value)}")
+    if not all(math.isfinite(v) for v in value):
+        raise LayoutError(field, f"must be two finite numbers, got {_show(value)}")
+    if positive and min(value) <= 0:
+        raise LayoutError(field, f"must be {what}, got {_show(value)}")
+    return float(value[0]), float(value[1])
+
+
+# ------------------------------------------------------------------------------
+# The dataclasses
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box standing on the floor, possibly rotated about the vertical axis."""
+
+    kind: ClassVar[str] = "box"  # the obstacle's "type" in JSON
+
+    pos: tuple[float, float]  # centre [x, y], m
+    size: tuple[float, float]  # full extents along the box's own x and y, m
+    yaw: float = 0.0  # rad, counter-clockwise from the room's x axis
+    height: float = 0.5  # m
+
+    def __post_init__(self):
+        object.__setattr__(self, "pos", _pair(self.pos, "pos"))
+        object.__setattr__(self, "size", _pair(self.size, "size", positive=True))
+        object.__setattr__(self, "yaw", _number(self.yaw, "yaw"))
+        object.__setattr__(self, "height", _number(self.height, "height", positive=True))
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """A vertical cylinder standing on the floor."""
+
+    kind: ClassVar[str] = "cylinder"  # the obstacle's "type" in JSON
+
+    pos: tuple[float, float]  # centre [x, y], m
+    radius: float  # m
+    height: float = 0.5  # m
+
+    def __post_init__(self):
+        object.__setattr__(self, "pos", _pair(self.pos, "pos"))
+        object.__setattr__(self, "radius", _number(self.radius, "radius", positive=True))
+        object.__setattr__(self, "height", _number(self.height, "height", positive=True))
+
+
+Obstacle = Box | Cylinder
+_OBSTACLE_TYPES = {cls.kind: cls for cls in (Box, Cylinder)}
+
+
+@dataclass(frozen=True)
+class RoomLayout:
+    """One room: interior size, optional fixed spawn pose, static obstacles; checked on creation."""
+
+    name: str  # unique within a file; "room-<index>" when the JSON gives none
+    size: tuple[float, float]  # interior extents [x, y], m, centred on the origin
+    wall_height: float = 0.5  # m
+    robot_pos: tuple[float, float] | None = None  # None -> spawn sampled in free space each episode
+    robot_yaw: float = 0.0  # rad; only meaningful with robot_pos
+    obstacles: tuple[Obstacle, ...] = ()  # in file order; error messages index into it
+
+    def __post_init__(self):
+        try:
+            self._coerce()
+            _check_inside(self)
+            _check_spawn(self)
+        except LayoutError as err:
+            name = self.name if isinstance(self.name, str) else None
+            raise err.located(source=None, room=name) from None
+
+    def _coerce(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise LayoutError("name", f"must be a non-empty string, got {_show(self.name)}")
+        set_ = functools.partial(object.__setattr__, self)
+        set_("size", _pair(self.size, "room.size", positive=True))
+        set_("wall_height", _number(self.wall_height, "room.wall_height", positive=True))
+        if self.robot_pos is not None:
+            set_("robot_pos", _pair(self.robot_pos, "robot.pos"))
+        set_("robot_yaw", _number(self.robot_yaw, "robot.yaw"))
+        if self.robot_pos is None and self.robot_yaw != 0.0:
+            raise LayoutError("robot.yaw", "a spawn yaw needs robot.pos (None: sampled spawn)")
+        if not isinstance(self.obstacles, (list, tuple)):
+            raise LayoutError("obstacles", f"must be a sequence, got {_kind(self.obstacles)}")
+        for i, ob in enumerate(self.obstacles):
+            if not isinstance(ob, (Box, Cylinder)):
+                raise LayoutError(f"obstacles[{i}]", f"must be a Box or Cylinder, got {ob!r}")
+        set_("obstacles", tuple(self.obstacles))
+
+    @property
+    def boxes(self) -> tuple[Box, ...]:
+        """The box obstacles, in file order."""
+        return tuple(ob for ob in self.obstacles if isinstance(ob, Box))
+
+    @property
+    def cylinders(self) -> tuple[Cylinder, ...]:
+        """The cylinder obstacles, in file order."""
+        return tuple(ob for ob in self.obstacles if isinstance(ob, Cylinder))
+
+
+# ------------------------------------------------------------------------------
+# Geometry
+
+
+def box_corners(box: Box) -> np.ndarray:
+    """[4, 2] world (x, y) corners of a box, counter-clockwise from its own (-x, -y) corner."""
+    half = 0.5 * np.asarray(box.size)
+    local = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * half
+    c, s = np.cos(box.yaw), np.sin(box.yaw)
+    return local @ np.array([[c, s], [-s, c]]) + np.asarray(box.pos)  # rows times R(yaw)^T
+
+
+def _signed_distance(ob: Obstacle, p: np.ndarray) -> np.ndarray:
+    """[...] distance from points p [..., 2] to the obstacle's surface; negative inside."""
+    d = p - np.asarray(ob.pos)
+    if isinstance(ob, Cylinder):
+        return np.linalg.norm(d, axis=-1) - ob.radius
+    c, s = np.cos(ob.yaw), np.sin(ob.yaw)
+    local = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
+    q = np.abs(local) - 0.5 * np.asarray(ob.size)  # per-axis distance beyond each face
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    inside = np.minimum(q.max(axis=-1), 0.0)
+    return outside + inside
+
+
+def _obstacle_distances(layout: RoomLayout, p: np.ndarray) -> np.ndarray:
+    """[..., N] signed distance from points p [..., 2] to each obstacle, in layout order."""
+    if not layout.obstacles:
+        return np.zeros((*p.shape[:-1], 0))
+    return np.stack([_signed_distance(ob, p) for ob in layout.obstacles], axis=-1)
+
+
+def _wall_distances(layout: RoomLayout, p: np.ndarray) -> np.ndarray:
+    """[..., 4] distance from points p [..., 2] to the east, west, north, south walls; <0 beyond."""
+    hx, hy = 0.5 * layout.size[0], 0.5 * layout.size[1]
+    x, y = p[..., 0], p[..., 1]
+    return np.stack([hx - x, hx + x, hy - y, hy + y], axis=-1)
+
+
+def _points(xy) -> np.ndarray:
+    p = np.asarray(xy, dtype=float)
+    if p.ndim == 0 or p.shape[-1] != 2:
+        raise ValueError(f"xy must have shape [2] or [..., 2], got {p.shape}")
+    return p
+
+
+def clearance(layout: RoomLayout, xy) -> float | np.ndarray:
+    """Distance from xy to the nearest obstacle surface or wall, m.
+
+    Negative inside an obstacle or beyond a wall. `xy` is one point [2] (returns a float) or a batch
+    [..., 2] (returns an array [...]).
+    """
+    p = _points(xy)
+    dist = np.concatenate([_wall_distances(layout, p), _obstacle_distances(layout, p)], axis=-1)
+    out = dist.min(axis=-1)
+    return float(out) if out.ndim == 0 else out
+
+
+def is_free(layout: RoomLayout, xy, radius: float) -> bool | np.ndarray:
+    """Whether a disc of `radius` centred at xy touches no obstacle and no wall.
+
+    Touching counts as not free. Batches like `clearance`: xy [..., 2] gives a bool array [...].
+    """
+    free = np.asarray(clearance(layout, xy)) > radius
+    return bool(free) if free.ndim == 0 else free
+
+
+def _footprint_bounds(ob: Obstacle) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper [x, y] corners of the obstacle's axis-aligned footprint bounding box."""
+    if isinstance(ob, Cylinder):
+        return np.asarray(ob.pos) - ob.radius, np.asarray(ob.pos) + ob.radius
+    corners = box_corners(ob)
+    return corners.min(axis=0), corners.max(axis=0)
+
+
+def _check_inside(layout: RoomLayout) -> None:
+    """Every obstacle's footprint (yawed box corners, cylinder disc) lies within the interior."""
+    half = 0.5 * np.asarray(layout.size)
+    for i, ob in enumerate(layout.obstacles):
+        lo, hi = _footprint_bounds(ob)
+        beyond = np.array([hi[0] - half[0], -half[0] - lo[0], hi[1] - half[1], -half[1] - lo[1]])
+        k = int(beyond.argmax())
+        if beyond[k] > _TOL:
+            raise LayoutError(
+                f"obstacles[{i}]",
+                f"{ob.kind} at {_show(list(ob.pos))} reaches {beyond[k]:.3f} m beyond the "
+                f"{_WALLS[k]} wall (interior x in [{-half[0]:g}, {half[0]:g}], "
+                f"y in [{-half[1]:g}, {half[1]:g}])",
+            )
+
+
+def _check_spawn(layout: RoomLayout) -> None:
+    """The robot's disc at the spawn position touches no obstacle and no wall."""
+    if layout.robot_pos is None or is_free(layout, layout.robot_pos, BASE_RADIUS):
+        return
+    p = np.asarray(layout.robot_pos)
+    dist = np.concatenate([_wall_distances(layout, p), _obstacle_distances(layout, p)])
+    names = [f"the {w} wall" for w in _WALLS]
+    names += [f"obstacles[{i}] ({ob.kind})" for i, ob in enumerate(layout.obstacles)]
+    k = int(dist.argmin())
+    raise LayoutError(
+        "robot.pos",
+        f"the robot (radius {BASE_RADIUS} m) at {_show(list(layout.robot_pos))} overlaps "
+        f"{names[k]}: clearance {dist[k]:.3f} m",
+    )
+
+
+# ------------------------------------------------------------------------------
+# Parsing
+
+_TOP_KEYS = ("name", "room", "robot", "obstacles")
+_ROOM_KEYS = ("size", "wall_height")
+_ROBOT_KEYS = ("pos", "yaw")
+
+
+class _JsonObject(dict):
+    """A JSON object that remembers which keys appeared more than once (json keeps the last)."""
+
+    duplicates: tuple[str, ...] = ()
+
+    @classmethod
+    def from_pairs(cls, pairs: list[tuple[str, object]]) -> _JsonObject:
+        obj = cls(pairs)
+        obj.duplicates = tuple(k for k, n in Counter(k for k, _ in pairs).items() if n > 1)
+        return obj
+
+
+def _path(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def _check_keys(obj: dict, allowed: Sequence[str], prefix: str) -> None:
+    """Reject duplicate and unknown keys, suggesting the closest allowed one."""
+    for key in getattr(obj, "duplicates", ()):
+        raise LayoutError(_path(prefix, key), "key given more than once")
+    for key in obj:
+        if key not in allowed:
+            close = difflib.get_close_matches(str(key), allowed, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            valid = ", ".join(allowed)
+            raise LayoutError(_path(prefix, key), f"unknown key{hint} (valid keys: {valid})")
+
+
+def _require(obj: dict, key: str, prefix: str):
+    if key not in obj:
+        raise LayoutError(_path(prefix, key), "missing required field")
+    return obj[key]
+
+
+def _section(entry: dict, key: str, allowed: Sequence[str], hint: str) -> dict | None:
+    """The sub-object entry[key] after checking its type and keys; None when absent."""
+    if key not in entry:
+        return None
+    obj = entry[key]
+    if not isinstance(obj, dict):
+        raise LayoutError(key, f"must be an object {hint}, got {_kind(obj)}")
+    _check_keys(obj, allowed, key)
+    return obj
+
+
+def _parse_obstacle(item, prefix: str) -> Obstacle:
+    if not isinstance(item, dict):
+        raise LayoutError(prefix, f"must be an obstacle object, got {_kind(item)}")
+    kind = _require(item, "type", prefix)
+    cls = _OBSTACLE_TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        valid = ", ".join(repr(k) for k in _OBSTACLE_TYPES)
+        shown = repr(kind) if isinstance(kind, str) else _show(kind)
+        raise LayoutError(f"{prefix}.type", f"unknown obstacle type {shown} (valid: {valid})")
+    fields = dataclasses.fields(cls)
+    _check_keys(item, ("type", *(f.name for f in fields)), prefix)
+    for f in fields:
+        if f.default is dataclasses.MISSING:
+            _require(item, f.name, prefix)
+    try:
+        return cls(**{k: v for k, v in item.items() if k != "type"})
+    except LayoutError as err:
+        raise err.under(prefix) from None
+
+
+def _parse_room(entry, index: int) -> RoomLayout:
+    """One room object -> RoomLayout; errors carry the field but not yet the file or room."""
+    if not isinstance(entry, dict):
+        raise LayoutError(None, f"must be a room object, got {_kind(entry)}")
+    _check_keys(entry, _TOP_KEYS, "")
+    room = _section(entry, "room", _ROOM_KEYS, 'with "size" (and "wall_height")')
+    if room is None:
+        raise LayoutError("room", 'missing required field (an object with "size")')
+    robot = _section(entry, "robot", _ROBOT_KEYS, 'with "pos" (and "yaw"); omit it to sample')
+    kwargs = {"name": entry.get("name", f"room-{index}"), "size": _require(room, "size", "room")}
+    if "wall_height" in room:
+        kwargs["wall_height"] = room["wall_height"]
+    if robot is not None:
+        kwargs["robot_pos"] = _require(robot, "pos", "robot")
+        kwargs["robot_yaw"] = robot.get("yaw", 0.0)
+    raw = entry.get("obstacles", [])
+    if not isinstance(raw, list):
+        raise LayoutError("obstacles", f"must be a list of obstacle objects, got {_kind(raw)}")
+    obstacles = tuple(_parse_obstacle(item, f"obstacles[{i}]") for i, item in enumerate(raw))
+    return RoomLayout(**kwargs, obstacles=obstacles)
+
+
+def _check_unique_names(layouts: Sequence[RoomLayout], source: str) -> None:
+    first: dict[str, int] = {}
+    for i, layout in enumerate(layouts):
+        if layout.name in first:
+            detail = f"duplicate room name, also used by room #{first[layout.name]}"
+            raise LayoutError("name", detail, source=source, room=layout.name, index=i)
+        first[layout.name] = i
+
+
+def parse_layouts(obj, source: str = "<layout>") -> list[RoomLayout]:
+    """Parsed JSON (one room object or a list of them) -> validated layouts.
+
+    `source` names the origin (usually the file) in error messages.
+    """
+    rooms = [obj] if isinstance(obj, dict) else obj
+    if not isinstance(rooms, list):
+        detail = f"expected a room object or a list of rooms, got {_kind(obj)}"
+        raise LayoutError(None, detail, source=source)
+    if not rooms:
+        raise LayoutError(None, "empty list: expected at least one room", source=source)
+    layouts = []
+    for i, entry in enumerate(rooms):
+        name = entry.get("name") if isinstance(entry, dict) else None
+        try:
+            layouts.append(_parse_room(entry, i))
+        except LayoutError as err:
+            label = name if isinstance(name, str) and name else None
+            raise err.located(source=source, room=label, index=i) from None
+    _check_unique_names(layouts, source)
+    return layouts
+
+
+def load_layout(path: str | os.PathLike) -> list[RoomLayout]:
+    """Read a layout file (one room object or a list of them) -> validated layouts."""
+    source = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8-sig") as f:  # -sig: tolerate a byte-order mark
+            text = f.read()
+    except FileNotFoundError:
+        raise LayoutError(None, "no such file", source=source) from None
+    except IsADirectoryError:
+        raise LayoutError(
+            None, "is a directory, expected a JSON layout file", source=source
+        ) from None
+    except UnicodeDecodeError as err:
+        raise LayoutError(None, f"not UTF-8 text ({err.reason})", source=source) from None
+    except OSError as err:
+        raise LayoutError(None, f"cannot read: {err.strerror}", source=source) from None
+    try:
+        obj = json.loads(text, object_pairs_hook=_JsonObject.from_pairs)
+    except json.JSONDecodeError as err:
+        detail = f"invalid JSON at line {err.lineno}, column {err.colno}: {err.msg}"
+        raise LayoutError(None, detail, source=source) from None
+    return parse_layouts(obj, source)
+
+
+# ------------------------------------------------------------------------------
+# Writing
+
+
+def _obstacle_to_dict(ob: Obstacle) -> dict:
+    out: dict = {"type": ob.kind}
+    for f in dataclasses.fields(ob):
+        value = getattr(ob, f.name)
+        out[f.name] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def layout_to_dict(layout: RoomLayout) -> dict:
+    """The layout as a JSON-ready room object (all optional fields written out)."""
+    out: dict = {
+        "name": layout.name,
+        "room": {"size": list(layout.size), "wall_height": layout.wall_height},
+    }
+    if layout.robot_pos is not None:
+        out["robot"] = {"pos": list(layout.robot_pos), "yaw": layout.robot_yaw}
+    out["obstacles"] = [_obstacle_to_dict(ob) for ob in layout.obstacles]
+    return out
+
+
+def _dump_room(room: dict, indent: str = "") -> str:
+    """A room object as JSON text: one line per section and per obstacle."""
+    dump = functools.partial(json.dumps, ensure_ascii=False, allow_nan=False)
+    lines = []
+    for key, value in room.items():
+        if key == "obstacles" and value:
+            items = ",\n".join(f"{indent}    {dump(ob)}" for ob in value)
+            lines.append(f'{indent}  "obstacles": [\n{items}\n{indent}  ]')
+        else:
+            lines.append(f"{indent}  {dump(key)}: {dump(value)}")
+    return f"{indent}{{\n" + ",\n".join(lines) + f"\n{indent}}}"
+
+
+def _write_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write text to a temporary file beside `path`, then rename it over `path`."""
+    target = os.fspath(path)
+    tmp = f"{target}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # umask applies, as for open()
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def save_layouts(path: str | os.PathLike, layouts: RoomLayout | Sequence[RoomLayout]) -> None:
+    """Write layouts in the format `load_layout` reads, atomically.
+
+    A single `RoomLayout` is written as one room object, a sequence as a JSON list.
+    """
+    source = os.fspath(path)
+    single = isinstance(layouts, RoomLayout)
+    rooms = [layouts] if single else list(layouts)
+    if not rooms:
+        raise LayoutError(None, "nothing to save: empty list of layouts", source=source)
+    for i, layout in enumerate(rooms):
+        if not isinstance(layout, RoomLayout):
+            detail = f"must be a RoomLayout, got {type(layout).__name__}"
+            raise LayoutError(None, detail, source=source, index=i)
+    _check_unique_names(rooms, source)
+    if single:
+        text = _dump_room(layout_to_dict(layouts))
+    else:
+        text = "[\n" + ",\n".join(_dump_room(layout_to_dict(r), "  ") for r in rooms) + "\n]"
+    _write_atomic(path, text + "\n")

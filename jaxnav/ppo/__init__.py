@@ -1,0 +1,1 @@
+"""PPO components: actor-critic networks, observation normalisation and losses."""

@@ -1,0 +1,278 @@
+"""Domain randomisation: a pure `sample(key) -> SceneParams`, vmapped over keys, drawn at every reset.
+
+Each episode gets a room (one of the given layouts, or a procedurally sampled one), a spawn pose, floor
+traction, an actuator speed gain and sensor noise. Everything here is traced data, so a new draw never
+recompiles anything.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxnav import robot
+from jaxnav.layouts import RoomLayout
+
+
+@struct.dataclass
+class SceneParams:
+    """Everything that differs between episodes. Shapes are per env; a batch adds a leading axis."""
+
+    room_half: jax.Array  # [2] half interior extents, m
+    box_pos: jax.Array  # [Sb, 2] box centres, m
+    box_yaw: jax.Array  # [Sb] rad
+    box_half: jax.Array  # [Sb, 2] half extents along the box's own axes, m
+    box_height: jax.Array  # [Sb] m
+    box_active: jax.Array  # [Sb] bool; inactive slots are parked
+    cyl_pos: jax.Array  # [Sc, 2] m
+    cyl_radius: jax.Array  # [Sc] m
+    cyl_height: jax.Array  # [Sc] m
+    cyl_active: jax.Array  # [Sc] bool
+    spawn: jax.Array  # [3] x, y, yaw of the robot at reset
+    layout_id: jax.Array  # [] int32 index into the layouts, -1 for a sampled room
+    friction: jax.Array  # [] floor traction coefficient: bounds the robot's acceleration
+    speed_gain: jax.Array  # [] actual / commanded speed of the drive
+    noise_std: jax.Array  # [] m, std of the additive depth noise per ray
+    dropout: jax.Array  # [] probability that a ray returns nothing
+
+
+@dataclasses.dataclass(frozen=True)
+class RandomizeConfig:
+    """Ranges of the per-episode randomisation. Pairs are inclusive [low, high] ranges."""
+
+    sampled_room_prob: float = 0.5
+    """Probability that an episode uses a sampled room instead of one of the layouts (must be 1 if
+    there are no layouts; `make_env` sees to that)."""
+    random_spawn_prob: float = 0.5
+    """Probability that a layout with a fixed spawn starts the robot at a random free pose instead."""
+    spawn_clearance: float = 0.3
+    """Minimum gap between the robot's edge and any obstacle or wall at a sampled spawn, m."""
+    room_size_min: tuple[float, float] = (4.0, 4.0)
+    """Smallest sampled interior [x, y], m."""
+    room_size_max: tuple[float, float] = (8.0, 8.0)
+    """Largest sampled interior [x, y], m."""
+    num_boxes: tuple[int, int] = (2, 8)
+    """Number of boxes in a sampled room, uniform over the range."""
+    num_cylinders: tuple[int, int] = (0, 4)
+    """Number of cylinders in a sampled room, uniform over the range."""
+    box_size: tuple[float, float] = (0.2, 1.0)
+    """Full extent of a sampled box along each of its axes, m."""
+    cylinder_radius: tuple[float, float] = (0.08, 0.3)
+    """Radius of a sampled cylinder, m."""
+    obstacle_height: tuple[float, float] = (0.4, 1.0)
+    """Height of a sampled obstacle, m; the camera sits at robot.CAMERA_HEIGHT."""
+    friction: tuple[float, float] = (0.5, 1.0)
+    """Floor traction coefficient (rubber wheels on office floors)."""
+    speed_gain: tuple[float, float] = (0.8, 1.2)
+    """Actual / commanded speed: the paper had to recalibrate speeds on the real robot."""
+    sensor_noise: tuple[float, float] = (0.0, 0.02)
+    """Std of the additive per-ray depth noise, m."""
+    sensor_dropout: tuple[float, float] = (0.0, 0.02)
+    """Probability that a ray returns nothing (read as the far range limit)."""
+
+    def __post_init__(self):
+        for name in ("sampled_room_prob", "random_spawn_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(
+                    f"RandomizeConfig.{name}: must be in [0, 1], got {getattr(self, name)}"
+                )
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, tuple) and f.name not in ("room_size_min", "room_size_max"):
+                lo, hi = value
+                if lo > hi or lo < 0:
+                    raise ValueError(
+                        f"RandomizeConfig.{f.name}: need 0 <= low <= high, got {value}"
+                    )
+        if any(lo > hi for lo, hi in zip(self.room_size_min, self.room_size_max, strict=True)):
+            raise ValueError("RandomizeConfig.room_size_min: must not exceed room_size_max")
+        if min(self.room_size_min) < 2 * (robot.BASE_RADIUS + self.spawn_clearance):
+            raise ValueError(
+                "RandomizeConfig.room_size_min: too small for the robot and its clearance"
+            )
+        if self.box_size[0] <= 0 or self.cylinder_radius[0] <= 0 or self.obstacle_height[0] <= 0:
+            raise ValueError(
+                "RandomizeConfig.box_size/cylinder_radius/obstacle_height: must be > 0"
+            )
+
+
+@struct.dataclass
+class LayoutBank:
+    """The given layouts as stacked arrays padded to the slot counts ([K, ...] SceneParams fields)."""
+
+    rooms: SceneParams  # room fields of K layouts; spawn/physics fields are placeholders
+    has_spawn: jax.Array  # [K] bool: the layout fixes the robot's spawn
+
+    @property
+    def size(self) -> int:
+        return int(self.has_spawn.shape[0])
+
+
+def make_bank(layouts: Sequence[RoomLayout], num_boxes: int, num_cylinders: int) -> LayoutBank:
+    """Stacks layouts into a bank with `num_boxes`/`num_cylinders` slots (inactive beyond their own)."""
+    rooms = [_layout_params(lay, num_boxes, num_cylinders) for lay in layouts]
+    if not rooms:  # an empty bank keeps shapes static: one dummy room, never drawn
+        rooms = [_layout_params(RoomLayout(name="none", size=(4.0, 4.0)), num_boxes, num_cylinders)]
+    stacked = jax.tree_util.tree_map(lambda *x: np.stack(x), *rooms)
+    has_spawn = np.array([lay.robot_pos is not None for lay in layouts] or [False])
+    return LayoutBank(
+        rooms=jax.tree_util.tree_map(jnp.asarray, stacked), has_spawn=jnp.asarray(has_spawn)
+    )
+
+
+def _layout_params(layout: RoomLayout, nb: int, nc: int) -> SceneParams:
+    boxes, cyls = layout.boxes, layout.cylinders
+    if len(boxes) > nb or len(cyls) > nc:
+        raise ValueError(
+            f"layout '{layout.name}': {len(boxes)} boxes and {len(cyls)} cylinders "
+            f"do not fit {nb} box and {nc} cylinder slots"
+        )
+    f32 = np.float32
+    pad = lambda rows, n, width: np.array(  # noqa: E731
+        list(rows) + [[0.0] * width] * (n - len(rows)), f32
+    ).reshape(n, width)
+    active = lambda k, n: np.arange(n) < k  # noqa: E731
+    spawn = (*(layout.robot_pos or (0.0, 0.0)), layout.robot_yaw)
+    return SceneParams(
+        room_half=0.5 * np.array(layout.size, f32),
+        box_pos=pad([b.pos for b in boxes], nb, 2),
+        box_yaw=pad([[b.yaw] for b in boxes], nb, 1)[:, 0],
+        box_half=0.5 * pad([b.size for b in boxes], nb, 2)
+        + 0.05 * ~active(len(boxes), nb)[:, None],
+        box_height=pad([[b.height] for b in boxes], nb, 1)[:, 0] + 0.1 * ~active(len(boxes), nb),
+        box_active=active(len(boxes), nb),
+        cyl_pos=pad([c.pos for c in cyls], nc, 2),
+        cyl_radius=pad([[c.radius] for c in cyls], nc, 1)[:, 0] + 0.05 * ~active(len(cyls), nc),
+        cyl_height=pad([[c.height] for c in cyls], nc, 1)[:, 0] + 0.1 * ~active(len(cyls), nc),
+        cyl_active=active(len(cyls), nc),
+        spawn=np.array(spawn, f32),
+        layout_id=np.int32(0),
+        friction=f32(1),
+        speed_gain=f32(1),
+        noise_std=f32(0),
+        dropout=f32(0),
+    )
+
+
+def clearance(params: SceneParams, xy: jax.Array) -> jax.Array:
+    """Distance from point `xy` [2] to the nearest wall or active obstacle surface (< 0 inside one)."""
+    walls = jnp.min(params.room_half - jnp.abs(xy))
+    # Boxes: signed distance to a rectangle, in each box's own frame.
+    c, s = jnp.cos(params.box_yaw), jnp.sin(params.box_yaw)  # [Sb]
+    d = xy - params.box_pos  # [Sb, 2]
+    local = jnp.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+    q = jnp.abs(local) - params.box_half
+    box_sdf = jnp.linalg.norm(jnp.maximum(q, 0.0), axis=-1) + jnp.minimum(q.max(-1), 0.0)
+    cyl_sdf = jnp.linalg.norm(xy - params.cyl_pos, axis=-1) - params.cyl_radius  # [Sc]
+    box_sdf = jnp.where(params.box_active, box_sdf, jnp.inf)
+    cyl_sdf = jnp.where(params.cyl_active, cyl_sdf, jnp.inf)
+    return jnp.minimum(
+        walls, jnp.minimum(jnp.min(box_sdf, initial=jnp.inf), jnp.min(cyl_sdf, initial=jnp.inf))
+    )
+
+
+def _uniform(key, bounds, shape=()):
+    lo, hi = bounds
+    return jax.random.uniform(key, shape, minval=lo, maxval=hi)
+
+
+def _place(key, half, bound, spawn_xy, keep_out, count, n, tries=8):
+    """[n, 2] positions inside the room (margin `bound` [n]) and [n] active flags.
+
+    Slot i is active if i < count and one of `tries` uniform candidates keeps its bounding circle
+    `keep_out` away from the spawn; otherwise it stays parked, so the spawn is always free.
+    """
+    limit = jnp.maximum(half - bound[:, None], 0.0)  # [n, 2]
+    cand = jax.random.uniform(key, (n, tries, 2), minval=-1.0, maxval=1.0) * limit[:, None]
+    free = jnp.linalg.norm(cand - spawn_xy, axis=-1) > bound[:, None] + keep_out  # [n, tries]
+    first = jnp.argmax(free, axis=1)
+    pos = jnp.take_along_axis(cand, first[:, None, None], axis=1)[:, 0]
+    return pos, free.any(axis=1) & (jnp.arange(n) < count)
+
+
+def sample_room(key: jax.Array, cfg: RandomizeConfig, nb: int, nc: int) -> SceneParams:
+    """A procedural room with `nb`/`nc` slots; the returned spawn is free by construction."""
+    ks = jax.random.split(key, 10)
+    # Interior extents: uniform per axis in [room_size_min, room_size_max].
+    half = 0.5 * _uniform(ks[0], (jnp.array(cfg.room_size_min), jnp.array(cfg.room_size_max)), (2,))
+    keep_out = robot.BASE_RADIUS + cfg.spawn_clearance
+    # Spawn: uniform over the interior shrunk by the robot and its clearance; heading uniform.
+    spawn_xy = jax.random.uniform(ks[1], (2,), minval=-1.0, maxval=1.0) * (half - keep_out)
+    spawn = jnp.append(spawn_xy, _uniform(ks[2], (-jnp.pi, jnp.pi)))
+    # Boxes: count uniform in num_boxes; full extents uniform in box_size; yaw uniform.
+    box_half = 0.5 * _uniform(ks[3], cfg.box_size, (nb, 2))
+    box_yaw = _uniform(ks[4], (-jnp.pi, jnp.pi), (nb,))
+    n_box = jax.random.randint(ks[5], (), cfg.num_boxes[0], cfg.num_boxes[1] + 1)
+    box_pos, box_active = _place(
+        ks[6], half, jnp.linalg.norm(box_half, axis=-1), spawn_xy, keep_out, n_box, nb
+    )
+    # Cylinders: count uniform in num_cylinders; radius uniform in cylinder_radius.
+    radius = _uniform(ks[7], cfg.cylinder_radius, (nc,))
+    n_cyl = jax.random.randint(ks[8], (), cfg.num_cylinders[0], cfg.num_cylinders[1] + 1)
+    cyl_pos, cyl_active = _place(ks[9], half, radius, spawn_xy, keep_out, n_cyl, nc)
+    # Heights: uniform in obstacle_height.
+    heights = _uniform(jax.random.fold_in(key, 1), cfg.obstacle_height, (nb + nc,))
+    zero = jnp.float32(0)
+    return SceneParams(
+        room_half=half,
+        box_pos=box_pos,
+        box_yaw=box_yaw,
+        box_half=box_half,
+        box_height=heights[:nb],
+        box_active=box_active,
+        cyl_pos=cyl_pos,
+        cyl_radius=radius,
+        cyl_height=heights[nb:],
+        cyl_active=cyl_active,
+        spawn=spawn,
+        layout_id=jnp.int32(-1),
+        friction=zero,
+        speed_gain=zero,
+        noise_std=zero,
+        dropout=zero,
+    )
+
+
+def free_spawn(key: jax.Array, room: SceneParams, clearance_margin: float, tries: int = 64):
+    """[3] a uniform pose whose robot disc keeps `clearance_margin` from walls and obstacles.
+
+    Takes the first of `tries` uniform candidates that is free; if none is (a crowded room), the one
+    with the most clearance.
+    """
+    k_pos, k_yaw = jax.random.split(key)
+    half = jnp.maximum(room.room_half - robot.BASE_RADIUS, 0.0)
+    cand = jax.random.uniform(k_pos, (tries, 2), minval=-1.0, maxval=1.0) * half  # [tries, 2]
+    gap = jax.vmap(lambda p: clearance(room, p))(cand) - robot.BASE_RADIUS  # [tries]
+    ok = gap >= clearance_margin
+    best = jnp.where(ok.any(), jnp.argmax(ok), jnp.argmax(gap))
+    return jnp.append(cand[best], _uniform(k_yaw, (-jnp.pi, jnp.pi)))
+
+
+def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank) -> SceneParams:
+    """One episode's scene: a room, a free spawn pose, physics and sensor parameters."""
+    k_pick, k_room, k_layout, k_spawn, k_rand, k_phys = jax.random.split(key, 6)
+    nb, nc = bank.rooms.box_pos.shape[1], bank.rooms.cyl_pos.shape[1]
+    # Room: a sampled room with probability sampled_room_prob, otherwise a uniform pick of the layouts.
+    sampled = sample_room(k_room, cfg, nb, nc)
+    idx = jax.random.randint(k_layout, (), 0, bank.size)
+    layout = jax.tree_util.tree_map(lambda x: x[idx], bank.rooms).replace(layout_id=idx)
+    # Spawn in a layout: its own pose, or with probability random_spawn_prob (always if it has none)
+    # a uniform free pose.
+    use_random = ~bank.has_spawn[idx] | jax.random.bernoulli(k_rand, cfg.random_spawn_prob)
+    spawn = jnp.where(use_random, free_spawn(k_spawn, layout, cfg.spawn_clearance), layout.spawn)
+    layout = layout.replace(spawn=spawn)
+    use_sampled = jax.random.bernoulli(k_pick, cfg.sampled_room_prob)
+    room = jax.tree_util.tree_map(lambda a, b: jnp.where(use_sampled, a, b), sampled, layout)
+    # Physics and sensor: each uniform in its configured range.
+    kf, kg, kn, kd = jax.random.split(k_phys, 4)
+    return room.replace(
+        friction=_uniform(kf, cfg.friction),
+        speed_gain=_uniform(kg, cfg.speed_gain),
+        noise_std=_uniform(kn, cfg.sensor_noise),
+        dropout=_uniform(kd, cfg.sensor_dropout),
+    )

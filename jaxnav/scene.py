@@ -1,0 +1,174 @@
+"""Rooms on MuJoCo MJX: one model with fixed obstacle slots, per-env geometry in batched fields.
+
+Every env of a batch shares one `mjx.Model` structure (geom types and collision pairs are static),
+while the geometry that differs between rooms (wall positions, obstacle poses and sizes) lives in the
+`geom_pos`, `geom_quat` and `geom_size` fields, rebuilt from each env's `SceneParams`. Unused slots are
+parked under the floor, where neither the robot nor the depth rays can reach them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+ROBOT_XML = SCENES_DIR / "turtlebot2i.xml"
+
+OBSTACLE_GROUP = 1  # geom group of walls and obstacles: the only geoms the depth rays see
+PARK_DEPTH = -10.0  # m; z of parked slots, far below the floor and the rays
+_WALL_NORMALS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]], np.float64)  # east, west, north, south
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneConfig:
+    """Static structure of the simulated room; changing it recompiles."""
+
+    num_boxes: int = 8
+    """Box obstacle slots per room."""
+    num_cylinders: int = 4
+    """Cylinder obstacle slots per room (capsules standing through the floor, see `build_mj_model`)."""
+    timestep: float = 0.05
+    """Physics timestep in seconds; `substeps * timestep` is the control period."""
+    substeps: int = 2
+    """Physics steps per control step."""
+    solver_iterations: int = 4
+    """Constraint solver iterations; contacts only ever involve the robot and one obstacle or wall."""
+
+    def __post_init__(self):
+        for name in ("num_boxes", "num_cylinders"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"SceneConfig.{name}: must be >= 0, got {getattr(self, name)}")
+        if self.timestep <= 0:
+            raise ValueError(f"SceneConfig.timestep: must be > 0, got {self.timestep}")
+        if self.substeps < 1 or self.solver_iterations < 1:
+            raise ValueError("SceneConfig.substeps and solver_iterations: must be >= 1")
+
+    @property
+    def control_period(self) -> float:
+        return self.timestep * self.substeps
+
+
+def yaw_quat(yaw):
+    """[..., 4] MuJoCo (w, x, y, z) quaternion of a rotation by `yaw` about z."""
+    half = 0.5 * jnp.asarray(yaw)
+    zero = jnp.zeros_like(half)
+    return jnp.stack([jnp.cos(half), zero, zero, jnp.sin(half)], axis=-1)
+
+
+def _z_to(normal: np.ndarray) -> list[float]:
+    """Quaternion turning +z onto a horizontal unit `normal` (a quarter turn about z x normal)."""
+    axis = np.array([-normal[1], normal[0], 0.0])
+    return [np.sqrt(0.5), *(np.sqrt(0.5) * axis)]
+
+
+def build_mj_model(cfg: SceneConfig) -> mujoco.MjModel:
+    """Robot MJCF + floor + 4 plane walls + obstacle slots (boxes, then cylinders), all parked.
+
+    Cylinders are capsules whose round part spans z in [0, height]: MJX has no cylinder ray and no
+    cylinder-box collision, while capsules have both, and below the robot's and camera's heights the two
+    shapes are identical.
+    """
+    spec = mujoco.MjSpec.from_file(str(ROBOT_XML))
+    spec.option.timestep = cfg.timestep
+    spec.option.iterations = cfg.solver_iterations
+    spec.option.ls_iterations = cfg.solver_iterations
+    spec.add_material(name="floor", rgba=[0.85, 0.85, 0.8, 1])
+    spec.add_material(name="wall", rgba=[0.7, 0.6, 0.5, 1])
+    spec.add_material(name="obstacle", rgba=[0.3, 0.5, 0.8, 1])
+    world = spec.worldbody
+    world.add_light(pos=[0, 0, 6], dir=[0, 0, -1])
+    world.add_geom(
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[0, 0, 0.05],
+        material="floor",
+        group=2,
+        contype=0,
+        conaffinity=0,
+    )
+    solid = dict(contype=0, conaffinity=1, condim=1, group=OBSTACLE_GROUP)
+    for i, normal in enumerate(_WALL_NORMALS):
+        world.add_geom(
+            name=f"wall{i}",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            size=[0, 0, 0.05],
+            pos=[-normal[0] * 3, -normal[1] * 3, 0],
+            quat=_z_to(normal),
+            material="wall",
+            **solid,
+        )
+    for i in range(cfg.num_boxes):
+        world.add_geom(
+            name=f"box{i}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[0.1, 0.1, 0.1],
+            pos=[0, 0, PARK_DEPTH],
+            material="obstacle",
+            **solid,
+        )
+    for i in range(cfg.num_cylinders):
+        world.add_geom(
+            name=f"cylinder{i}",
+            type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+            size=[0.1, 0.1, 0],
+            pos=[0, 0, PARK_DEPTH],
+            material="obstacle",
+            **solid,
+        )
+    return spec.compile()
+
+
+class Scene:
+    """The compiled room model and the map from `SceneParams` to per-env `mjx.Model` fields."""
+
+    def __init__(self, cfg: SceneConfig = SceneConfig()):
+        self.cfg = cfg
+        self.mj_model = build_mj_model(cfg)
+        self.model = mjx.put_model(self.mj_model)
+        name = lambda n: mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
+        self.wall_ids = np.array([name(f"wall{i}") for i in range(4)])
+        self.box_ids = np.array([name(f"box{i}") for i in range(cfg.num_boxes)], dtype=int)
+        self.cyl_ids = np.array([name(f"cylinder{i}") for i in range(cfg.num_cylinders)], dtype=int)
+        self.robot_body = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_BODY, "base")
+        self.bumper = name("bumper")
+        self.mass = float(self.mj_model.body_mass[self.robot_body])
+        self.yaw_inertia = float(self.mj_model.body_inertia[self.robot_body, 2])
+
+    def geom_fields(self, params) -> dict[str, jax.Array]:
+        """One env's `geom_pos` [G, 3], `geom_quat` [G, 4] and `geom_size` [G, 3] from its params."""
+        pos = jnp.asarray(self.model.geom_pos)
+        quat = jnp.asarray(self.model.geom_quat)
+        size = jnp.asarray(self.model.geom_size)
+        walls = -jnp.asarray(_WALL_NORMALS) * params.room_half  # [4, 2]: each wall's point
+        pos = pos.at[self.wall_ids, :2].set(walls)
+        if self.cfg.num_boxes:
+            half_h = 0.5 * params.box_height  # [Sb]
+            z = jnp.where(params.box_active, half_h, PARK_DEPTH)
+            pos = pos.at[self.box_ids].set(jnp.column_stack([params.box_pos, z]))
+            quat = quat.at[self.box_ids].set(yaw_quat(params.box_yaw))
+            size = size.at[self.box_ids].set(jnp.column_stack([params.box_half, half_h]))
+        if self.cfg.num_cylinders:
+            half_h = 0.5 * params.cyl_height  # [Sc]
+            z = jnp.where(params.cyl_active, half_h, PARK_DEPTH)
+            pos = pos.at[self.cyl_ids].set(jnp.column_stack([params.cyl_pos, z]))
+            radius = params.cyl_radius
+            size = size.at[self.cyl_ids].set(
+                jnp.column_stack([radius, half_h, jnp.zeros_like(radius)])
+            )
+        return {"geom_pos": pos, "geom_quat": quat, "geom_size": size}
+
+    def model_for(self, params) -> mjx.Model:
+        """The `mjx.Model` of one env (use under `jax.vmap` for a batch)."""
+        return self.model.replace(**self.geom_fields(params))
+
+    def batched_model(self, params) -> tuple[mjx.Model, mjx.Model]:
+        """A batch's model with leading-axis geom fields, and the `in_axes` tree to vmap it with."""
+        fields = jax.vmap(self.geom_fields)(params)
+        in_axes = jax.tree_util.tree_map(lambda _: None, self.model)
+        return self.model.replace(**fields), in_axes.replace(**{k: 0 for k in fields})

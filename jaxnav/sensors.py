@@ -1,0 +1,89 @@
+"""The paper's observation: the 8 shortest depth-camera distances, one per slice of the field of view.
+
+A horizontal fan of rays leaves the camera; each ray's hit distance is turned into camera depth (distance
+along the optical axis, what a depth image holds), noised, dropped out, clipped to the camera's range,
+and the minimum is taken per sector. Sectors are ordered right to left (increasing angle, as in a ROS
+LaserScan): obs[0] is the rightmost slice, obs[7] the leftmost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+from jaxnav import robot
+from jaxnav.scene import OBSTACLE_GROUP
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+    """The depth fan's geometry and limits."""
+
+    num_sectors: int = robot.NUM_SECTORS
+    """Slices of the field of view, one observation each."""
+    rays_per_sector: int = 3
+    """Rays cast per slice; more rays see thinner obstacles further away."""
+    fov: float = float(robot.CAMERA_FOV)
+    """Horizontal field of view, rad."""
+    range_min: float = robot.CAMERA_RANGE[0]
+    """Nearest readable depth, m; closer surfaces read this value."""
+    range_max: float = robot.CAMERA_RANGE[1]
+    """Farthest readable depth, m; no return reads this value."""
+
+    def __post_init__(self):
+        if self.num_sectors < 1 or self.rays_per_sector < 1:
+            raise ValueError("SensorConfig.num_sectors and rays_per_sector: must be >= 1")
+        if not 0 < self.fov < np.pi:
+            raise ValueError(f"SensorConfig.fov: must be in (0, pi), got {self.fov}")
+        if not 0 <= self.range_min < self.range_max:
+            raise ValueError("SensorConfig.range_min: need 0 <= range_min < range_max")
+
+    @property
+    def ray_angles(self) -> np.ndarray:
+        """[num_sectors * rays_per_sector] ray angles from the optical axis, right to left, rad."""
+        n = self.num_sectors * self.rays_per_sector
+        return (np.arange(n) + 0.5) / n * self.fov - 0.5 * self.fov
+
+
+def camera_pose(qpos: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """World position [3] and yaw [] of the camera for base pose qpos = (x, y, yaw)."""
+    x, y, yaw = qpos[0], qpos[1], qpos[2]
+    pos = jnp.stack(
+        [
+            x + robot.CAMERA_FORWARD * jnp.cos(yaw),
+            y + robot.CAMERA_FORWARD * jnp.sin(yaw),
+            jnp.asarray(robot.CAMERA_HEIGHT),
+        ]
+    )
+    return pos, yaw
+
+
+def ray_depths(m: mjx.Model, d: mjx.Data, cfg: SensorConfig, robot_body: int) -> jax.Array:
+    """[R] noiseless camera depth of each ray, inf where the ray hits nothing."""
+    pos, yaw = camera_pose(d.qpos)
+    angles = jnp.asarray(cfg.ray_angles, jnp.float32)
+    vecs = jnp.stack([jnp.cos(yaw + angles), jnp.sin(yaw + angles), jnp.zeros_like(angles)], -1)
+    groups = tuple(int(g == OBSTACLE_GROUP) for g in range(6))
+    dist, _ = jax.vmap(lambda v: mjx.ray(m, d, pos, v, geomgroup=groups, bodyexclude=robot_body))(
+        vecs
+    )
+    return jnp.where(dist < 0, jnp.inf, dist * jnp.cos(angles))
+
+
+def sector_minima(depths: jax.Array, cfg: SensorConfig) -> jax.Array:
+    """[num_sectors] clipped minimum of each sector's ray depths [R] (inf = no return)."""
+    per_sector = depths.reshape(cfg.num_sectors, cfg.rays_per_sector)
+    return jnp.clip(per_sector.min(axis=1), cfg.range_min, cfg.range_max)
+
+
+def observe(m, d, params, key, cfg: SensorConfig, robot_body: int) -> jax.Array:
+    """[num_sectors] float32 observation with the episode's noise std and dropout rate."""
+    depths = ray_depths(m, d, cfg, robot_body)
+    k_noise, k_drop = jax.random.split(key)
+    depths = depths + params.noise_std * jax.random.normal(k_noise, depths.shape)
+    dropped = jax.random.bernoulli(k_drop, params.dropout, depths.shape)
+    return sector_minima(jnp.where(dropped, jnp.inf, depths), cfg).astype(jnp.float32)

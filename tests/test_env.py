@@ -1,0 +1,147 @@
+"""The `avoid` environment: shapes, sensing, collisions, Table I rewards, spawns, no recompilation."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import start_in
+
+import jaxnav
+from jaxnav import robot
+from jaxnav.randomize import RandomizeConfig, clearance, sample
+from jaxnav.scene import SCENES_DIR
+
+
+@pytest.fixture(scope="module")
+def mixed_env():
+    layouts = jaxnav.load_layout(SCENES_DIR / "train_room.json") + jaxnav.load_layout(
+        SCENES_DIR / "inference_room.json"
+    )
+    return jaxnav.make_env("avoid", layouts=layouts, max_steps=20)
+
+
+def test_api_sizes(mixed_env):
+    assert mixed_env.observation_size == 8 and mixed_env.action_size == 3
+
+
+def test_unknown_env_lists_valid_names():
+    with pytest.raises(ValueError, match="valid names: avoid"):
+        jaxnav.make_env("goal")
+
+
+def test_batch_of_mixed_layouts_shapes_and_finite(mixed_env):
+    batch = 16
+    reset = jax.jit(jax.vmap(mixed_env.reset))
+    step = jax.jit(jax.vmap(mixed_env.step))
+    state = reset(jax.random.split(jax.random.PRNGKey(0), batch))
+    ids = set(np.asarray(state.params.layout_id).tolist())
+    assert {-1, 0, 1} <= ids, ids  # sampled rooms and both layouts in one batch
+    assert state.obs.shape == (batch, 8) and state.obs.dtype == jnp.float32
+    key = jax.random.PRNGKey(1)
+    for _ in range(25):  # crosses the 20-step time limit: exercises auto-reset
+        key, k = jax.random.split(key)
+        state = step(state, jax.random.randint(k, (batch,), 0, 3))
+        assert (
+            np.isfinite(np.asarray(state.obs)).all() and np.isfinite(np.asarray(state.reward)).all()
+        )
+        lo, hi = robot.CAMERA_RANGE
+        assert (np.asarray(state.obs) >= lo - 1e-6).all() and (np.asarray(state.obs) <= hi).all()
+    assert state.reward.shape == (batch,) and state.done.shape == (batch,)
+
+
+@pytest.mark.parametrize("layout_id, surface_x", [(0, 1.8), (1, 1.3)])
+def test_obstacle_ahead_read_at_its_distance(probe_env, layout_id, surface_x):
+    env, reset, _ = probe_env
+    state = start_in(env, reset, layout_id)
+    expected = surface_x - robot.CAMERA_FORWARD
+    centre = np.asarray(state.obs)[3:5]  # the two sectors around the optical axis
+    np.testing.assert_allclose(centre, expected, atol=0.03)
+    # The side sectors look past the obstacle to the walls: farther.
+    assert np.asarray(state.obs)[[0, 7]].min() > expected + 0.2
+
+
+@pytest.mark.parametrize("layout_id, surface_x", [(0, 1.8), (1, 1.3), (2, 1.5)])
+def test_driving_forward_into_obstacle_ends_with_minus_100(probe_env, layout_id, surface_x):
+    env, reset, step = probe_env
+    state = start_in(env, reset, layout_id)
+    speed = env.task.forward_speed
+    for t in range(100):  # noqa: B007 (t is the step it collided at)
+        state = step(state, jnp.int32(0))
+        if bool(state.done):
+            break
+    assert bool(state.collision) and float(state.reward) == -100.0
+    # It stops where the bumper meets the surface, within one control period of travel.
+    travel = surface_x - robot.BASE_RADIUS
+    assert abs((t + 1) - travel / (speed * 0.1)) <= 2.5, t
+    assert float(state.data.qpos[0]) == pytest.approx(travel, abs=0.06)
+
+
+def test_table_one_rewards(probe_env):
+    env, reset, step = probe_env
+    cfg = env.task
+    state = start_in(env, reset, 2)  # empty 3 m room: 1.5 m to every wall
+    for action, far, near in [(0, 0.6, 0.4), (1, 0.4, 0.6), (2, 0.4, 0.6)]:
+        closest = float(np.min(state.obs))
+        nxt = step(state, jnp.int32(action))
+        expected = (near if closest < cfg.near_threshold else far) - 0.2 / closest
+        assert float(nxt.reward) == pytest.approx(expected, rel=1e-5)
+        assert not bool(nxt.done)
+    # Far case for sure: the wall ahead is 1.38 m from the camera > 1.0 m threshold.
+    first = step(state, jnp.int32(0))
+    assert float(np.min(state.obs)) > cfg.near_threshold
+    assert float(first.reward) == pytest.approx(0.6 - 0.2 / float(np.min(state.obs)), rel=1e-5)
+    # Drive until near: forward reward becomes 0.4 - 0.2 / min(s).
+    while float(np.min(state.obs)) >= cfg.near_threshold:
+        state = step(state, jnp.int32(0))
+    closest = float(np.min(state.obs))
+    assert float(step(state, jnp.int32(0)).reward) == pytest.approx(0.4 - 0.2 / closest, rel=1e-5)
+    assert float(step(state, jnp.int32(1)).reward) == pytest.approx(0.6 - 0.2 / closest, rel=1e-5)
+
+
+def test_spawn_never_overlaps(mixed_env):
+    cfg = RandomizeConfig(random_spawn_prob=1.0)
+    params = jax.jit(jax.vmap(lambda k: sample(k, cfg, mixed_env.bank)))(
+        jax.random.split(jax.random.PRNGKey(3), 4000)
+    )
+    gap = jax.vmap(clearance)(params, params.spawn[:, :2]) - robot.BASE_RADIUS
+    assert float(gap.min()) > 0.0
+    # Nearly all spawns also keep the configured clearance (crowded layouts may fall back).
+    assert float(jnp.mean(gap >= cfg.spawn_clearance - 1e-4)) > 0.99
+    assert (np.asarray(params.layout_id) == -1).any() and (np.asarray(params.layout_id) >= 0).any()
+
+
+def test_layout_change_does_not_recompile(mixed_env):
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def reset(key):
+        return mixed_env.reset(key)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def step(state, action):
+        return mixed_env.step(state, action)
+
+    rooms = set()
+    for seed in range(12):
+        state = reset(jax.random.PRNGKey(seed))
+        rooms.add(int(state.params.layout_id))
+        for _ in range(2):
+            state = step(state, jnp.int32(seed % 3))
+    assert len(rooms) >= 2  # different rooms went through the same compiled functions
+
+
+def test_batched_model_matches_per_env_model(mixed_env):
+    from mujoco import mjx
+
+    scene = mixed_env.scene
+    params = jax.vmap(mixed_env.reset)(jax.random.split(jax.random.PRNGKey(5), 4)).params
+    model, in_axes = scene.batched_model(params)
+    assert model.geom_pos.shape == (4, scene.model.ngeom, 3)
+    data = jax.vmap(lambda p: mjx.make_data(scene.model).replace(qpos=p.spawn))(params)
+    out = jax.vmap(mjx.kinematics, in_axes=(in_axes, 0))(model, data)
+    single = mjx.kinematics(
+        scene.model_for(jax.tree_util.tree_map(lambda x: x[2], params)),
+        jax.tree_util.tree_map(lambda x: x[2], data),
+    )
+    np.testing.assert_allclose(out.geom_xpos[2], single.geom_xpos, atol=1e-6)

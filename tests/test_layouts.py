@@ -1,0 +1,362 @@
+"""Layout format: shipped rooms, round trip, geometry helpers and one test per kind of bad input."""
+
+import copy
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxnav.layouts import (
+    Box,
+    Cylinder,
+    LayoutError,
+    RoomLayout,
+    box_corners,
+    clearance,
+    is_free,
+    layout_to_dict,
+    load_layout,
+    parse_layouts,
+    save_layouts,
+)
+from jaxnav.robot import BASE_RADIUS
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+# A valid 4 m x 4 m room; the bad-input cases each break one thing in a copy of it.
+GOOD = {
+    "name": "office-a",
+    "room": {"size": [4.0, 4.0], "wall_height": 0.5},
+    "robot": {"pos": [0.0, 0.0], "yaw": 0.0},
+    "obstacles": [
+        {"type": "box", "pos": [1.2, 0.5], "size": [0.6, 0.4], "yaw": 0.3, "height": 0.5},
+        {"type": "cylinder", "pos": [-1.0, 1.0], "radius": 0.15, "height": 0.8},
+    ],
+}
+
+
+def write(tmp_path: Path, obj, name: str = "rooms.json") -> Path:
+    path = tmp_path / name
+    path.write_text(obj if isinstance(obj, str) else json.dumps(obj))
+    return path
+
+
+# ------------------------------------------------------------------------------
+# Shipped layouts
+
+
+def _boundary(ob, n: int = 400) -> np.ndarray:
+    """[n, 2] points along an obstacle's footprint outline."""
+    if isinstance(ob, Cylinder):
+        t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        return np.asarray(ob.pos) + ob.radius * np.stack([np.cos(t), np.sin(t)], -1)
+    c = box_corners(ob)
+    t = np.linspace(0, 1, n // 4, endpoint=False)[:, None]
+    return np.concatenate([a + t * (b - a) for a, b in zip(c, np.roll(c, -1, axis=0), strict=True)])
+
+
+def _passage_widths(layout: RoomLayout) -> list[float]:
+    """Gap from each obstacle to its nearest neighbour (another obstacle or a wall)."""
+    widths = []
+    for i, ob in enumerate(layout.obstacles):
+        others = layout.obstacles[:i] + layout.obstacles[i + 1 :]
+        rest = dataclasses.replace(layout, robot_pos=None, robot_yaw=0.0, obstacles=others)
+        widths.append(float(clearance(rest, _boundary(ob)).min()))
+    return widths
+
+
+def test_train_room_loads():
+    (room,) = load_layout(SCENES / "train_room.json")
+    assert room.name == "train-room"
+    assert room.size == (6.0, 6.0)
+    assert room.robot_pos == (0.0, 0.0) and room.robot_yaw == 0.0
+    assert 6 <= len(room.obstacles) <= 8
+    assert room.boxes and room.cylinders
+    assert len(room.boxes) + len(room.cylinders) == len(room.obstacles)
+    assert all(isinstance(b, Box) for b in room.boxes)
+    # At least 0.8 m of free driving straight ahead (+x) of the spawn.
+    ahead = np.stack([np.linspace(0.0, 0.8, 17), np.zeros(17)], axis=-1)
+    assert is_free(room, ahead, BASE_RADIUS).all()
+
+
+def test_inference_room_loads_and_differs():
+    (room,) = load_layout(SCENES / "inference_room.json")
+    (train,) = load_layout(SCENES / "train_room.json")
+    assert room.name == "inference-room"
+    assert room.size == (5.0, 7.0)
+    assert 6 <= len(room.obstacles) <= 8
+    assert room.boxes and room.cylinders
+    assert {ob.pos for ob in room.obstacles}.isdisjoint({ob.pos for ob in train.obstacles})
+    # Spawn near the south wall, facing into the room.
+    assert room.robot_pos[1] < -0.5 * room.size[1] + 1.0
+    assert math.isclose(room.robot_yaw, math.pi / 2)
+
+
+@pytest.mark.parametrize("name", ["train_room.json", "inference_room.json"])
+def test_shipped_passages_fit_the_robot(name):
+    """Obstacles either touch a wall/neighbour or leave >= 0.9 m for the 0.354 m robot."""
+    (room,) = load_layout(SCENES / name)
+    for i, width in enumerate(_passage_widths(room)):
+        assert width < 1e-6 or width >= 0.9, f"obstacles[{i}]: gap {width:.3f} m"
+
+
+# ------------------------------------------------------------------------------
+# Round trip
+
+
+def test_round_trip_dict():
+    (layout,) = parse_layouts(GOOD)
+    assert parse_layouts([layout_to_dict(layout)]) == [layout]
+    assert json.loads(json.dumps(layout_to_dict(layout))) == layout_to_dict(layout)
+
+
+def test_round_trip_files(tmp_path):
+    layouts = load_layout(SCENES / "train_room.json") + load_layout(SCENES / "inference_room.json")
+    unnamed = dict(GOOD, name="sampled-spawn")
+    del unnamed["robot"]
+    layouts += parse_layouts(unnamed)
+    path = tmp_path / "set.json"
+    save_layouts(path, layouts)
+    assert load_layout(path) == layouts
+    assert isinstance(json.loads(path.read_text()), list)
+    save_layouts(path, layouts[0])  # a single layout is written as one room object
+    assert isinstance(json.loads(path.read_text()), dict)
+    assert load_layout(path) == layouts[:1]
+    assert [p.name for p in tmp_path.iterdir()] == ["set.json"]  # no temp file left behind
+
+
+def test_defaults_and_optional_fields():
+    minimal = {
+        "room": {"size": [3, 2]},
+        "obstacles": [{"type": "cylinder", "pos": [0, 0.5], "radius": 0.1}],
+    }
+    (layout,) = parse_layouts([minimal, {"room": {"size": [2, 2]}}])[:1]
+    assert layout.name == "room-0"
+    assert layout.size == (3.0, 2.0) and isinstance(layout.size[0], float)
+    assert layout.wall_height == 0.5 and layout.robot_pos is None
+    assert layout.obstacles == (Cylinder(pos=(0.0, 0.5), radius=0.1, height=0.5),)
+    assert parse_layouts({"room": {"size": [2, 2]}})[0].obstacles == ()
+
+
+def test_programmatic_layout_is_validated():
+    with pytest.raises(LayoutError, match=r"room 'x': obstacles\[0\]: box .* east wall"):
+        RoomLayout(name="x", size=(2.0, 2.0), obstacles=(Box(pos=(0.9, 0.0), size=(0.4, 0.4)),))
+    with pytest.raises(LayoutError, match="size: must be two positive numbers"):
+        Box(pos=(0, 0), size=(0.0, 1.0))
+
+
+# ------------------------------------------------------------------------------
+# Geometry
+
+
+def test_clearance_one_metre_from_a_box_face():
+    room = RoomLayout(
+        name="g", size=(10.0, 10.0), obstacles=(Box(pos=(0.0, 0.0), size=(1.0, 1.0)),)
+    )
+    assert clearance(room, [1.5, 0.0]) == pytest.approx(1.0)
+    assert clearance(room, [0.0, -1.5]) == pytest.approx(1.0)
+    assert clearance(room, [0.0, 0.0]) == pytest.approx(-0.5)  # centre: 0.5 m deep inside
+    assert clearance(room, [4.5, 0.0]) == pytest.approx(0.5)  # nearer to the east wall
+
+
+def test_clearance_inside_a_cylinder_is_negative():
+    room = RoomLayout(
+        name="g", size=(10.0, 10.0), obstacles=(Cylinder(pos=(2.0, 2.0), radius=0.5),)
+    )
+    assert clearance(room, (2.2, 2.0)) == pytest.approx(-0.3)
+    assert clearance(room, (2.0, 3.0)) == pytest.approx(0.5)
+
+
+def test_yawed_box_corners_and_corner_distance():
+    box = Box(pos=(1.0, 1.0), size=(2.0, 1.0), yaw=math.pi / 2)
+    corners = box_corners(box)
+    assert corners.shape == (4, 2)
+    expected = {(1.5, 0.0), (1.5, 2.0), (0.5, 2.0), (0.5, 0.0)}
+    assert {tuple(np.round(c, 9) + 0.0) for c in corners} == expected
+    room = RoomLayout(name="g", size=(10.0, 10.0), obstacles=(box,))
+    # Diagonally off the (1.5, 2.0) corner by (0.3, 0.4): 0.5 m to the corner.
+    assert clearance(room, (1.8, 2.4)) == pytest.approx(0.5)
+
+
+def test_is_free_and_batches():
+    room = RoomLayout(name="g", size=(4.0, 4.0), obstacles=(Box(pos=(0.0, 0.0), size=(1.0, 1.0)),))
+    assert is_free(room, (1.0, 0.0), 0.4) is True
+    assert is_free(room, (1.0, 0.0), 0.5) is False  # touching is not free
+    assert is_free(room, (1.85, -1.0), BASE_RADIUS) is False  # into the east wall
+    pts = np.array([[[1.5, 0.0], [0.0, 0.0]], [[1.0, 1.0], [-1.9, 1.9]]])
+    dist = clearance(room, pts)
+    assert dist.shape == (2, 2)
+    np.testing.assert_allclose(dist, [[0.5, -0.5], [math.sqrt(0.5), 0.1]])
+    np.testing.assert_array_equal(is_free(room, pts, 0.2), [[True, False], [True, False]])
+
+
+# ------------------------------------------------------------------------------
+# Bad input: each error names the file, the room and the field
+
+
+def _set(path: str, value):
+    """A mutation of GOOD setting a dotted path (obstacles[i] indexes; value None deletes)."""
+
+    def mutate(room):
+        *parents, last = path.replace("[", ".").replace("]", "").split(".")
+        node = room
+        for key in parents:
+            node = node[int(key)] if key.isdigit() else node[key]
+        key = int(last) if last.isdigit() else last
+        if value is None:
+            del node[key]
+        else:
+            node[key] = value
+        return room
+
+    return mutate
+
+
+BAD = [
+    # id, mutation, field named, further fragments
+    ("unknown-type", _set("obstacles[1].type", "sphere"), "obstacles[1].type",
+     ["'sphere'", "'box', 'cylinder'"]),
+    ("negative-size", _set("obstacles[0].size", [-1.0, 0.3]), "obstacles[0].size",
+     ["must be two positive numbers, got [-1.0, 0.3]"]),
+    ("zero-radius", _set("obstacles[1].radius", 0), "obstacles[1].radius", ["positive"]),
+    ("zero-height", _set("obstacles[1].height", 0.0), "obstacles[1].height", ["positive"]),
+    ("negative-room", _set("room.size", [4.0, -4.0]), "room.size", ["positive"]),
+    ("zero-wall-height", _set("room.wall_height", 0), "room.wall_height", ["positive"]),
+    ("box-outside", _set("obstacles[0].pos", [1.9, 0.5]), "obstacles[0]", ["east wall"]),
+    ("cylinder-outside", _set("obstacles[1].pos", [-1.0, -1.9]), "obstacles[1]", ["south wall"]),
+    # 0.7 m square at x=1.6 fits (x <= 1.95) unrotated, its 45-degree corner reaches x = 2.095.
+    ("box-outside-after-yaw", _set("obstacles[0]", {"type": "box", "pos": [1.6, 0.0],
+     "size": [0.7, 0.7], "yaw": math.pi / 4}), "obstacles[0]", ["east wall", "0.095 m"]),
+    ("spawn-in-box", _set("robot.pos", [1.2, 0.5]), "robot.pos", ["obstacles[0] (box)"]),
+    ("spawn-near-cylinder", _set("robot.pos", [-0.75, 1.0]), "robot.pos",
+     ["obstacles[1] (cylinder)"]),
+    ("spawn-in-wall", _set("robot.pos", [1.9, -1.5]), "robot.pos", ["east wall"]),
+    ("spawn-outside", _set("robot.pos", [0.0, 5.0]), "robot.pos", ["north wall"]),
+    ("unknown-key", _set("obstacles[1].radus", 0.2), "obstacles[1].radus",
+     ["did you mean 'radius'?"]),
+    ("unknown-top-key", _set("obstacle", []), "obstacle", ["did you mean 'obstacles'?"]),
+    ("unknown-room-key", _set("room.wall_heigth", 1), "room.wall_heigth",
+     ["did you mean 'wall_height'?"]),
+    ("yaw-on-cylinder", _set("obstacles[1].yaw", 0.1), "obstacles[1].yaw", ["valid keys"]),
+    ("string-size", _set("room.size", "6x5"), "room.size", ['got "6x5"']),
+    ("three-element-pos", _set("robot.pos", [0, 0, 0]), "robot.pos", ["two numbers"]),
+    ("bool-as-number", _set("obstacles[0].yaw", True), "obstacles[0].yaw", ["got true"]),
+    ("bool-in-pair", _set("obstacles[0].pos", [1, False]), "obstacles[0].pos", ["two numbers"]),
+    ("nan", _set("obstacles[1].height", float("nan")), "obstacles[1].height", ["finite"]),
+    ("infinity", _set("robot.yaw", float("inf")), "robot.yaw", ["finite"]),
+    ("obstacles-not-list", _set("obstacles", {"type": "box"}), "obstacles", ["list"]),
+    ("obstacle-not-object", _set("obstacles[0]", [1, 2]), "obstacles[0]", ["object"]),
+    ("room-not-object", _set("room", [4, 4]), "room", ["object"]),
+    ("name-not-string", _set("name", 7), "name", ["string"]),
+    ("missing-room", _set("room", None), "room", ["missing"]),
+    ("missing-room-size", _set("room.size", None), "room.size", ["missing"]),
+    ("missing-type", _set("obstacles[0].type", None), "obstacles[0].type", ["missing"]),
+    ("missing-pos", _set("obstacles[1].pos", None), "obstacles[1].pos", ["missing"]),
+    ("missing-box-size", _set("obstacles[0].size", None), "obstacles[0].size", ["missing"]),
+    ("missing-radius", _set("obstacles[1].radius", None), "obstacles[1].radius", ["missing"]),
+    ("missing-robot-pos", _set("robot.pos", None), "robot.pos", ["missing"]),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("mutate", "field", "fragments"), [b[1:] for b in BAD], ids=[b[0] for b in BAD]
+)
+def test_bad_room(tmp_path, mutate, field, fragments):
+    # The bad room is the second of the file, so the index in the message is checked too.
+    other = dict(copy.deepcopy(GOOD), name="lobby")
+    bad = mutate(copy.deepcopy(GOOD))
+    path = write(tmp_path, [other, bad])
+    with pytest.raises(LayoutError) as info:
+        load_layout(path)
+    msg = str(info.value)
+    named = isinstance(bad.get("name"), str)
+    room = "room 'office-a' (#1)" if named else "room #1"
+    assert msg.startswith(f"{path}: {room}: {field}: "), msg
+    for fragment in fragments:
+        assert fragment in msg, msg
+    assert "\n" not in msg
+    assert info.value.field == field and info.value.index == 1
+
+
+def test_unnamed_room_is_named_by_index(tmp_path):
+    bad = _set("obstacles[0].size", [0.0, 1.0])(copy.deepcopy(GOOD))
+    del bad["name"]
+    path = write(tmp_path, bad)
+    with pytest.raises(LayoutError) as info:
+        load_layout(path)
+    assert str(info.value).startswith(f"{path}: room #0: obstacles[0].size: must be two positive")
+    assert "room-0" not in str(info.value)
+
+
+def test_box_fits_before_yaw(tmp_path):
+    """Control for the box-outside-after-yaw case: the same box unrotated is accepted."""
+    ok = _set("obstacles[0]", {"type": "box", "pos": [1.6, 0.0], "size": [0.7, 0.7]})
+    assert load_layout(write(tmp_path, ok(copy.deepcopy(GOOD))))[0].boxes[0].yaw == 0.0
+
+
+@pytest.mark.parametrize(
+    ("rooms", "field", "room", "fragment"),
+    [
+        ([GOOD, 5], None, "room #1", "must be a room object, got a number"),
+        ([GOOD, GOOD], "name", "room 'office-a' (#1)", "duplicate room name"),
+    ],
+    ids=["entry-not-object", "duplicate-name"],
+)
+def test_bad_room_list(tmp_path, rooms, field, room, fragment):
+    path = write(tmp_path, rooms)
+    with pytest.raises(LayoutError) as info:
+        load_layout(path)
+    parts = [str(path), room] + ([field] if field else [])
+    assert str(info.value).startswith(": ".join(parts) + ": "), str(info.value)
+    assert fragment in str(info.value)
+
+
+def test_duplicate_key(tmp_path):
+    text = json.dumps(GOOD).replace('"radius": 0.15', '"radius": 0.15, "radius": 0.2')
+    path = write(tmp_path, text)
+    with pytest.raises(
+        LayoutError, match=r"room 'office-a' \(#0\): obstacles\[1\]\.radius: key given"
+    ):
+        load_layout(path)
+
+
+@pytest.mark.parametrize(
+    ("content", "fragment"),
+    [
+        ('{"name": "a",\n  "room": {"size": [4, 4]]}', "invalid JSON at line 2, column 26"),
+        ("", "invalid JSON at line 1, column 1"),
+        ("[]", "empty list"),
+        ('"room"', "expected a room object or a list of rooms, got a string"),
+    ],
+    ids=["invalid-json", "empty-file", "empty-list", "not-a-room"],
+)
+def test_bad_file(tmp_path, content, fragment):
+    path = write(tmp_path, content)
+    with pytest.raises(LayoutError) as info:
+        load_layout(path)
+    assert str(info.value).startswith(f"{path}: "), str(info.value)
+    assert fragment in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nope.json"
+    with pytest.raises(LayoutError, match=r"nope\.json: no such file"):
+        load_layout(path)
+    with pytest.raises(LayoutError, match="is a directory"):
+        load_layout(tmp_path)
+
+
+def test_parse_layouts_source_and_save_errors(tmp_path):
+    with pytest.raises(LayoutError, match=r"^<layout>: room 'office-a' \(#0\): room\.size"):
+        parse_layouts(_set("room.size", "big")(copy.deepcopy(GOOD)))
+    with pytest.raises(LayoutError, match="nothing to save"):
+        save_layouts(tmp_path / "x.json", [])
+    (layout,) = parse_layouts(GOOD)
+    with pytest.raises(LayoutError, match="duplicate room name"):
+        save_layouts(tmp_path / "x.json", [layout, layout])
+    assert not any(tmp_path.iterdir())
+    assert issubclass(LayoutError, ValueError)
