@@ -1,0 +1,86 @@
+"""Env-only throughput: random-policy rollouts of the default `avoid` distribution.
+
+    python benchmarks/env_rollout.py --num-envs 1024 --steps 100 --json benchmarks/env_rollout.json
+
+Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
+and prints env-steps/s per batch size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+
+import jaxnav
+
+
+def measure(num_envs: int, steps: int, repeats: int) -> dict:
+    env = jaxnav.make_env("avoid")
+    reset = jax.jit(jax.vmap(env.reset))
+
+    @jax.jit
+    def rollout(state, key):
+        def body(carry, k):
+            state, total = carry
+            action = jax.random.randint(k, (num_envs,), 0, env.action_size)
+            state = jax.vmap(env.step)(state, action)
+            return (state, total + state.reward.sum()), None
+
+        (state, total), _ = jax.lax.scan(
+            body, (state, jnp.float32(0)), jax.random.split(key, steps)
+        )
+        return state, total
+
+    tick = time.perf_counter()
+    state = jax.block_until_ready(reset(jax.random.split(jax.random.PRNGKey(0), num_envs)))
+    state, _ = jax.block_until_ready(rollout(state, jax.random.PRNGKey(1)))
+    compile_s = time.perf_counter() - tick
+    best = float("inf")
+    for i in range(repeats):
+        tick = time.perf_counter()
+        state, _ = jax.block_until_ready(rollout(state, jax.random.PRNGKey(2 + i)))
+        best = min(best, time.perf_counter() - tick)
+    return {
+        "num_envs": num_envs,
+        "steps": steps,
+        "compile_s": round(compile_s, 2),
+        "seconds": round(best, 4),
+        "env_steps_per_s": round(num_envs * steps / best),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--num-envs", default="1024", help="comma-separated batch sizes")
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--json", help="write the results here")
+    args = parser.parse_args()
+    rows = [measure(int(n), args.steps, args.repeats) for n in args.num_envs.split(",")]
+    device = jax.devices()[0]
+    result = {
+        "device": f"{device.platform}: {device.device_kind}",
+        "cpus": jax.local_device_count(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "rows": rows,
+    }
+    print(
+        f"{'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   ({result['device']})"
+    )
+    for r in rows:
+        print(
+            f"{r['num_envs']:>8} {r['steps']:>6} {r['compile_s']:>10} {r['env_steps_per_s']:>12,}"
+        )
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(result, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()

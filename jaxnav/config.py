@@ -1,0 +1,149 @@
+"""A training run's full configuration, its JSON form, and command-line flags generated from it."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+from typing import Any
+
+from jaxnav.envs.avoid import AvoidConfig
+from jaxnav.ppo.config import PPOConfig
+from jaxnav.randomize import RandomizeConfig
+from jaxnav.scene import SceneConfig
+from jaxnav.sensors import SensorConfig
+
+# Config groups of a run: (attribute, class, flag prefix). PPO flags have no prefix.
+GROUPS = (
+    ("ppo", PPOConfig, ""),
+    ("task", AvoidConfig, "task."),
+    ("randomize", RandomizeConfig, "randomize."),
+    ("sensor", SensorConfig, "sensor."),
+    ("scene", SceneConfig, "scene."),
+)
+_NOT_FLAGS = {("task", "auto_reset")}  # training always auto-resets
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything that defines a training run; saved as config.json in the run folder."""
+
+    ppo: PPOConfig = PPOConfig()
+    """Learner hyper-parameters."""
+    task: AvoidConfig = AvoidConfig()
+    """Task: speeds, reward table, episode length."""
+    randomize: RandomizeConfig = RandomizeConfig()
+    """Per-episode randomisation ranges."""
+    sensor: SensorConfig = SensorConfig()
+    """Depth sensor geometry."""
+    scene: SceneConfig = SceneConfig()
+    """Physics timestep, substeps and obstacle slot counts."""
+    layouts: tuple[dict, ...] | None = None
+    """Training rooms in the layout JSON format; None = the default rooms."""
+    seed: int = 0
+    """Seed of everything random in the run."""
+    preset: str = "cpu"
+    """Name of the preset the PPO settings started from."""
+    env: str = "avoid"
+    """Task name for `make_env`."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any]) -> RunConfig:
+        """Inverse of `to_dict`; unknown or missing keys raise ValueError naming them."""
+        kwargs = dict(raw)
+        for attr, group_cls, _ in GROUPS:
+            kwargs[attr] = _build(group_cls, kwargs.get(attr, {}), attr)
+        if kwargs.get("layouts") is not None:
+            kwargs["layouts"] = tuple(kwargs["layouts"])
+        unknown = set(kwargs) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"config: unknown keys {sorted(unknown)}")
+        return cls(**kwargs)
+
+    def env_kwargs(self) -> dict[str, Any]:
+        """`make_env` keyword arguments that define the robot and task (not the rooms or their
+        randomisation, which evaluation chooses itself)."""
+        return dict(task=self.task, sensor=self.sensor, scene=self.scene)
+
+
+def _build(cls, values: dict, where: str):
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(values) - names
+    if unknown:
+        raise ValueError(f"config: unknown keys in '{where}': {sorted(unknown)}")
+    fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+    for k, v in fixed.items():
+        if typing.get_origin(hints[k]) is tuple and not isinstance(v, tuple):
+            raise ValueError(f"config: {where}.{k} must be a list")
+    return cls(**fixed)
+
+
+def add_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per config field: `--num-envs` for PPO, `--task.near-threshold` etc. for the rest.
+
+    Defaults are None so that only flags the user gave override the preset.
+    """
+    for attr, cls, prefix in GROUPS:
+        group = parser.add_argument_group(f"{attr} settings" if prefix else "PPO settings")
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if (attr, f.name) in _NOT_FLAGS:
+                continue
+            flag = "--" + prefix + f.name.replace("_", "-")
+            kind, nargs = _flag_type(hints[f.name])
+            help_text = (_field_doc(cls, f.name) + f" (default: {f.default})").replace("%", "%%")
+            group.add_argument(
+                flag,
+                dest=f"{attr}.{f.name}",
+                type=kind,
+                nargs=nargs,
+                default=None,
+                help=help_text,
+                metavar=f.name.upper(),
+            )
+
+
+def _flag_type(hint):
+    if hint is bool:
+        return _parse_bool, None
+    if typing.get_origin(hint) is tuple:
+        args = typing.get_args(hint)
+        return args[0], ("+" if args[-1] is Ellipsis else len(args))
+    return hint, None
+
+
+def _parse_bool(text: str) -> bool:
+    if text.lower() in ("1", "true", "yes", "on"):
+        return True
+    if text.lower() in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true or false, got '{text}'")
+
+
+def _field_doc(cls, name: str) -> str:
+    """The docstring written under a dataclass field (see the config classes)."""
+    import ast
+    import inspect
+    import textwrap
+
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body
+    for node, nxt in zip(body, body[1:], strict=False):
+        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", None) == name:
+            if isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant):
+                return " ".join(str(nxt.value.value).split())
+    return ""
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """{group: {field: value}} of the flags the user gave."""
+    out: dict[str, dict[str, Any]] = {attr: {} for attr, _, _ in GROUPS}
+    for dest, value in vars(args).items():
+        if "." in dest and value is not None:
+            attr, name = dest.split(".", 1)
+            out[attr][name] = tuple(value) if isinstance(value, list) else value
+    return out

@@ -1,0 +1,142 @@
+"""PPO hyper-parameters and the named presets (`paper` = the paper's Table II)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from jaxnav.ppo.networks import CRITIC_OUTPUTS
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """Hyper-parameters of one training run. Derived sizes are properties."""
+
+    num_envs: int = 256
+    """Robots simulated in parallel."""
+    total_steps: int = 3_000_000
+    """Environment steps (all robots together) to train for; rounded down to whole updates."""
+    rollout_length: int = 32
+    """Horizon T: control steps per robot between two updates (Table II: 100)."""
+    num_epochs: int = 4
+    """Passes of SGD over each rollout (Table II: 10)."""
+    minibatch_size: int = 2048
+    """Transitions per gradient step (Table II batch size: 128); must divide num_envs * rollout."""
+    learning_rate: float = 1e-3
+    """Adam step size (Table II: 0.001)."""
+    anneal_lr: bool = False
+    """Decay the learning rate linearly to 0 over training."""
+    gamma: float = 0.99
+    """Discount factor (Table II: 0.99)."""
+    gae_lambda: float = 0.95
+    """GAE parameter lambda (Table II: 0.95)."""
+    clip_eps: float = 0.2
+    """Clipping parameter epsilon of the surrogate (Table II: 0.2)."""
+    vf_coef: float = 0.5
+    """Weight of the value loss."""
+    ent_coef: float = 0.01
+    """Weight of the entropy bonus."""
+    max_grad_norm: float = 0.5
+    """Global gradient-norm clip."""
+    clip_value: bool = False
+    """PPO value clipping with clip_eps (slows the critic when returns reach -100)."""
+    hidden: tuple[int, ...] = (64, 64)
+    """Hidden layer widths of the actor and critic MLPs (paper: 2 x 64, LeakyReLU)."""
+    critic_output: str = "linear"
+    """'tanh' (paper: values in [-1, 1]) or 'linear' (unbounded, fits Table I's -100)."""
+    reward_scale: float = 1.0
+    """Rewards are multiplied by this for learning (use 0.01 with a tanh critic); logs stay raw."""
+    normalize_obs: bool = True
+    """Standardise observations with running mean/variance."""
+    updates_per_chunk: int = 10
+    """Updates per jitted call; progress, metrics and checkpoints happen between chunks."""
+    checkpoint_every: int = 50
+    """Write a checkpoint every this many updates (and at the end)."""
+
+    def __post_init__(self):
+        positive = (
+            "num_envs",
+            "total_steps",
+            "rollout_length",
+            "num_epochs",
+            "minibatch_size",
+            "updates_per_chunk",
+            "checkpoint_every",
+        )
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise ValueError(
+                    f"--{name.replace('_', '-')}: must be >= 1, got {getattr(self, name)}"
+                )
+        if self.batch_size % self.minibatch_size:
+            raise ValueError(
+                f"--minibatch-size {self.minibatch_size} must divide --num-envs x --rollout-length = "
+                f"{self.num_envs} x {self.rollout_length} = {self.batch_size}"
+            )
+        if self.total_steps < self.batch_size:
+            raise ValueError(
+                f"--total-steps {self.total_steps} is less than one rollout "
+                f"(--num-envs x --rollout-length = {self.batch_size})"
+            )
+        for name in ("gamma", "gae_lambda"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"--{name.replace('_', '-')}: must be in [0, 1]")
+        if self.learning_rate <= 0 or self.clip_eps <= 0 or self.max_grad_norm <= 0:
+            raise ValueError("--learning-rate, --clip-eps and --max-grad-norm: must be > 0")
+        if self.critic_output not in CRITIC_OUTPUTS:
+            raise ValueError(f"--critic-output: must be one of {CRITIC_OUTPUTS}")
+        if not self.hidden or min(self.hidden) < 1:
+            raise ValueError("--hidden: need at least one layer of >= 1 unit")
+
+    @property
+    def batch_size(self) -> int:
+        """Transitions per update."""
+        return self.num_envs * self.rollout_length
+
+    @property
+    def num_minibatches(self) -> int:
+        return self.batch_size // self.minibatch_size
+
+    @property
+    def num_updates(self) -> int:
+        return self.total_steps // self.batch_size
+
+
+PRESETS: dict[str, dict] = {
+    # Table II: one robot, 1,500 updates of horizon 100, tanh critic. Its batch of 128 exceeds
+    # the 100 transitions one robot collects per horizon, so each SGD step takes the whole rollout.
+    "paper": dict(
+        num_envs=1,
+        total_steps=150_000,
+        rollout_length=100,
+        num_epochs=10,
+        minibatch_size=100,
+        learning_rate=1e-3,
+        gamma=0.99,
+        gae_lambda=0.95,
+        clip_eps=0.2,
+        critic_output="tanh",
+        normalize_obs=False,
+        updates_per_chunk=25,
+        checkpoint_every=250,
+    ),
+    # The default: hundreds of robots, solves the task on a 2-core CPU in minutes.
+    "cpu": dict(),
+    # Thousands of robots on one accelerator.
+    "gpu": dict(
+        num_envs=8192,
+        total_steps=200_000_000,
+        rollout_length=32,
+        minibatch_size=16384,
+        num_epochs=4,
+        learning_rate=3e-4,
+        updates_per_chunk=20,
+        checkpoint_every=100,
+    ),
+}
+
+
+def preset(name: str, **overrides) -> PPOConfig:
+    """The named preset with `overrides` applied; unknown names list the valid ones."""
+    if name not in PRESETS:
+        raise ValueError(f"--preset: unknown preset '{name}'; valid: {', '.join(PRESETS)}")
+    return PPOConfig(**{**PRESETS[name], **overrides})

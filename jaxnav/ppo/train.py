@@ -1,0 +1,214 @@
+"""PPO as jitted chunks: `make_train(cfg, env)` -> `Trainer(init, run_chunk, train)`.
+
+One update = `_rollout` (scan over the horizon, all robots vmapped) -> GAE -> `_update_epoch` x E,
+each a scan of `_update_minibatch`. `run_chunk` scans `updates_per_chunk` updates so the host can log,
+draw and checkpoint between chunks; `train` runs everything in one jitted call.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from jaxnav.ppo.config import PPOConfig
+from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
+from jaxnav.ppo.networks import (
+    ActorCritic,
+    RunningStats,
+    init_stats,
+    log_prob,
+    normalize,
+    sample_action,
+    update_stats,
+)
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a run needs to continue: the learner, the robots and the RNG."""
+
+    params: dict  # actor and critic weights
+    opt_state: optax.OptState
+    obs_stats: RunningStats  # observation normaliser (identity when normalize_obs is off)
+    env_state: object  # EnvState with a leading [num_envs] axis
+    key: jax.Array
+    update: jax.Array  # [] int32, updates done
+
+
+class Transition(NamedTuple):
+    raw_obs: jax.Array  # [T, N, D] observation as sensed, for the normaliser
+    obs: jax.Array  # [T, N, D] normalised observation the action was chosen on
+    action: jax.Array  # [T, N]
+    log_prob: jax.Array  # [T, N]
+    value: jax.Array  # [T, N]
+    reward: jax.Array  # [T, N] raw Table I reward
+    done: jax.Array  # [T, N]
+    truncated: jax.Array  # [T, N]
+    collision: jax.Array  # [T, N]
+    episode_return: jax.Array  # [T, N] return of the episode that ended at this step
+    episode_length: jax.Array  # [T, N]
+
+
+class Trainer(NamedTuple):
+    network: ActorCritic
+    init: callable  # key -> TrainState
+    run_chunk: callable  # TrainState -> (TrainState, metrics [updates_per_chunk])
+    train: callable  # key -> (TrainState, metrics [num_updates // updates_per_chunk * chunk])
+
+
+def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
+    lr = cfg.learning_rate
+    if cfg.anneal_lr:
+        steps = cfg.num_updates * cfg.num_epochs * cfg.num_minibatches
+        lr = optax.linear_schedule(cfg.learning_rate, 0.0, steps)
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(lr, eps=1e-5))
+
+
+def make_network(cfg: PPOConfig, action_size: int) -> ActorCritic:
+    return ActorCritic(action_size, hidden=tuple(cfg.hidden), critic_output=cfg.critic_output)
+
+
+def episode_metrics(traj: Transition) -> dict[str, jax.Array]:
+    """Means over the episodes that ended during a rollout (nan if none did)."""
+    done = traj.done.astype(jnp.float32)
+    n = done.sum()
+    mean = lambda x: jnp.where(n > 0, (x * done).sum() / jnp.maximum(n, 1.0), jnp.nan)  # noqa: E731
+    return {
+        "episode_reward": mean(traj.episode_return),
+        "episode_length": mean(traj.episode_length.astype(jnp.float32)),
+        "collision_rate": mean(traj.collision.astype(jnp.float32)),
+        "episodes": n,
+    }
+
+
+def make_train(cfg: PPOConfig, env) -> Trainer:
+    """Builds the jitted PPO functions for `env` (any object with vmappable reset/step)."""
+    network = make_network(cfg, env.action_size)
+    optimizer = make_optimizer(cfg)
+    reset, step = jax.vmap(env.reset), jax.vmap(env.step)
+    norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
+
+    def init(key: jax.Array) -> TrainState:
+        k_net, k_env, key = jax.random.split(key, 3)
+        params = network.init(k_net, jnp.zeros((1, env.observation_size)))
+        env_state = reset(jax.random.split(k_env, cfg.num_envs))
+        return TrainState(
+            params=params,
+            opt_state=optimizer.init(params),
+            obs_stats=init_stats(env.observation_size),
+            env_state=env_state,
+            key=key,
+            update=jnp.int32(0),
+        )
+
+    def _rollout(ts: TrainState):
+        def _env_step(carry, _):
+            env_state, key = carry
+            key, k_act = jax.random.split(key)
+            obs = norm(ts.obs_stats, env_state.obs)  # [N, D]
+            logits, value = network.apply(ts.params, obs)
+            action = sample_action(k_act, logits)  # [N]
+            nxt = step(env_state, action)
+            tr = Transition(
+                env_state.obs,
+                obs,
+                action,
+                log_prob(logits, action),
+                value,
+                nxt.reward,
+                nxt.done,
+                nxt.truncated,
+                nxt.collision,
+                nxt.last_return,
+                nxt.last_length,
+            )
+            return (nxt, key), tr
+
+        (env_state, key), traj = jax.lax.scan(
+            _env_step, (ts.env_state, ts.key), None, cfg.rollout_length
+        )
+        return env_state, key, traj
+
+    def _update_minibatch(carry, batch: Batch):
+        params, opt_state = carry
+        grads, metrics = jax.grad(ppo_loss, has_aux=True)(
+            params,
+            network.apply,
+            batch,
+            clip_eps=cfg.clip_eps,
+            vf_coef=cfg.vf_coef,
+            ent_coef=cfg.ent_coef,
+            clip_value=cfg.clip_value,
+        )
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), metrics
+
+    def _update_epoch(carry, _):
+        params, opt_state, batch, key = carry
+        key, k_perm = jax.random.split(key)
+        perm = jax.random.permutation(k_perm, cfg.batch_size)
+        shuffled = jax.tree_util.tree_map(
+            lambda x: x[perm].reshape(cfg.num_minibatches, cfg.minibatch_size, *x.shape[1:]), batch
+        )
+        (params, opt_state), metrics = jax.lax.scan(
+            _update_minibatch, (params, opt_state), shuffled
+        )
+        return (params, opt_state, batch, key), metrics
+
+    def _update(ts: TrainState) -> tuple[TrainState, dict]:
+        env_state, key, traj = _rollout(ts)
+        last_value = network.apply(ts.params, norm(ts.obs_stats, env_state.obs))[1]  # [N]
+        adv, targets = compute_gae(
+            traj.reward * cfg.reward_scale,
+            traj.value,
+            traj.done,
+            last_value,
+            cfg.gamma,
+            cfg.gae_lambda,
+            truncations=traj.truncated,
+        )
+        flat = lambda x: x.reshape(cfg.batch_size, *x.shape[2:])  # noqa: E731
+        batch = Batch(
+            flat(traj.obs),
+            flat(traj.action),
+            flat(traj.log_prob),
+            flat(traj.value),
+            flat(adv),
+            flat(targets),
+        )
+        key, k_epochs = jax.random.split(key)
+        (params, opt_state, _, _), losses = jax.lax.scan(
+            _update_epoch, (ts.params, ts.opt_state, batch, k_epochs), None, cfg.num_epochs
+        )
+        stats = (
+            update_stats(ts.obs_stats, flat(traj.raw_obs)) if cfg.normalize_obs else ts.obs_stats
+        )
+        ts = TrainState(
+            params=params,
+            opt_state=opt_state,
+            obs_stats=stats,
+            env_state=env_state,
+            key=key,
+            update=ts.update + 1,
+        )
+        metrics = {**episode_metrics(traj), **jax.tree_util.tree_map(jnp.mean, losses)}
+        return ts, metrics
+
+    def _update_or_skip(ts: TrainState, _):
+        # Chunks have a fixed length so they compile once; updates past the budget are no-ops.
+        live = ts.update < cfg.num_updates
+        new, metrics = _update(ts)
+        ts = jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b), new, ts)
+        return ts, {**metrics, "live": live}
+
+    def run_chunk(ts: TrainState):
+        return jax.lax.scan(_update_or_skip, ts, None, cfg.updates_per_chunk)
+
+    def train(key: jax.Array):
+        return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
+
+    return Trainer(network, jax.jit(init), jax.jit(run_chunk, donate_argnums=0), jax.jit(train))

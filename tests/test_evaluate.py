@@ -1,0 +1,162 @@
+"""Evaluation: metrics of the baselines in the inference room, the CLI and its errors, the plots.
+
+Each `evaluate` call compiles one rollout (~10 s on a 2-core CPU), so the module shares two of them.
+"""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from subprocess import PIPE
+
+import pytest
+
+import jaxnav
+from jaxnav.evaluate import METRIC_KEYS, evaluate, main, strip_private
+from jaxnav.plots import METRICS_HEADER, plot_reward_curve
+from jaxnav.policy import forward_policy, random_policy
+from jaxnav.scene import SCENES_DIR
+
+EPISODES, STEPS = 8, 150  # 150 steps: enough for the forward baseline to reach an obstacle
+ROOM = SCENES_DIR / "inference_room.json"
+
+
+@pytest.fixture(scope="module")
+def room():
+    return jaxnav.load_layout(ROOM)
+
+
+@pytest.fixture(scope="module")
+def forward_results(room):
+    return evaluate(forward_policy(), room, episodes=EPISODES, steps=STEPS, seed=0)
+
+
+@pytest.fixture(scope="module")
+def random_results(room):
+    return evaluate(random_policy(), room, episodes=EPISODES, steps=STEPS, seed=0)
+
+
+def test_results_schema_and_ranges(forward_results, room):
+    r = forward_results
+    assert set(strip_private(r)) == {"layouts", "overall", "policy", "steps", "seed"}
+    assert r["policy"] == "forward" and r["steps"] == STEPS and r["seed"] == 0
+    assert list(r["layouts"]) == [room[0].name]
+    for m in [*r["layouts"].values(), r["overall"]]:
+        assert set(m) == set(METRIC_KEYS)
+        assert m["episodes"] == EPISODES and isinstance(m["episodes"], int)
+        assert all(isinstance(m[k], float) and math.isfinite(m[k]) for k in METRIC_KEYS[1:])
+        assert 0.0 <= m["collision_free_rate"] <= 1.0
+        assert 1.0 <= m["mean_steps"] <= STEPS
+        assert m["mean_speed"] >= 0.0 and m["mean_distance"] >= 0.0
+    json.dumps(strip_private(r))  # JSON-ready as is
+    traj = r["_trajectories"][room[0].name]
+    assert len(traj["paths"]) == len(traj["collided"]) == EPISODES
+    assert all(p.ndim == 2 and p.shape[1] == 2 and 2 <= len(p) <= STEPS + 1 for p in traj["paths"])
+
+
+def test_forward_baseline_drives_straight_into_obstacles(forward_results):
+    m = forward_results["overall"]
+    # The layout spawn faces a cylinder 1.6 m ahead: every episode should end there.
+    assert m["collision_free_rate"] <= 0.5
+    assert m["mean_steps"] < STEPS
+    # Speed over the steps actually run is the commanded one (speed gain 0.8-1.2 averages out;
+    # the start from rest and the last, partial step before contact cost a few percent).
+    speed = jaxnav.envs.AvoidConfig().forward_speed
+    assert m["mean_speed"] == pytest.approx(speed, rel=0.15)
+    # Frozen after the collision: distance is speed x time up to then, not over all STEPS steps.
+    assert m["mean_distance"] == pytest.approx(m["mean_speed"] * m["mean_steps"] * 0.1, rel=0.15)
+
+
+def test_random_baseline_moves_less_per_step_than_forward(forward_results, random_results):
+    fwd, rnd = forward_results["overall"], random_results["overall"]
+    # Over the same steps run, random turns two thirds of the time: it covers less ground per step.
+    assert rnd["mean_speed"] < 0.7 * fwd["mean_speed"]
+    assert rnd["mean_steps"] > fwd["mean_steps"]  # and it survives longer in this room
+
+
+def _start_cli(*args, cwd) -> subprocess.Popen:
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    cmd = [sys.executable, "-m", "jaxnav.evaluate", *args]
+    return subprocess.Popen(cmd, cwd=cwd, env=env, text=True, stdout=PIPE, stderr=PIPE)
+
+
+def _cli(*args, cwd) -> subprocess.CompletedProcess:
+    proc = _start_cli(*args, cwd=cwd)
+    stdout, stderr = proc.communicate(timeout=120)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def cli_run(tmp_path_factory):
+    """The CLI run, started before the other tests so its JAX compile overlaps theirs."""
+    cwd = tmp_path_factory.mktemp("cli")
+    out = cwd / "eval" / "out.json"
+    args = ("--policy", "forward", "--episodes", "4", "--steps", "30", "--json", str(out))
+    proc = _start_cli(*args, cwd=cwd)
+    yield proc, out
+    if proc.poll() is None:  # a test failed before waiting for it
+        proc.kill()
+        proc.communicate()
+
+
+def test_cli_writes_json_and_pngs(cli_run):
+    proc, out = cli_run
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    data = json.loads(out.read_text())
+    assert set(data["layouts"]) == {"inference-room"}
+    for m in [*data["layouts"].values(), data["overall"]]:
+        assert set(m) == set(METRIC_KEYS)
+        assert m["episodes"] == 4
+    assert "_trajectories" not in data
+    png = out.parent / "inference-room.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "inference-room" in stdout and "collision-free" in stdout
+
+
+def test_cli_error_in_a_process_is_one_line(tmp_path):
+    proc = _cli("--policy", "forward", "--layouts", "no_such_rooms.json", cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and "no_such_rooms.json" in lines[0]
+
+
+@pytest.mark.parametrize(
+    "args, names",
+    [
+        (["--policy", "forward", "--episodes", "0"], "--episodes"),
+        (["--policy", "forward", "--steps", "-1"], "--steps"),
+        (["--episodes", "4"], "--policy"),
+        (["--policy", "forward", "--checkpoint", "."], "--checkpoint"),
+        (["--checkpoint", "no_such_run"], "no_such_run"),
+        (["--policy", "forward", "--layouts", "bad.json"], "bad.json"),
+    ],
+)
+def test_cli_errors_are_one_line(tmp_path, monkeypatch, capsys, args, names):
+    # In-process (a subprocess costs a JAX import each); an uncaught exception would fail the test.
+    monkeypatch.chdir(tmp_path)
+    bad = {"name": "x", "room": {"size": [4, 4]}, "obstacles": [{"type": "cone"}]}
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and names in lines[0], err
+
+
+def test_plot_reward_curve(tmp_path):
+    csv_path, png = tmp_path / "metrics.csv", tmp_path / "reward.png"
+    rows = [",".join(METRICS_HEADER)]
+    for i in range(6):
+        reward = "" if i == 0 else ("nan" if i == 1 else f"{-50 + 10 * i}")
+        rows.append(f"{i},{1000 * (i + 1)},{reward},40,{0.9 - 0.1 * i},1,0.5,0.5,1.0,0.01,5000,{i}")
+    csv_path.write_text("\n".join(rows) + "\n")
+    plot_reward_curve(csv_path, png)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_evaluate_rejects_bad_arguments(room):
+    with pytest.raises(ValueError, match="episodes"):
+        evaluate(forward_policy(), room, episodes=0)
+    with pytest.raises(ValueError, match="spawn"):
+        evaluate(forward_policy(), room, episodes=1, spawn="nowhere")

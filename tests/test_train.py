@@ -1,0 +1,167 @@
+"""PPO training: learning on a tiny budget, the CLI end to end, checkpoints and config errors."""
+
+import csv
+import json
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+import jaxnav
+from jaxnav import checkpoint
+from jaxnav.ppo.config import PPOConfig, preset
+from jaxnav.ppo.train import make_train
+
+TINY = dict(num_envs=64, rollout_length=32, minibatch_size=512, num_epochs=4, updates_per_chunk=5)
+
+
+def test_tiny_training_improves_reward():
+    env = jaxnav.make_env("avoid", max_steps=200)
+    cfg = preset("cpu", **TINY, total_steps=64 * 32 * 40)
+    _, metrics = make_train(cfg, env).train(jax.random.PRNGKey(0))
+    reward = np.asarray(metrics["episode_reward"])
+    collisions = np.asarray(metrics["collision_rate"])
+    assert np.isfinite(np.asarray(metrics["total"])).all()
+    first, last = np.nanmean(reward[:8]), np.nanmean(reward[-8:])
+    assert last > first + 50, (first, last)
+    assert np.nanmean(collisions[-8:]) < 0.5 * np.nanmean(collisions[:8])
+
+
+def test_config_refuses_impossible_combinations():
+    with pytest.raises(
+        ValueError, match="--minibatch-size 300 must divide --num-envs x --rollout-length"
+    ):
+        PPOConfig(num_envs=8, rollout_length=100, minibatch_size=300)
+    with pytest.raises(ValueError, match="--preset: unknown preset 'fast'; valid: paper, cpu, gpu"):
+        preset("fast")
+    paper = preset("paper")
+    assert (paper.num_updates, paper.rollout_length, paper.num_envs, paper.learning_rate) == (
+        1500,
+        100,
+        1,
+        1e-3,
+    )
+    assert (paper.num_epochs, paper.gamma, paper.gae_lambda, paper.clip_eps) == (
+        10,
+        0.99,
+        0.95,
+        0.2,
+    )
+    assert paper.critic_output == "tanh" and paper.hidden == (64, 64)
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "jaxnav.train", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "tiny"
+    flags = [
+        "--num-envs",
+        "16",
+        "--rollout-length",
+        "16",
+        "--minibatch-size",
+        "128",
+        "--num-epochs",
+        "2",
+        "--total-steps",
+        str(16 * 16 * 6),
+        "--updates-per-chunk",
+        "2",
+        "--checkpoint-every",
+        "2",
+        "--task.near-threshold",
+        "0.8",
+        "--no-progress",
+    ]
+    proc = run_cli("--out", str(out), "--seed", "3", *flags)
+    assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+def test_cli_writes_csv_png_checkpoints(tiny_run):
+    out, proc = tiny_run
+    assert f"Results in {out}" in proc.stdout
+    with open(out / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["update"]) for r in rows] == [1, 2, 3, 4, 5, 6]
+    assert {"episode_reward", "collision_rate", "entropy", "steps_per_second"} <= set(rows[0])
+    assert (out / "reward_curve.png").stat().st_size > 1000
+    ckpts = checkpoint.list_checkpoints(out)
+    assert [c.name for c in ckpts] == ["update_000002", "update_000004", "update_000006"]
+    config = json.loads((out / "config.json").read_text())
+    assert config["task"]["near_threshold"] == 0.8 and config["seed"] == 3
+
+
+def test_load_policy_acts(tiny_run):
+    out, _ = tiny_run
+    policy = jaxnav.load_policy(out)
+    assert policy.env_kwargs["task"].near_threshold == 0.8
+    obs = jax.random.uniform(jax.random.PRNGKey(0), (5, 8), minval=0.6, maxval=8.0)
+    action = jax.jit(policy.act)(obs, jax.random.PRNGKey(1))
+    assert action.shape == (5,) and set(np.asarray(action).tolist()) <= {0, 1, 2}
+
+
+def test_cli_refuses_existing_run_and_bad_flags(tiny_run, tmp_path):
+    out, _ = tiny_run
+    proc = run_cli("--out", str(out), "--num-envs", "16", "--minibatch-size", "128")
+    assert proc.returncode == 2 and "already holds a training run" in proc.stderr
+    proc = run_cli("--out", str(tmp_path / "x"), "--num-envs", "0")
+    assert proc.returncode == 2 and proc.stderr.startswith("error: --num-envs")
+    assert "Traceback" not in proc.stderr
+    proc = run_cli("--out", str(tmp_path / "y"), "--layouts", str(tmp_path / "missing.json"))
+    assert proc.returncode == 2 and "missing.json" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_evaluate_cli_on_checkpoint(tiny_run, tmp_path):
+    out, _ = tiny_run
+    report = tmp_path / "eval.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "jaxnav.evaluate",
+            "--checkpoint",
+            str(out),
+            "--episodes",
+            "3",
+            "--steps",
+            "20",
+            "--json",
+            str(report),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(report.read_text())
+    metrics = result["layouts"]["inference-room"]
+    assert set(metrics) == {
+        "episodes",
+        "collision_free_rate",
+        "mean_speed",
+        "mean_distance",
+        "mean_steps",
+    }
+    assert metrics["episodes"] == 3 and 0 <= metrics["collision_free_rate"] <= 1
+    assert (tmp_path / "inference-room.png").exists()
+
+
+def test_python_api_names():
+    assert callable(jaxnav.train) and callable(jaxnav.evaluate)
+    from jaxnav.policy import forward_policy
+
+    layout = jaxnav.load_layout(jaxnav.scene.SCENES_DIR / "inference_room.json")
+    result = jaxnav.evaluate(forward_policy(), layout, episodes=2, steps=5)
+    assert result["overall"]["episodes"] == 2
