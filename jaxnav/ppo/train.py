@@ -11,8 +11,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
@@ -85,11 +87,31 @@ def episode_metrics(traj: Transition) -> dict[str, jax.Array]:
     }
 
 
-def make_train(cfg: PPOConfig, env) -> Trainer:
-    """Builds the jitted PPO functions for `env` (any object with vmappable reset/step)."""
+def shard_envs(num_envs: int, devices=None):
+    """A function placing [num_envs, ...] arrays across `devices` (default: all local devices).
+
+    Robots are split evenly between devices; parameters stay replicated, and XLA inserts the
+    all-reduce of the gradients. With one device this is the identity.
+    """
+    devices = list(devices or jax.local_devices())
+    if len(devices) == 1:
+        return lambda tree: tree
+    if num_envs % len(devices):
+        raise ValueError(f"--num-envs {num_envs} must be a multiple of the {len(devices)} devices")
+    sharding = NamedSharding(Mesh(np.array(devices), ("envs",)), PartitionSpec("envs"))
+    return lambda tree: jax.lax.with_sharding_constraint(tree, sharding)
+
+
+def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
+    """Builds the jitted PPO functions for `env` (any object with vmappable reset/step).
+
+    The robots are sharded over `devices` (default: every local device).
+    """
     network = make_network(cfg, env.action_size)
     optimizer = make_optimizer(cfg)
-    reset, step = jax.vmap(env.reset), jax.vmap(env.step)
+    shard = shard_envs(cfg.num_envs, devices)
+    reset = lambda keys: shard(jax.vmap(env.reset)(keys))  # noqa: E731
+    step = lambda state, action: shard(jax.vmap(env.step)(state, action))  # noqa: E731
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
 
     def init(key: jax.Array) -> TrainState:

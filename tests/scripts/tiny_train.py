@@ -1,0 +1,26 @@
+"""Trains a tiny run and saves its final weights: `python tiny_train.py OUT.npz`.
+
+Run by tests in a subprocess, so that XLA_FLAGS (forced host devices) take effect before jax loads.
+"""
+
+import sys
+
+import jax
+import numpy as np
+
+import jaxnav
+from jaxnav.ppo.config import preset
+from jaxnav.ppo.train import make_train
+
+env = jaxnav.make_env("avoid", max_steps=50)
+cfg = preset(
+    "cpu", num_envs=16, rollout_length=8, minibatch_size=64, num_epochs=2, total_steps=16 * 8 * 3
+)
+ts, metrics = make_train(cfg, env).train(jax.random.PRNGKey(0))
+leaves = jax.tree_util.tree_leaves(jax.device_get(ts.params))
+np.savez(
+    sys.argv[1],
+    *leaves,
+    devices=len(jax.devices()),
+    shards=len(ts.env_state.obs.sharding.device_set),
+)

@@ -1,0 +1,184 @@
+"""Robot-side conversions: sensor readings -> the simulator's observation, actions -> Twist, ROS bytes."""
+
+import math
+
+import jax
+import numpy as np
+import pytest
+from conftest import EXACT
+
+import jaxnav
+from jaxnav import deploy, robot, ros_node
+from jaxnav.layouts import Box, Cylinder, RoomLayout
+from jaxnav.sensors import ray_depths
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """(obs [8], per-ray depths [24], ray angles [24], sensor config) of a lopsided room.
+
+    Obstacles on the left and right differ so a mirrored sector order would fail; the room is 20 m
+    long so the rays straight ahead read beyond range_max (clipped).
+    """
+    layout = RoomLayout(
+        name="lopsided",
+        size=(20.0, 4.0),
+        robot_pos=(0.0, 0.0),
+        robot_yaw=0.0,
+        obstacles=(
+            Box(pos=(2.0, 0.7), size=(0.4, 0.6)),
+            Box(pos=(3.0, -0.9), size=(0.5, 0.5), yaw=0.5),
+            Cylinder(pos=(1.2, -0.35), radius=0.1),
+        ),
+    )
+    env = jaxnav.make_env("avoid", layouts=[layout], randomize=EXACT, auto_reset=False)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    m = env.scene.model_for(state.params)
+    depths = jax.jit(ray_depths, static_argnums=(2, 3))(
+        m, state.data, env.sensor, env.scene.robot_body
+    )
+    obs, depths = np.asarray(state.obs), np.asarray(depths)
+    assert len(set(np.round(obs, 3))) >= 5 and obs.max() == env.sensor.range_max  # a varied scene
+    return obs, depths, env.sensor.ray_angles, env.sensor
+
+
+def test_scan_reproduces_simulated_sectors(scene):
+    obs, depths, angles, cfg = scene
+    ranges = depths / np.cos(angles)  # what a LaserScan of the same rays would read
+    sensor = dict(fov=cfg.fov, num_sectors=cfg.num_sectors)
+    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, **sensor), obs, atol=1e-4)
+    # A real scan is wider than the camera: beams beyond +-fov/2 must not count.
+    wide = np.linspace(-math.pi / 2, math.pi / 2, 41)
+    outside = np.abs(wide) > cfg.fov / 2
+    ranges = np.concatenate([ranges, np.full(outside.sum(), 0.7)])
+    angles = np.concatenate([angles, wide[outside]])
+    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, **sensor), obs, atol=1e-4)
+
+
+def test_depth_image_reproduces_simulated_sectors(scene):
+    obs, depths, angles, cfg = scene
+    row = np.where(np.isinf(depths), 0.0, depths)[::-1]  # column 0 = leftmost ray; 0 = no data
+    sensor = dict(fov=cfg.fov, num_sectors=cfg.num_sectors)
+    np.testing.assert_allclose(deploy.depth_image_to_sectors(row[None], **sensor), obs, atol=1e-4)
+    # The floor below the horizon reads close; only the horizon row must count.
+    image = np.stack([row, np.full_like(row, 0.7), np.full_like(row, 0.65)])
+    got = deploy.depth_image_to_sectors(image, rows=[0], **sensor)
+    np.testing.assert_allclose(got, obs, atol=1e-4)
+    got = deploy.depth_image_to_sectors(image, rows=slice(0, 1), column_angles=angles[::-1])
+    np.testing.assert_allclose(got, obs, atol=1e-4)
+
+
+def test_invalid_readings_are_ignored():
+    # One sector per beam triple, right to left; expected sector values after the rules.
+    beams = [
+        [0.0, NAN, 2.0],  # invalid ones ignored -> 2.0
+        [INF, -1.0, 3.0],  # -> 3.0
+        [0.0, NAN, INF],  # nothing valid -> range_max
+        [0.3, 5.0, 6.0],  # below range_min -> range_min
+        [9.0, 12.0, INF],  # beyond range_max -> range_max
+        [-INF, 1.5, 1.0],  # -> 1.0
+        [4.0, 4.0, 4.0],
+        [7.0, 0.0, 2.5],
+    ]
+    want = [2.0, 3.0, 8.0, 0.6, 8.0, 1.0, 4.0, 2.5]
+    depth = np.array(beams, np.float64).ravel()  # [24], right to left
+    image = depth[::-1][None]  # left to right
+    np.testing.assert_allclose(deploy.depth_image_to_sectors(image), want, rtol=1e-6)
+    angles = (np.arange(24) + 0.5) / 24 * deploy.FOV - 0.5 * deploy.FOV  # the simulator's rays
+    ranges = depth / np.cos(angles)
+    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles), want, rtol=1e-6)
+    empty = deploy.depth_image_to_sectors(np.zeros((5, 640), np.float32))
+    np.testing.assert_array_equal(empty, np.full(8, 8.0, np.float32))
+    assert empty.dtype == np.float32
+
+
+def test_uneven_widths_and_geometry_helpers():
+    # 10 columns into 8 sectors: slices of 1 or 2 columns, rightmost first.
+    image = np.arange(1.0, 11.0)[None]  # column 0 (left) = 1 m ... column 9 (right) = 10 m
+    got = deploy.depth_image_to_sectors(image, range_max=20.0)
+    assert got[0] == 10.0 and got[-1] == 1.0 and np.all(np.diff(got) < 0)
+    with pytest.raises(ValueError, match="fewer than 8 sectors"):
+        deploy.depth_image_to_sectors(np.ones((2, 5)))
+    angles = deploy.pinhole_column_angles(640)
+    assert angles[0] > 0 > angles[-1] and np.allclose(angles, -angles[::-1])
+    assert abs(angles[0] - math.radians(30)) < math.radians(0.1)
+    rows = deploy.horizon_rows(480, math.radians(49.5), 2.0)
+    assert rows[0] + rows[-1] == 479 and 30 < len(rows) < 40  # symmetric about the centre
+    tilted = deploy.horizon_rows(480, math.radians(49.5), 2.0, tilt=math.radians(5))
+    assert tilted.mean() < rows.mean()  # looking down: the horizon is higher in the image
+    assert len(deploy.horizon_rows(480, math.radians(49.5), 0.0)) == 1
+
+
+def test_action_to_twist():
+    assert np.array_equal(np.array(deploy.ACTIONS, np.float32), robot.ACTIONS)
+    assert deploy.action_to_twist(0) == (0.5, 0.0)
+    assert deploy.action_to_twist(1) == (0.0, 1.5)  # left = positive yaw rate
+    assert deploy.action_to_twist(2) == (0.0, -1.5)
+    assert deploy.action_to_twist(np.int64(0), 0.4, 1.0, speed_calibration=1.25) == (0.5, 0.0)
+    assert deploy.action_to_twist(2, 0.4, 1.0, speed_calibration=1.25) == (0.0, -1.25)
+    with pytest.raises(ValueError, match="action must be 0, 1 or 2"):
+        deploy.action_to_twist(3)
+
+
+def test_controller_in_one_call():
+    seen = []
+
+    def policy(obs):
+        seen.append(obs)
+        return 1 if obs[0] < obs[-1] else 2  # turn away from the nearer side
+
+    policy.forward_speed, policy.turn_rate = 0.3, 1.0  # a NumpyPolicy carries its training's
+    controller = deploy.Controller(policy, speed_calibration=1.1)
+    image = np.full((3, 80), 5.0, np.float32)
+    image[:, -10:] = 1.0  # close on the right
+    assert controller.image_to_twist(image) == pytest.approx((0.0, 1.1))
+    assert controller.last_action == 1 and seen[-1][0] == 1.0
+    angles = np.linspace(-0.5, 0.5, 30)
+    ranges = np.where(angles > 0.3, 1.0, 5.0)  # close on the left
+    assert controller.scan_to_twist(ranges, angles) == pytest.approx((0.0, -1.1))
+    with pytest.raises(ValueError, match="speed_calibration"):
+        deploy.Controller(policy, speed_calibration=0.0)
+
+
+def test_image_message_conversion():
+    depth = np.array([[0.5, 1.0, NAN], [2.0, 0.0, 8.5]], np.float32)
+    padded = b"".join(r.tobytes() + b"\xff" * 4 for r in depth)  # step = 3 * 4 + 4 bytes
+    got = ros_node.image_msg_to_array("32FC1", 2, 3, padded, 16)
+    np.testing.assert_array_equal(got, depth)
+    mm = np.array([[600, 0, 65535], [1234, 8000, 1]], np.uint16)
+    got = ros_node.image_msg_to_array("16UC1", 2, 3, mm.tobytes(), 6)
+    np.testing.assert_allclose(got, mm / 1000.0, rtol=1e-6)
+    assert got.dtype == np.float32 and got[0, 1] == 0.0  # no data stays invalid
+    big = mm.astype(">u2").tobytes()
+    np.testing.assert_allclose(
+        ros_node.image_msg_to_array("16UC1", 2, 3, big, 6, is_bigendian=True), mm / 1000.0
+    )
+    with pytest.raises(ValueError, match="rgb8"):
+        ros_node.image_msg_to_array("rgb8", 2, 3, bytes(18), 9)
+    with pytest.raises(ValueError, match="too short"):
+        ros_node.image_msg_to_array("32FC1", 2, 3, bytes(20), 12)
+
+
+def test_scan_and_twist_message_conversion():
+    ranges, angles = ros_node.scan_msg_to_arrays([1.0, INF, 2.0], -0.5, 0.25)
+    np.testing.assert_allclose(angles, [-0.5, -0.25, 0.0])
+    assert ranges.dtype == np.float32 and np.isinf(ranges[1])
+
+    class Vector:
+        x = y = z = 0.0
+
+    class TwistMsg:  # the fields of geometry_msgs/Twist the node sets
+        def __init__(self):
+            self.linear, self.angular = Vector(), Vector()
+
+    msg = ros_node.twist_msg(deploy.Twist(0.5, -1.5), TwistMsg)
+    assert (msg.linear.x, msg.angular.z, msg.linear.y) == (0.5, -1.5, 0.0)
+
+
+def test_ros_node_flags():
+    # Importing ros_node without ROS is checked in test_export.test_robot_files_run_without_jax.
+    args, rest = ros_node.parse_args(["--policy", "p.npz", "--scan", "--ros-args", "-p", "x:=1"])
+    assert args.policy == "p.npz" and args.scan and rest == ["--ros-args", "-p", "x:=1"]
+    assert args.speed_calibration == 1.0 and args.band_deg == 2.0

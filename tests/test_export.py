@@ -1,0 +1,231 @@
+"""Exporting the actor out of JAX: numpy and ONNX parity, the jax-free robot files, the CLI."""
+
+import importlib.util
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnav
+from jaxnav import checkpoint, export
+from jaxnav.config import RunConfig
+from jaxnav.numpy_policy import NumpyPolicy
+from jaxnav.ppo.config import preset
+from jaxnav.ppo.networks import RunningStats, normalize
+from jaxnav.ppo.train import TrainState, make_network
+
+PACKAGE = Path(jaxnav.__file__).parent
+ROBOT_FILES = ("numpy_policy.py", "deploy.py", "ros_node.py")
+
+
+def make_run(root: Path, ppo, seed: int):
+    """A run folder with one checkpoint of a freshly initialised network, without training.
+
+    The params come from the same `make_network(...).init` as `make_train`'s; the policy head is
+    scaled up (its init gain of 0.01 makes all logits nearly equal) and the normaliser holds
+    non-trivial statistics, so that the parity checks below mean something.
+    """
+    network = make_network(ppo, 3)
+    params = jax.jit(network.init)(jax.random.PRNGKey(seed), jnp.zeros((1, 8)))
+    head = params["params"]["actor"]["Dense_2"]
+    params["params"]["actor"]["Dense_2"] = {**head, "kernel": head["kernel"] * 200.0}
+    keys = jax.random.split(jax.random.PRNGKey(seed + 1), 2)
+    stats = RunningStats(
+        mean=jax.random.uniform(keys[0], (8,), minval=1.0, maxval=4.0),
+        var=jax.random.uniform(keys[1], (8,), minval=0.05, maxval=3.0),
+        count=jnp.float32(1e4),
+    )
+    ts = TrainState(params, (), stats, (), jax.random.PRNGKey(0), jnp.int32(3))
+    checkpoint.save(root, ts, RunConfig(ppo=ppo), {})
+
+    def reference_logits(obs):
+        x = normalize(stats, obs) if ppo.normalize_obs else obs
+        return np.asarray(network.apply(params, x)[0])
+
+    return root, reference_logits
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """{name: (run folder, reference logits)}: the cpu preset, and the paper's (no normaliser)."""
+    ppos = {
+        "normalised": preset("cpu"),
+        "raw": preset("paper", hidden=(32, 16)),  # other widths and depths export too
+    }
+    return {
+        name: make_run(tmp_path_factory.mktemp(name), ppo, seed=i)
+        for i, (name, ppo) in enumerate(ppos.items())
+    }
+
+
+@pytest.fixture(params=["normalised", "raw"])
+def run(request, runs):
+    return runs[request.param]
+
+
+@pytest.fixture(scope="module")
+def one_run(runs):
+    """The run the command-line and robot-file tests use (subprocesses are slow: one run only)."""
+    return runs["normalised"]
+
+
+def random_obs(n=1000, seed=0):
+    # Beyond the sensor range on both sides: exercises the normaliser's clipping.
+    return np.random.default_rng(seed).uniform(0.0, 10.0, (n, 8)).astype(np.float32)
+
+
+def assert_same_greedy_actions(logits, actions, reference_logits):
+    """Actions equal the reference argmax wherever the top two logits are not a float32 tie."""
+    top2 = np.sort(reference_logits, axis=-1)[:, -2:]
+    clear = top2[:, 1] - top2[:, 0] > 1e-5
+    assert clear.mean() > 0.95
+    np.testing.assert_array_equal(np.asarray(actions)[clear], reference_logits.argmax(-1)[clear])
+    np.testing.assert_array_equal(np.asarray(actions), logits.argmax(-1))
+
+
+def test_numpy_export_matches_jax(run, tmp_path):
+    folder, reference = run
+    out = export.export(folder, "numpy", tmp_path / "policy.npz")
+    policy = NumpyPolicy.from_npz(out)
+    obs = random_obs()
+    logits, ref = policy.logits(obs), reference(obs)
+    np.testing.assert_allclose(logits, ref, atol=1e-5, rtol=0)
+    assert_same_greedy_actions(logits, policy(obs), ref)
+    jax_actions = np.asarray(jaxnav.load_policy(folder).act(obs, jax.random.PRNGKey(0)))
+    assert_same_greedy_actions(logits, jax_actions, ref)
+    single = policy(obs[0])
+    assert isinstance(single, int) and single == int(policy(obs[:1])[0])
+    assert policy.action_names == ("forward", "left", "right")
+    assert (policy.forward_speed, policy.turn_rate, policy.num_sectors) == (0.5, 1.5, 8)
+
+
+def test_onnx_export_matches_jax(run, tmp_path):
+    pytest.importorskip("onnx", reason="the onnx package is not installed (pip install onnx)")
+    ort = pytest.importorskip(
+        "onnxruntime", reason="onnxruntime is not installed (pip install onnxruntime)"
+    )
+    folder, reference = run
+    out = export.export(folder, "onnx", tmp_path / "policy.onnx")
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    obs = random_obs(seed=1)
+    logits, actions = session.run(["logits", "action"], {"obs": obs})
+    assert logits.shape == (1000, 3) and actions.shape == (1000,)
+    ref = reference(obs)
+    np.testing.assert_allclose(logits, ref, atol=1e-5, rtol=0)
+    assert_same_greedy_actions(logits, actions, ref)
+    props = session.get_modelmeta().custom_metadata_map
+    assert props["action_names"] == "forward,left,right"
+
+
+def test_numpy_policy_imports_no_jax(one_run, tmp_path):
+    """The module loads on its own (as on the robot) and leaves jax, flax and jaxnav unimported."""
+    npz = export.export(one_run[0], "numpy", tmp_path / "policy.npz", check=False)
+    code = f"""
+        import importlib.util, sys
+        spec = importlib.util.spec_from_file_location("numpy_policy", {str(PACKAGE / "numpy_policy.py")!r})
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        action = module.NumpyPolicy.from_npz({str(npz)!r})([1.0] * 8)
+        assert action in (0, 1, 2), action
+        loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("jax", "jaxlib", "flax", "jaxnav"))
+        assert not loaded, loaded
+    """
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_robot_files_run_without_jax(one_run, tmp_path):
+    """numpy_policy.py, deploy.py and ros_node.py copied flat beside the .npz: what the robot gets."""
+    export.export(one_run[0], "numpy", tmp_path / "policy.npz", check=False)
+    for name in ROBOT_FILES:
+        shutil.copy(PACKAGE / name, tmp_path / name)
+    code = """
+        import sys
+        import numpy as np
+        import ros_node
+        from deploy import Controller
+        controller = Controller.from_npz("policy.npz", speed_calibration=2.0)
+        twist = controller.image_to_twist(np.full((4, 64), 3.0, np.float32))
+        assert twist in [(1.0, 0.0), (0.0, 3.0), (0.0, -3.0)], twist
+        loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("jax", "jaxlib", "flax", "jaxnav", "rclpy"))
+        assert not loaded, loaded
+    """
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+
+
+@pytest.fixture(scope="module")
+def cli(one_run, tmp_path_factory):
+    """{case: (returncode, stdout, stderr, out file)} of `python -m jaxnav.export` runs.
+
+    The runs are started together: each spends seconds importing jax, and they overlap.
+    """
+    tmp = tmp_path_factory.mktemp("cli")
+    fmt = "onnx" if importlib.util.find_spec("onnxruntime") else "numpy"
+    cases = {
+        "ok": [one_run[0], "--format", fmt, "--out", tmp / f"policy.{fmt}"],
+        "missing": [tmp / "missing", "--out", tmp / "p.npz"],
+        "format": [one_run[0], "--format", "tflite"],
+    }
+    procs = {
+        case: subprocess.Popen(
+            [sys.executable, "-m", "jaxnav.export", *map(str, args)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for case, args in cases.items()
+    }
+    results = {}
+    for case, proc in procs.items():
+        stdout, stderr = proc.communicate(timeout=300)
+        results[case] = (proc.returncode, stdout, stderr, Path(str(cases[case][-1])))
+    return results
+
+
+def test_cli_exports_and_checks(cli):
+    code, stdout, stderr, out = cli["ok"]
+    assert code == 0, stderr
+    assert out.stat().st_size > 1000
+    assert "check: max |logit - JAX logit|" in stdout and "(ok," in stdout
+    assert "greedy actions agree on 1000/1000" in stdout
+
+
+def assert_one_error_line(stderr: str, *needles):
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), stderr
+    assert all(n in lines[0] for n in needles), lines[0]
+
+
+def test_cli_user_errors(cli):
+    code, _, stderr, _ = cli["missing"]
+    assert code == 2
+    assert_one_error_line(stderr, "missing", "no such checkpoint")
+    code, _, stderr, _ = cli["format"]
+    assert code == 2
+    assert_one_error_line(stderr, "--format", "tflite")
+
+
+def test_cli_unreadable_checkpoint_and_missing_onnx(one_run, tmp_path, capsys, monkeypatch):
+    broken = tmp_path / "broken"
+    shutil.copytree(checkpoint.resolve(one_run[0]), broken)
+    (broken / "policy.msgpack").write_bytes(b"not msgpack")
+    assert export.main([str(broken), "--out", str(tmp_path / "p.npz")]) == 2
+    assert_one_error_line(capsys.readouterr().err, "policy.msgpack")
+    monkeypatch.setitem(sys.modules, "onnx", None)  # as if not installed
+    assert (
+        export.main([str(one_run[0]), "--format", "onnx", "--out", str(tmp_path / "p.onnx")]) == 2
+    )
+    assert_one_error_line(capsys.readouterr().err, "--format onnx", "pip install onnx")
+    assert export.main([str(one_run[0])]) == 0  # default: policy.npz inside the checkpoint
+    assert (checkpoint.resolve(one_run[0]) / "policy.npz").exists()
