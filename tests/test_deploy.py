@@ -1,6 +1,8 @@
 """Robot-side conversions: sensor readings -> the simulator's observation, actions -> Twist, ROS bytes."""
 
 import math
+import sys
+import types
 
 import jax
 import numpy as np
@@ -182,3 +184,104 @@ def test_ros_node_flags():
     args, rest = ros_node.parse_args(["--policy", "p.npz", "--scan", "--ros-args", "-p", "x:=1"])
     assert args.policy == "p.npz" and args.scan and rest == ["--ros-args", "-p", "x:=1"]
     assert args.speed_calibration == 1.0 and args.band_deg == 2.0
+
+
+def write_policy_npz(path):
+    """A small policy file in the export format, written by hand (one hidden layer of 16)."""
+    rng = np.random.default_rng(0)
+    arrays = dict(
+        W0=rng.normal(size=(8, 16)).astype(np.float32),
+        b0=rng.normal(size=16).astype(np.float32),
+        W1=rng.normal(size=(16, 3)).astype(np.float32),
+        b1=np.zeros(3, np.float32),
+        obs_mean=np.zeros(8, np.float32),
+        obs_var=np.ones(8, np.float32),
+        obs_std=np.ones(8, np.float32),
+        clip=np.float32(np.inf),
+        leaky_slope=np.float32(0.01),
+        action_names=np.array(robot.ACTION_NAMES),
+        forward_speed=np.float32(0.4),
+        turn_rate=np.float32(1.0),
+        fov=np.float32(deploy.FOV),
+        range_min=np.float32(0.6),
+        range_max=np.float32(8.0),
+        num_sectors=np.int32(8),
+        format_version=np.int32(1),
+    )
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.fixture
+def fake_ros(monkeypatch):
+    """Stand-ins for rclpy and the message packages: the node's wiring runs without ROS."""
+    published = []
+
+    class Node:
+        def __init__(self, name):
+            self.subscriptions_ = []
+
+        def declare_parameter(self, name, value):
+            return types.SimpleNamespace(value={"speed_calibration": 2.0}.get(name, value))
+
+        def create_publisher(self, msg_type, topic, depth):
+            self.cmd_topic = topic
+            return types.SimpleNamespace(publish=published.append)
+
+        def create_subscription(self, msg_type, topic, callback, qos):
+            self.subscriptions_.append((msg_type.__name__, topic))
+
+        def get_logger(self):
+            return types.SimpleNamespace(info=lambda text: None)
+
+    class Vector:
+        x = y = z = 0.0
+
+    class Twist:
+        def __init__(self):
+            self.linear, self.angular = Vector(), Vector()
+
+    fakes = {
+        "rclpy": {},
+        "rclpy.node": {"Node": Node},
+        "rclpy.qos": {"qos_profile_sensor_data": None},
+        "sensor_msgs": {},
+        "sensor_msgs.msg": {"Image": type("Image", (), {}), "LaserScan": type("LaserScan", (), {})},
+        "geometry_msgs": {},
+        "geometry_msgs.msg": {"Twist": Twist},
+    }
+    for name, attrs in fakes.items():
+        monkeypatch.setitem(sys.modules, name, types.SimpleNamespace(**attrs))
+    return published
+
+
+def test_ros_node_wiring(fake_ros, tmp_path):
+    npz = str(write_policy_npz(tmp_path / "policy.npz"))
+    args, _ = ros_node.parse_args(["--policy", npz])
+    node = ros_node._make_node(args)  # speed_calibration 2.0 comes from the (fake) ROS parameter
+    assert node.subscriptions_ == [("Image", "/camera/depth/image_raw")]
+    assert node.cmd_topic == "cmd_vel"
+    depth_mm = np.full((48, 64), 3000, np.uint16)
+    depth_mm[:, :8] = 900  # close on the left
+    msg = types.SimpleNamespace(
+        encoding="16UC1", height=48, width=64, data=depth_mm.tobytes(), step=128, is_bigendian=0
+    )
+    node.on_image(msg)
+    obs = deploy.depth_image_to_sectors(depth_mm / 1000.0)
+    policy = deploy.Controller.from_npz(npz).policy
+    want = deploy.action_to_twist(policy(obs), 0.4, 1.0, speed_calibration=2.0)
+    assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == pytest.approx(want)
+    node.stop()
+    assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == (0.0, 0.0)
+
+    args, _ = ros_node.parse_args(["--policy", npz, "--scan", "--topic", "/scan"])
+    node = ros_node._make_node(args)
+    assert node.subscriptions_ == [("LaserScan", "/scan")]
+    scan = types.SimpleNamespace(
+        ranges=[1.0] * 60 + [5.0] * 60, angle_min=-1.0, angle_increment=1 / 60
+    )
+    node.on_scan(scan)
+    ranges, angles = ros_node.scan_msg_to_arrays(scan.ranges, -1.0, 1 / 60)
+    action = policy(deploy.scan_to_sectors(ranges, angles))
+    want = deploy.action_to_twist(action, 0.4, 1.0, speed_calibration=2.0)
+    assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == pytest.approx(want)

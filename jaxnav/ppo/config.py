@@ -124,11 +124,10 @@ PRESETS: dict[str, dict] = {
     # Thousands of robots on one accelerator.
     "gpu": dict(
         num_envs=8192,
-        total_steps=200_000_000,
+        total_steps=100_000_000,
         rollout_length=32,
         minibatch_size=16384,
         num_epochs=4,
-        learning_rate=3e-4,
         updates_per_chunk=20,
         checkpoint_every=100,
     ),
