@@ -8,10 +8,14 @@ python -m jaxnav.train --num-envs 1024 --task.near-threshold 0.8 --layouts my_ro
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import dataclasses
 import json
 import math
+import signal
 import sys
+import threading
 import time
 import types
 from pathlib import Path
@@ -60,64 +64,166 @@ def make_run_env(config: RunConfig):
     return make_env(config.env, layouts, randomize=config.randomize, **config.env_kwargs())
 
 
-def run(config: RunConfig, out: Path, progress: bool = True) -> Path:
-    """Trains `config` into run folder `out`; returns the final checkpoint folder."""
+class Interrupted(Exception):
+    """Training stopped on SIGINT/SIGTERM after writing a checkpoint."""
+
+
+@contextlib.contextmanager
+def _stop_requests():
+    """Turns SIGINT/SIGTERM into a flag checked between chunks (so a chunk always completes)."""
+    requested = []
+    handler = lambda signum, frame: requested.append(signal.Signals(signum).name)  # noqa: E731
+    if threading.current_thread() is not threading.main_thread():
+        yield requested
+        return
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield requested
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def run(config: RunConfig, out: Path, progress: bool = True, stop: list | None = None) -> Path:
+    """Trains `config` into a new run folder `out`; returns the final checkpoint folder."""
     out = Path(out)
     if checkpoint.list_checkpoints(out):
-        raise ValueError(f"--out {out}: already holds a training run; choose another folder")
+        raise ValueError(
+            f"--out {out}: already holds a training run; use --resume {out} or "
+            "choose another folder"
+        )
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    cfg = config.ppo
-    env = make_run_env(config)
-    trainer = make_train(cfg, env)
-    start = time.perf_counter()
+    trainer = make_train(config.ppo, make_run_env(config))
     ts = trainer.init(jax.random.PRNGKey(config.seed))
+    return _loop(config, out, trainer, ts, [], 0.0, progress, stop)
+
+
+def resume(
+    out: Path, total_steps: int | None = None, progress: bool = True, stop: list | None = None
+) -> Path:
+    """Continues the run in `out` from its latest checkpoint, optionally to a new step budget."""
+    out = Path(out)
+    ckpt = checkpoint.resolve(out)
+    config = checkpoint.load_config(ckpt)
+    if total_steps is not None:
+        config = dataclasses.replace(
+            config, ppo=dataclasses.replace(config.ppo, total_steps=total_steps)
+        )
+        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    trainer = make_train(config.ppo, make_run_env(config))
+    ts = checkpoint.restore_train_state(ckpt, trainer.init(jax.random.PRNGKey(config.seed)))
+    meta = json.loads((ckpt / "meta.json").read_text())
+    rows = [r for r in _read_rows(out / "metrics.csv") if r["update"] <= int(ts.update)]
+    return _loop(config, out, trainer, ts, rows, meta.get("elapsed_s", 0.0), progress, stop)
+
+
+def _loop(config, out, trainer, ts, rows, elapsed, progress, stop=None) -> Path:
+    """Runs chunks until the budget is spent or a stop is requested; checkpoints on the way.
+
+    `stop` is the list a caller's `_stop_requests()` fills; without one, the loop listens itself.
+    """
+    cfg = config.ppo
+    start = time.perf_counter() - elapsed
+    last_ckpt = checkpoint.list_checkpoints(out)[-1] if checkpoint.list_checkpoints(out) else None
     bar = tqdm(
         total=cfg.num_updates * cfg.batch_size,
+        initial=int(ts.update) * cfg.batch_size,
         unit="step",
         unit_scale=True,
         disable=not progress,
         desc="training",
         dynamic_ncols=True,
     )
-    last_ckpt, rows = None, []
-    with open(out / "metrics.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, CSV_FIELDS)
-        writer.writeheader()
+    listen = _stop_requests() if stop is None else contextlib.nullcontext(stop)
+    with _MetricsLog(out, rows) as log, listen as stop:
         while int(ts.update) < cfg.num_updates:
             before, tick = int(ts.update), time.perf_counter()
             ts, metrics = trainer.run_chunk(ts)
             metrics = jax.device_get(metrics)
-            done = int(ts.update) - before
-            rate = done * cfg.batch_size / (time.perf_counter() - tick)
-            new_rows = _csv_rows(metrics, before, cfg.batch_size, rate, time.perf_counter() - start)
-            writer.writerows(new_rows)
-            fh.flush()
-            rows += new_rows
-            _check_finite(metrics, ts, out, last_ckpt)
-            bar.update(done * cfg.batch_size)
+            rate = (int(ts.update) - before) * cfg.batch_size / (time.perf_counter() - tick)
+            _check_finite(metrics, ts, last_ckpt)
+            log.add(_csv_rows(metrics, before, cfg.batch_size, rate, time.perf_counter() - start))
+            bar.update((int(ts.update) - before) * cfg.batch_size)
             bar.set_postfix(
-                reward=f"{_last(rows, 'episode_reward'):.1f}",
-                collisions=f"{_last(rows, 'collision_rate'):.2f}",
+                reward=f"{log.last('episode_reward'):.1f}",
+                collisions=f"{log.last('collision_rate'):.2f}",
                 sps=f"{rate:,.0f}",
             )
             update = int(ts.update)
-            if (
-                update // cfg.checkpoint_every > before // cfg.checkpoint_every
-                or update >= cfg.num_updates
-            ):
-                last_ckpt = checkpoint.save(
-                    out,
-                    ts,
-                    config,
-                    {
-                        "env_steps": update * cfg.batch_size,
-                        "elapsed_s": time.perf_counter() - start,
-                    },
-                )
+            due = update // cfg.checkpoint_every > before // cfg.checkpoint_every
+            if due or update >= cfg.num_updates or stop:
+                meta = {
+                    "env_steps": update * cfg.batch_size,
+                    "elapsed_s": time.perf_counter() - start,
+                }
+                last_ckpt = checkpoint.save(out, ts, config, meta)
                 _plot(out)
+            if stop and update < cfg.num_updates:
+                bar.close()
+                raise Interrupted(
+                    f"{stop[0]}: stopped at update {update} of {cfg.num_updates}; "
+                    f"checkpoint {last_ckpt}; continue with: python -m jaxnav.train "
+                    f"--resume {out}"
+                )
     bar.close()
     return last_ckpt
+
+
+class _MetricsLog:
+    """metrics.csv (rewritten from `rows`, then appended) and TensorBoard events in out/tb."""
+
+    def __init__(self, out: Path, rows: list[dict]):
+        self.out, self.rows = out, list(rows)
+
+    def __enter__(self):
+        self.fh = open(self.out / "metrics.csv", "w", newline="")
+        self.writer = csv.DictWriter(self.fh, CSV_FIELDS)
+        self.writer.writeheader()
+        self.writer.writerows(self.rows)
+        self.tb = _tensorboard(self.out / "tb")
+        return self
+
+    def add(self, rows: list[dict]) -> None:
+        self.writer.writerows(rows)
+        self.fh.flush()
+        self.rows += rows
+        for row in rows if self.tb else ():
+            for key in CSV_FIELDS[2:]:
+                if not math.isnan(row[key]):
+                    self.tb.add_scalar(f"train/{key}", row[key], row["env_steps"])
+        if self.tb:
+            self.tb.flush()
+
+    def last(self, key) -> float:
+        values = [r[key] for r in self.rows if not math.isnan(r[key])]
+        return values[-1] if values else math.nan
+
+    def __exit__(self, *exc):
+        self.fh.close()
+        if self.tb:
+            self.tb.close()
+
+
+def _tensorboard(logdir: Path):
+    try:
+        from tensorboardX import SummaryWriter
+    except ImportError:  # TensorBoard logs are optional; the CSV always exists
+        return None
+    return SummaryWriter(str(logdir))
+
+
+def _read_rows(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as fh:
+        return [
+            {
+                k: (int(v) if k == "update" or k == "env_steps" else float(v or "nan"))
+                for k, v in row.items()
+            }
+            for row in csv.DictReader(fh)
+        ]
 
 
 def _csv_rows(metrics, first_update, batch_size, rate, elapsed) -> list[dict]:
@@ -145,23 +251,22 @@ def _csv_rows(metrics, first_update, batch_size, rate, elapsed) -> list[dict]:
     return rows
 
 
-def _last(rows, key) -> float:
-    values = [r[key] for r in rows if not math.isnan(r[key])]
-    return values[-1] if values else math.nan
-
-
-def _check_finite(metrics, ts, out, last_ckpt) -> None:
-    """Stops a diverged run; the last good checkpoint stays as it is."""
-    losses = np.asarray(metrics["total"])[np.asarray(metrics["live"], bool)]
-    params_ok = all(
-        np.isfinite(x).all() for x in jax.tree_util.tree_leaves(jax.device_get(ts.params))
-    )
-    if not (np.isfinite(losses).all() and params_ok):
+def _check_finite(metrics, ts, last_ckpt) -> None:
+    """Stops a diverged run before it is checkpointed; the last good checkpoint stays as it is."""
+    live = np.asarray(metrics["live"], bool)
+    bad = []
+    if not np.isfinite(np.asarray(metrics["total"])[live]).all():
+        bad.append("loss")
+    if not all(np.isfinite(x).all() for x in jax.tree_util.tree_leaves(jax.device_get(ts.params))):
+        bad.append("weights")
+    if not np.asarray(metrics["obs_finite"])[live].all():
+        bad.append("observations")
+    if bad:
         kept = (
             f"last good checkpoint: {last_ckpt}" if last_ckpt else "no checkpoint was written yet"
         )
         raise FloatingPointError(
-            f"training diverged (NaN/Inf in the loss or weights) at update "
+            f"training diverged (NaN/Inf in the {' and '.join(bad)}) by update "
             f"{int(ts.update)}; {kept}; try a lower --learning-rate"
         )
 
@@ -208,9 +313,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--out", type=Path, help="run folder (default: runs/avoid-<preset>)")
     parser.add_argument(
-        "--preset", default="cpu", help=f"one of {', '.join(PRESETS)} (default cpu)"
+        "--resume",
+        type=Path,
+        metavar="DIR",
+        help="continue the run in DIR from its latest checkpoint (with its own "
+        "config; only --total-steps may change)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--preset", help=f"one of {', '.join(PRESETS)} (default cpu)")
+    parser.add_argument("--seed", type=int, help="random seed (default 0)")
     parser.add_argument(
         "--layouts",
         nargs="+",
@@ -222,27 +332,56 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def _start(args, stop: list) -> tuple[Path, Path]:
+    """Runs what the flags ask for; returns (run folder, final checkpoint)."""
+    overrides = overrides_from_args(args)
+    if args.resume:
+        others = [f"--{k}" for k in ("out", "preset", "seed", "layouts") if getattr(args, k)]
+        others += [
+            f"{g}.{k}"
+            for g, fields in overrides.items()
+            for k in fields
+            if (g, k) != ("ppo", "total_steps")
+        ]
+        if others:
+            raise ValueError(
+                f"--resume: continues with the run's own config; drop {', '.join(others)}"
+            )
+        print(f"jaxnav: resuming {args.resume}", flush=True)
+        total = overrides["ppo"].get("total_steps")
+        return args.resume, resume(args.resume, total, not args.no_progress, stop)
+    config = build_config(args.preset or "cpu", args.seed or 0, args.layouts, overrides)
+    out = args.out or Path(f"runs/avoid-{config.preset}")
+    cfg = config.ppo
+    print(
+        f"jaxnav: training '{config.env}' with the {config.preset} preset: {cfg.num_envs} robots, "
+        f"{cfg.num_updates} updates of {cfg.batch_size} steps, on {jax.device_count()} "
+        f"{jax.devices()[0].platform} device(s)",
+        flush=True,
+    )
+    return out, run(config, out, not args.no_progress, stop)
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
+    start = time.perf_counter()
     try:
-        config = build_config(args.preset, args.seed, args.layouts, overrides_from_args(args))
-        out = args.out or Path(f"runs/avoid-{args.preset}")
-        cfg = config.ppo
-        print(
-            f"jaxnav: training '{config.env}' with the {config.preset} preset: {cfg.num_envs} robots, "
-            f"{cfg.num_updates} updates of {cfg.batch_size} steps, on {jax.devices()[0].platform}"
-        )
-        start = time.perf_counter()
-        final = run(config, out, progress=not args.no_progress)
-    except (ValueError, LayoutError, FileNotFoundError, FloatingPointError) as err:
+        with _stop_requests() as stop:  # from here on, Ctrl-C ends with a checkpoint
+            out, final = _start(args, stop)
+    except Interrupted as stop:
+        print(f"interrupted ({stop})")
+        return 0
+    except FloatingPointError as err:
         print(f"error: {err}", file=sys.stderr)
+        return 1
+    except (ValueError, LayoutError, FileNotFoundError) as err:
+        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
-    steps = cfg.num_updates * cfg.batch_size
-    wall = time.perf_counter() - start
+    meta = json.loads((final / "meta.json").read_text())
     print(
-        f"done: {steps:,} env steps in {wall:.0f} s. Results in {out}/: metrics.csv, "
-        f"reward_curve.png, {final.relative_to(out)}\n"
-        f"evaluate: python -m jaxnav.evaluate --checkpoint {out}"
+        f"done: {meta['env_steps']:,} env steps, {time.perf_counter() - start:.0f} s in this "
+        f"session. Results in {out}/: metrics.csv, reward_curve.png, tb/, "
+        f"{final.relative_to(out)}\nevaluate: python -m jaxnav.evaluate --checkpoint {out}"
     )
     return 0
 

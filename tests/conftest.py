@@ -1,4 +1,7 @@
-"""Shared fixtures: environments are compiled once per session and reused."""
+"""Shared fixtures: environments and a tiny training run are made once per session and reused."""
+
+import subprocess
+import sys
 
 import jax
 import pytest
@@ -44,3 +47,30 @@ def start_in(env, reset, layout_id):
         if int(state.params.layout_id) == layout_id:
             return state
     raise AssertionError(f"layout {layout_id} never drawn")
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "jaxnav.train", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=600,
+    )
+
+
+# 6 updates in chunks of 2, a checkpoint after each chunk.
+TINY_FLAGS = [
+    *("--num-envs", "16", "--rollout-length", "16", "--minibatch-size", "128"),
+    *("--num-epochs", "2", "--total-steps", str(16 * 16 * 6), "--updates-per-chunk", "2"),
+    *("--checkpoint-every", "2", "--task.near-threshold", "0.8", "--seed", "3", "--no-progress"),
+]
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """A tiny training run made once through the CLI: (run folder, completed process)."""
+    out = tmp_path_factory.mktemp("run") / "tiny"
+    proc = run_cli("--out", str(out), *TINY_FLAGS)
+    assert proc.returncode == 0, proc.stderr
+    return out, proc

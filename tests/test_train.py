@@ -8,6 +8,7 @@ import sys
 import jax
 import numpy as np
 import pytest
+from conftest import run_cli
 
 import jaxnav
 from jaxnav import checkpoint
@@ -50,43 +51,6 @@ def test_config_refuses_impossible_combinations():
         0.2,
     )
     assert paper.critic_output == "tanh" and paper.hidden == (64, 64)
-
-
-def run_cli(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "jaxnav.train", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=600,
-    )
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run") / "tiny"
-    flags = [
-        "--num-envs",
-        "16",
-        "--rollout-length",
-        "16",
-        "--minibatch-size",
-        "128",
-        "--num-epochs",
-        "2",
-        "--total-steps",
-        str(16 * 16 * 6),
-        "--updates-per-chunk",
-        "2",
-        "--checkpoint-every",
-        "2",
-        "--task.near-threshold",
-        "0.8",
-        "--no-progress",
-    ]
-    proc = run_cli("--out", str(out), "--seed", "3", *flags)
-    assert proc.returncode == 0, proc.stderr
-    return out, proc
 
 
 def test_cli_writes_csv_png_checkpoints(tiny_run):

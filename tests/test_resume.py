@@ -1,0 +1,113 @@
+"""Nothing trained is lost: SIGINT/SIGTERM checkpoints, bit-exact resume, atomic writes, NaN guard."""
+
+import signal
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+from conftest import TINY_FLAGS, run_cli
+
+from jaxnav import checkpoint
+from jaxnav import train as train_module
+from jaxnav.ppo.train import make_train
+
+
+def saved_state(ckpt):
+    with np.load(ckpt / "train_state.npz") as data:
+        return {k: data[k] for k in data.files}
+
+
+def interrupt(out, sig):
+    """Starts a tiny run, signals it as soon as it has started, and waits for it to exit."""
+    cmd = [sys.executable, "-m", "jaxnav.train", "--out", str(out), *TINY_FLAGS]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = proc.stdout.readline()  # printed once the signal handlers are in place
+    assert first.startswith("jaxnav: training"), first + proc.stderr.read()
+    proc.send_signal(sig)
+    stdout, stderr = proc.communicate(timeout=600)
+    return proc.returncode, stdout, stderr
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_checkpoints_then_resume_matches_uninterrupted(tiny_run, tmp_path, sig):
+    reference, _ = tiny_run  # the same flags, never interrupted
+    out = tmp_path / "run"
+    code, stdout, stderr = interrupt(out, sig)
+    assert code == 0, stderr
+    lines = [line for line in stdout.splitlines() if line.startswith("interrupted")]
+    assert len(lines) == 1 and f"--resume {out}" in lines[0] and sig.name in lines[0]
+    assert [c.name for c in checkpoint.list_checkpoints(out)] == ["update_000002"]
+    proc = run_cli("--resume", str(out), "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    final, expected = checkpoint.resolve(out), checkpoint.resolve(reference)
+    assert final.name == expected.name == "update_000006"
+    got, want = saved_state(final), saved_state(expected)
+    assert got.keys() == want.keys()
+    for key in want:  # params, optimiser, normaliser, robots and RNG: bit for bit
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+    rows = (out / "metrics.csv").read_text().splitlines()[1:]
+    assert [int(r.split(",")[0]) for r in rows] == [1, 2, 3, 4, 5, 6]
+
+
+def test_resume_refuses_other_flags(tiny_run):
+    out, _ = tiny_run
+    proc = run_cli("--resume", str(out), "--num-envs", "32")
+    assert proc.returncode == 2 and "drop ppo.num_envs" in proc.stderr
+
+
+def tiny_config():
+    flags = train_module.parse_args(TINY_FLAGS)
+    return train_module.build_config("cpu", 0, None, train_module.overrides_from_args(flags))
+
+
+def test_same_seed_same_params():
+    config = tiny_config()
+    env = train_module.make_run_env(config)
+    runs = [make_train(config.ppo, env).train(jax.random.PRNGKey(7))[0].params for _ in range(2)]
+    for a, b in zip(*map(jax.tree_util.tree_leaves, runs), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_crash_during_checkpoint_write_keeps_previous(tmp_path, monkeypatch):
+    config = tiny_config()
+    trainer = make_train(config.ppo, train_module.make_run_env(config))
+    ts = trainer.init(jax.random.PRNGKey(0))
+    first = checkpoint.save(tmp_path, ts, config, {})
+    before = saved_state(first)
+
+    def crash(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(checkpoint.os, "replace", crash)
+    with pytest.raises(OSError, match="disk full"):
+        checkpoint.save(tmp_path, ts.replace(update=ts.update + 1), config, {})
+    assert checkpoint.list_checkpoints(tmp_path) == [first]
+    assert not [p for p in (tmp_path / "checkpoints").iterdir() if p.name.startswith(".tmp")]
+    after = saved_state(checkpoint.resolve(tmp_path))
+    assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch):
+    real = train_module.make_train
+
+    def poisoned(cfg, env):
+        trainer = real(cfg, env)
+
+        def run_chunk(ts):
+            ts, metrics = trainer.run_chunk(ts)
+            if int(ts.update) > 2:  # the second chunk diverges
+                params = jax.tree_util.tree_map(lambda x: x * np.nan, ts.params)
+                ts = ts.replace(params=params)
+            return ts, metrics
+
+        return trainer._replace(run_chunk=run_chunk)
+
+    monkeypatch.setattr(train_module, "make_train", poisoned)
+    with pytest.raises(FloatingPointError, match="NaN/Inf in the weights") as err:
+        train_module.run(tiny_config(), tmp_path, progress=False)
+    assert "update_000002" in str(err.value)
+    kept = checkpoint.list_checkpoints(tmp_path)
+    assert [c.name for c in kept] == ["update_000002"]
+    assert all(np.isfinite(v).all() for v in saved_state(kept[0]).values() if v.dtype.kind == "f")
