@@ -124,6 +124,19 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True) -> Policy:
     except (OSError, KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{ckpt / 'policy.msgpack'}: unreadable ({err})") from None
     network = make_network(config.ppo, 3)
+    expected = jax.eval_shape(
+        network.init, jax.random.PRNGKey(0), jnp.zeros((1, stats.mean.shape[-1]))
+    )
+    same = jax.tree_util.tree_structure(expected) == jax.tree_util.tree_structure(params) and all(
+        a.shape == b.shape
+        for a, b in zip(
+            jax.tree_util.tree_leaves(expected), jax.tree_util.tree_leaves(params), strict=True
+        )
+    )
+    if not same:
+        raise CheckpointError(
+            f"{ckpt / 'policy.msgpack'}: weights do not match the network of {ckpt / 'config.json'}"
+        )
     use_stats = config.ppo.normalize_obs
 
     def act(obs, key):

@@ -52,15 +52,28 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any]) -> RunConfig:
-        """Inverse of `to_dict`; unknown or missing keys raise ValueError naming them."""
+        """Inverse of `to_dict`; unknown keys or values of the wrong type raise ValueError naming
+        them (`config: ppo.num_envs ...`)."""
+        if not isinstance(raw, dict):
+            raise ValueError(f"config: expected a JSON object, got {type(raw).__name__}")
         kwargs = dict(raw)
         for attr, group_cls, _ in GROUPS:
             kwargs[attr] = _build(group_cls, kwargs.get(attr, {}), attr)
-        if kwargs.get("layouts") is not None:
-            kwargs["layouts"] = tuple(kwargs["layouts"])
         unknown = set(kwargs) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"config: unknown keys {sorted(unknown)}")
+        layouts = kwargs.get("layouts")
+        if layouts is not None:
+            if not isinstance(layouts, list | tuple) or not all(
+                isinstance(x, dict) for x in layouts
+            ):
+                raise ValueError("config: layouts must be a list of room objects or null")
+            kwargs["layouts"] = tuple(layouts)
+        for name, kind in (("seed", int), ("preset", str), ("env", str)):
+            if name in kwargs and not _is(kwargs[name], kind):
+                raise ValueError(
+                    f"config: {name} must be {_KIND_NAMES[kind]}, got {kwargs[name]!r}"
+                )
         return cls(**kwargs)
 
     def env_kwargs(self) -> dict[str, Any]:
@@ -69,16 +82,46 @@ class RunConfig:
         return dict(task=self.task, sensor=self.sensor, scene=self.scene)
 
 
+_KIND_NAMES = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+
+
+def _is(value, kind) -> bool:
+    """Whether a JSON value fits a field of type `kind` (JSON has no int/float split for floats)."""
+    if kind is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
 def _build(cls, values: dict, where: str):
+    """A config group from its JSON object; every value is type-checked against the field."""
+    if not isinstance(values, dict):
+        raise ValueError(f"config: '{where}' must be an object, got {type(values).__name__}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(values) - names
     if unknown:
         raise ValueError(f"config: unknown keys in '{where}': {sorted(unknown)}")
-    fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
-    for k, v in fixed.items():
-        if typing.get_origin(hints[k]) is tuple and not isinstance(v, tuple):
-            raise ValueError(f"config: {where}.{k} must be a list")
+    fixed = {}
+    for k, v in values.items():
+        hint = hints[k]
+        if typing.get_origin(hint) is tuple:
+            args = typing.get_args(hint)
+            kind = args[0]
+            ok = isinstance(v, list | tuple) and all(_is(x, kind) for x in v)
+            if ok and args[-1] is not Ellipsis:
+                ok = len(v) == len(args)
+            if not ok:
+                count = "" if args[-1] is Ellipsis else f"{len(args)} "
+                raise ValueError(
+                    f"config: {where}.{k} must be a list of {count}"
+                    f"{_KIND_NAMES[kind].split(' ', 1)[1]}s, got {v!r}"
+                )
+            v = tuple(v)
+        elif hint in _KIND_NAMES and not _is(v, hint):
+            raise ValueError(f"config: {where}.{k} must be {_KIND_NAMES[hint]}, got {v!r}")
+        fixed[k] = float(v) if hint is float else v
     return cls(**fixed)
 
 

@@ -6,6 +6,7 @@ collision or after `steps` control steps; after that it is frozen (masked), so n
 
     python -m jaxnav.evaluate --checkpoint runs/a --layouts scenes/inference_room.json --json out.json
     python -m jaxnav.evaluate --policy forward --episodes 100 --steps 600
+    python -m jaxnav.evaluate --checkpoint runs/a --video videos/   # one GIF per layout
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from flax import struct
 import jaxnav
 from jaxnav.layouts import LayoutError, RoomLayout
 from jaxnav.policy import BASELINES, Policy
-from jaxnav.randomize import RandomizeConfig
+from jaxnav.randomize import RandomizeConfig, SceneParams
 from jaxnav.scene import SCENES_DIR
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
@@ -45,6 +46,15 @@ class Track:
     steps: jax.Array  # [E] int32, control steps run before it ended
     distance: jax.Array  # [E] float32, path length travelled, m
     xy: jax.Array  # [E, 2] float32, position (the last one before freezing), m
+
+
+@struct.dataclass
+class Kept:
+    """What a rollout keeps besides the counts: K paths for the pictures, episode 0 for a video."""
+
+    xy: jax.Array  # [K, steps + 1, 2] float32, positions of episodes 0..K-1 (frozen once ended), m
+    qpos: jax.Array  # [steps + 1, 3] float32, x, y, yaw of episode 0 (not frozen: trim it), m, rad
+    params: SceneParams  # episode 0's room and parameters, from its reset (constant: no auto-reset)
 
 
 # ------------------------------------------------------------------------------
@@ -74,7 +84,7 @@ def eval_randomize(spawn: str = "layout", stochastic_env: bool = True) -> Random
 
 
 def make_rollout(env, act, episodes: int, steps: int, keep: int = MAX_TRAJECTORIES):
-    """A jitted `rollout(key) -> (Track, paths [keep, steps + 1, 2])` of `episodes` episodes."""
+    """A jitted `rollout(key) -> (Track, Kept)` of `episodes` episodes (`keep` paths kept)."""
     reset, step = jax.vmap(env.reset), jax.vmap(env.step)
     keep = min(keep, episodes)
 
@@ -91,7 +101,7 @@ def make_rollout(env, act, episodes: int, steps: int, keep: int = MAX_TRAJECTORI
             distance=track.distance + jnp.where(live, moved, 0.0),
             xy=jnp.where(live[:, None], xy, track.xy),
         )
-        return (nxt, track), track.xy[:keep]
+        return (nxt, track), (track.xy[:keep], nxt.data.qpos[0])
 
     def rollout(key):
         k_reset, k_act = jax.random.split(key)
@@ -100,9 +110,11 @@ def make_rollout(env, act, episodes: int, steps: int, keep: int = MAX_TRAJECTORI
         false = jnp.zeros(episodes, bool)
         track = Track(false, false, jnp.zeros(episodes, jnp.int32), jnp.zeros(episodes), xy0)
         keys = jax.random.split(k_act, steps)
-        (_, track), path = jax.lax.scan(body, (state, track), keys)  # path [steps, keep, 2]
+        (_, track), (path, qpos) = jax.lax.scan(body, (state, track), keys)  # [steps, keep, 2]
         path = jnp.concatenate([xy0[None, :keep], path])  # [steps + 1, keep, 2]
-        return track, jnp.swapaxes(path, 0, 1)
+        qpos = jnp.concatenate([state.data.qpos[:1], qpos])  # [steps + 1, 3]
+        first = jax.tree_util.tree_map(lambda x: x[0], state.params)
+        return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=qpos, params=first)
 
     return jax.jit(rollout)
 
@@ -134,12 +146,11 @@ def _env_kwargs(policy: Policy, steps: int, randomize: RandomizeConfig) -> dict:
 def evaluate_layout(
     policy: Policy, layout: RoomLayout, key, *, episodes, steps, randomize
 ) -> tuple[dict, dict]:
-    """One layout -> (per-episode arrays as numpy, its kept trajectories)."""
+    """One layout -> (per-episode arrays as numpy, its kept trajectories and first episode)."""
     env = jaxnav.make_env("avoid", layouts=[layout], **_env_kwargs(policy, steps, randomize))
-    track, paths = make_rollout(env, policy.act, episodes, steps)(key)
-    track = jax.tree_util.tree_map(np.asarray, track)
+    track, kept = jax.device_get(make_rollout(env, policy.act, episodes, steps)(key))
     # Trim each kept path after its episode ended: [steps_run + 1, 2].
-    kept = [np.asarray(p[: n + 1]) for p, n in zip(paths, track.steps, strict=False)]
+    paths = [np.asarray(p[: n + 1]) for p, n in zip(kept.xy, track.steps, strict=False)]
     period = env.scene.cfg.control_period
     episodes_out = {
         "collided": track.collided,
@@ -147,7 +158,13 @@ def evaluate_layout(
         "distance": track.distance,
         "control_period": period,
     }
-    return episodes_out, {"paths": kept, "collided": track.collided[: len(kept)].tolist()}
+    return episodes_out, {
+        "paths": paths,
+        "collided": track.collided[: len(paths)].tolist(),
+        "qpos": np.asarray(kept.qpos[: track.steps[0] + 1]),  # [steps_run + 1, 3]
+        "params": kept.params,
+        "env": env,
+    }
 
 
 def evaluate(
@@ -163,8 +180,10 @@ def evaluate(
     """Runs `episodes` episodes of at most `steps` control steps in each layout.
 
     Returns `{"layouts": {name: metrics}, "overall": metrics, "policy", "steps", "seed",
-    "_trajectories": {name: {"paths": [[T_i + 1, 2] arrays], "collided": [bool]}}}` where metrics are
-    `METRIC_KEYS` (see `metrics`) and at most `MAX_TRAJECTORIES` paths per layout are kept.
+    "_trajectories": {name: {"paths": [[T_i + 1, 2] arrays], "collided": [bool], "qpos",
+    "params", "env"}}}` where metrics are `METRIC_KEYS` (see `metrics`) and at most
+    `MAX_TRAJECTORIES` paths per layout are kept; `qpos` [T_0 + 1, 3] (x, y, yaw) and `params`
+    (SceneParams) are the first episode's, and `env` the layout's env, for `jaxnav.render`.
     `_trajectories` is for pictures; `strip_private` removes it before writing JSON.
     """
     if episodes < 1:
@@ -263,6 +282,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", metavar="OUT", help="write the metrics here")
     p.add_argument("--plots", metavar="DIR", help="top-down PNGs, one per layout")
+    p.add_argument(
+        "--video",
+        metavar="DIR",
+        help="an animated GIF of the first episode per layout (needs OpenGL: EGL or OSMesa)",
+    )
     return p
 
 
@@ -274,14 +298,34 @@ def _check_args(args) -> None:
         raise UsageError(f"--steps: must be >= 1, got {args.steps}")
     if args.checkpoint is not None and not Path(args.checkpoint).is_dir():
         raise UsageError(f"--checkpoint: no such directory: {args.checkpoint}")
+    for flag, value in (("--plots", args.plots), ("--video", args.video)):
+        if value is not None and Path(value).exists() and not Path(value).is_dir():
+            raise UsageError(f"{flag}: not a directory: {value}")
 
 
 def _load_policy(args) -> Policy:
     if args.policy is not None:
         return BASELINES[args.policy]()
-    from jaxnav.checkpoint import load_policy  # lazy: needs orbax, and only checkpoints need it
+    from flax.errors import FlaxError
 
-    return load_policy(args.checkpoint)
+    from jaxnav.checkpoint import CheckpointError, load_policy  # lazy: only checkpoints need it
+
+    try:
+        policy = load_policy(args.checkpoint)
+    except CheckpointError as err:  # its message names the file; add the flag
+        raise UsageError(f"--checkpoint: {err}") from None
+    # The weights must fit the network that the checkpoint's config.json describes; tracing one
+    # call (no compile) says so now, instead of a traceback from inside the jitted rollout.
+    obs = jax.ShapeDtypeStruct((1, policy.env_kwargs["sensor"].num_sectors), jnp.float32)
+    try:
+        jax.eval_shape(policy.act, obs, jax.random.PRNGKey(0))
+    except FlaxError as err:
+        detail = str(err).split(" (https://")[0]
+        raise UsageError(
+            f"--checkpoint: {args.checkpoint}: policy.msgpack does not fit the network of its "
+            f"config.json ({detail})"
+        ) from None
+    return policy
 
 
 def _plots_dir(args) -> Path:
@@ -319,11 +363,14 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
     from jaxnav.plots import plot_trajectories  # lazy: matplotlib is slow to import
 
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(strip_private(results), indent=2) + "\n")
+        try:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps(strip_private(results), indent=2) + "\n")
+        except OSError as err:
+            raise UsageError(f"--json: cannot write {args.json} ({err.strerror or err})") from None
         print(f"metrics: {args.json}")
     out = _plots_dir(args)
-    out.mkdir(parents=True, exist_ok=True)
+    _make_dir(out, "--plots")
     for (name, traj), layout in zip(results["_trajectories"].items(), layouts, strict=True):
         m = results["layouts"][name]
         title = (
@@ -334,6 +381,43 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
             layout, traj["paths"], traj["collided"], out / f"{_file_name(name)}.png", title
         )
     print(f"plots: {out}/ ({len(layouts)} PNG)")
+
+
+def _make_dir(path: Path, flag: str) -> None:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"{flag}: cannot create {path} ({err.strerror or err})") from None
+
+
+def _write_videos(args, results: dict, layouts: list[RoomLayout]) -> None:
+    """One GIF of the first episode per layout; without OpenGL, that episode as a top-down PNG."""
+    from jaxnav import render  # lazy: only --video needs it
+
+    out = Path(args.video)
+    _make_dir(out, "--video")
+    items = list(zip(results["_trajectories"].items(), layouts, strict=True))
+    try:
+        for (name, traj), layout in items:
+            outcome = "collision" if traj["collided"][0] else "no collision"
+            title = f"{name}: {results['policy']}, episode 1 ({outcome})"
+            render.render_episode(
+                traj["env"],
+                traj["params"],
+                traj["qpos"],
+                out / f"{_file_name(name)}.gif",
+                wall_height=layout.wall_height,
+                title=title,
+            )
+    except render.NoGLError:
+        from jaxnav.plots import plot_trajectories
+
+        print(f"video: no OpenGL backend ({render.GL_HINT}); top-down PNGs written instead")
+        for (name, traj), layout in items:
+            path = out / f"{_file_name(name)}.png"
+            plot_trajectories(layout, [traj["qpos"][:, :2]], traj["collided"][:1], path)
+        return
+    print(f"video: {out}/ ({len(items)} GIF, OpenGL via {render.gl_backend()})")
 
 
 def _run(argv) -> None:
@@ -355,6 +439,8 @@ def _run(argv) -> None:
     )
     print(format_table(results))
     _write_outputs(args, results, layouts)
+    if args.video:
+        _write_videos(args, results, layouts)
 
 
 def main(argv=None) -> int:

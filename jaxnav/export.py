@@ -52,7 +52,10 @@ def actor_arrays(ckpt: Path) -> dict[str, np.ndarray]:
         layers = [(actor[n]["kernel"], actor[n]["bias"]) for n in names]
         mean, var = stats["mean"], stats["var"]
     except (OSError, KeyError, TypeError, ValueError, IndexError) as err:
-        raise CheckpointError(f"{file}: unreadable actor weights ({err!r})") from None
+        raise CheckpointError(
+            f"{file}: unreadable actor weights ({type(err).__name__}: {err})"
+        ) from None
+    _check_layers(file, ckpt, config, layers)
     out = {}
     for i, (w, b) in enumerate(layers):
         out[f"W{i}"], out[f"b{i}"] = np.asarray(w, np.float32), np.asarray(b, np.float32)
@@ -80,6 +83,20 @@ def actor_arrays(ckpt: Path) -> dict[str, np.ndarray]:
         num_sectors=np.int32(sensor.num_sectors),
         format_version=np.int32(FORMAT_VERSION),
     )
+
+
+def _check_layers(file: Path, ckpt: Path, config, layers) -> None:
+    """The actor's layer shapes are the ones config.json describes (else the check and the robot
+    would fail later, far from the cause)."""
+    shapes = [tuple(np.shape(w)) for w, _ in layers]
+    widths = [config.sensor.num_sectors, *config.ppo.hidden, len(robot.ACTION_NAMES)]
+    expected = list(zip(widths[:-1], widths[1:], strict=True))
+    if shapes != expected:
+        raise CheckpointError(
+            f"{file}: actor layers {shapes} do not match {ckpt / 'config.json'} "
+            f"(sensor.num_sectors {widths[0]}, ppo.hidden {list(config.ppo.hidden)}, "
+            f"{widths[-1]} actions: {expected})"
+        )
 
 
 def onnx_model(arrays: dict[str, np.ndarray]):
@@ -165,6 +182,7 @@ def jax_logits(ckpt: Path):
     import jax
     import jax.numpy as jnp
     from flax import serialization
+    from flax.errors import FlaxError
 
     from jaxnav.ppo.networks import RunningStats
     from jaxnav.ppo.train import make_network
@@ -174,6 +192,14 @@ def jax_logits(ckpt: Path):
     params = jax.tree_util.tree_map(jnp.asarray, raw["params"])
     stats = RunningStats(**{k: jnp.asarray(v) for k, v in raw["obs_stats"].items()})
     network = make_network(config.ppo, len(robot.ACTION_NAMES))
+    try:  # actor_arrays checked the actor; this checks the critic too (tracing only, no compile)
+        obs = jax.ShapeDtypeStruct((1, config.sensor.num_sectors), jnp.float32)
+        jax.eval_shape(network.apply, params, obs)
+    except FlaxError as err:
+        detail = str(err).split(" (https://")[0]
+        raise CheckpointError(
+            f"{ckpt / 'policy.msgpack'}: does not fit the network of its config.json ({detail})"
+        ) from None
 
     @jax.jit
     def logits(obs):
@@ -243,6 +269,9 @@ def main(argv=None) -> int:
     except ImportError:
         print("warning: onnxruntime is not installed; the ONNX model was not run", file=sys.stderr)
         return 0
+    except CheckpointError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     ok = diff <= TOLERANCE
     print(
         f"check: max |logit - JAX logit| = {diff:.2e} on {CHECK_OBS} random observations "

@@ -16,6 +16,7 @@ import numpy as np
 from flax import struct
 
 from jaxnav import robot
+from jaxnav.checks import require_finite
 from jaxnav.layouts import RoomLayout
 
 
@@ -76,11 +77,20 @@ class RandomizeConfig:
     """Probability that a ray returns nothing (read as the far range limit)."""
 
     def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, tuple) and len(value) != 2:
+                raise ValueError(f"RandomizeConfig.{f.name}: must be two numbers, got {value}")
+        require_finite(self)
         for name in ("sampled_room_prob", "random_spawn_prob"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(
                     f"RandomizeConfig.{name}: must be in [0, 1], got {getattr(self, name)}"
                 )
+        if self.spawn_clearance < 0:
+            raise ValueError(
+                f"RandomizeConfig.spawn_clearance: must be >= 0 m, got {self.spawn_clearance}"
+            )
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, tuple) and f.name not in ("room_size_min", "room_size_max"):
@@ -89,15 +99,21 @@ class RandomizeConfig:
                     raise ValueError(
                         f"RandomizeConfig.{f.name}: need 0 <= low <= high, got {value}"
                     )
+        for name in ("box_size", "cylinder_radius", "obstacle_height"):
+            if getattr(self, name)[0] <= 0:
+                raise ValueError(
+                    f"RandomizeConfig.{name}: low must be > 0 m, got {getattr(self, name)}"
+                )
         if any(lo > hi for lo, hi in zip(self.room_size_min, self.room_size_max, strict=True)):
-            raise ValueError("RandomizeConfig.room_size_min: must not exceed room_size_max")
-        if min(self.room_size_min) < 2 * (robot.BASE_RADIUS + self.spawn_clearance):
             raise ValueError(
-                "RandomizeConfig.room_size_min: too small for the robot and its clearance"
+                f"RandomizeConfig.room_size_min: must not exceed room_size_max per axis, got "
+                f"{self.room_size_min} > {self.room_size_max}"
             )
-        if self.box_size[0] <= 0 or self.cylinder_radius[0] <= 0 or self.obstacle_height[0] <= 0:
+        smallest = 2 * (robot.BASE_RADIUS + self.spawn_clearance)
+        if min(self.room_size_min) < smallest:
             raise ValueError(
-                "RandomizeConfig.box_size/cylinder_radius/obstacle_height: must be > 0"
+                f"RandomizeConfig.room_size_min: must be >= {smallest:.3f} m per axis (the robot "
+                f"and spawn_clearance on both sides), got {self.room_size_min}"
             )
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxnav import robot
+from jaxnav.checks import require_finite
 from jaxnav.scene import OBSTACLE_GROUP
 
 
@@ -35,12 +36,19 @@ class SensorConfig:
     """Farthest readable depth, m; no return reads this value."""
 
     def __post_init__(self):
-        if self.num_sectors < 1 or self.rays_per_sector < 1:
-            raise ValueError("SensorConfig.num_sectors and rays_per_sector: must be >= 1")
+        require_finite(self)
+        for name in ("num_sectors", "rays_per_sector"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"SensorConfig.{name}: must be >= 1, got {getattr(self, name)}")
         if not 0 < self.fov < np.pi:
-            raise ValueError(f"SensorConfig.fov: must be in (0, pi), got {self.fov}")
+            raise ValueError(f"SensorConfig.fov: must be in (0, pi) rad, got {self.fov}")
+        if self.range_max <= 0:
+            raise ValueError(f"SensorConfig.range_max: must be > 0 m, got {self.range_max}")
         if not 0 <= self.range_min < self.range_max:
-            raise ValueError("SensorConfig.range_min: need 0 <= range_min < range_max")
+            raise ValueError(
+                f"SensorConfig.range_min: must be in [0, range_max = {self.range_max}) m, "
+                f"got {self.range_min}"
+            )
 
     @property
     def ray_angles(self) -> np.ndarray:

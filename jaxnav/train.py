@@ -92,7 +92,10 @@ def run(config: RunConfig, out: Path, progress: bool = True, stop: list | None =
             f"--out {out}: already holds a training run; use --resume {out} or "
             "choose another folder"
         )
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out {out}: cannot create the run folder ({err.strerror})") from None
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
     trainer = make_train(config.ppo, make_run_env(config))
     ts = trainer.init(jax.random.PRNGKey(config.seed))
@@ -305,8 +308,13 @@ def train(
     return run(config, Path(out or f"runs/avoid-{preset}"), progress)
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one `error:` line from main instead of usage + exit
+        raise ValueError(message)
+
+
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="python -m jaxnav.train",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -363,9 +371,9 @@ def _start(args, stop: list) -> tuple[Path, Path]:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
     start = time.perf_counter()
     try:
+        args = parse_args(argv)
         with _stop_requests() as stop:  # from here on, Ctrl-C ends with a checkpoint
             out, final = _start(args, stop)
     except Interrupted as stop:

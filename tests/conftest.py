@@ -1,9 +1,15 @@
 """Shared fixtures: environments and a tiny training run are made once per session and reused."""
 
+import os
 import subprocess
 import sys
+import tempfile
 
-import jax
+# One XLA compilation cache for the whole session, shared with the CLI subprocesses: the tiny runs
+# of several tests compile the same programs.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", tempfile.mkdtemp(prefix="jaxnav-xla-cache-"))
+
+import jax  # noqa: E402
 import pytest
 
 import jaxnav

@@ -135,7 +135,7 @@ def test_batched_model_matches_per_env_model(mixed_env):
     from mujoco import mjx
 
     scene = mixed_env.scene
-    params = jax.vmap(mixed_env.reset)(jax.random.split(jax.random.PRNGKey(5), 4)).params
+    params = jax.jit(jax.vmap(mixed_env.reset))(jax.random.split(jax.random.PRNGKey(5), 4)).params
     model, in_axes = scene.batched_model(params)
     assert model.geom_pos.shape == (4, scene.model.ngeom, 3)
     data = jax.vmap(lambda p: mjx.make_data(scene.model).replace(qpos=p.spawn))(params)

@@ -40,6 +40,12 @@ def make_env(
     if name not in ENVS:
         raise ValueError(f"unknown environment '{name}'; valid names: {', '.join(sorted(ENVS))}")
     env_cls, task_cls = ENVS[name]
+    fields = [f.name for f in dataclasses.fields(task_cls)]
+    unknown = sorted(set(overrides) - set(fields))
+    if unknown:
+        raise ValueError(
+            f"make_env: unknown {task_cls.__name__} fields {unknown}; valid: {', '.join(fields)}"
+        )
     task = dataclasses.replace(task or task_cls(), **overrides)
     randomize = randomize or RandomizeConfig()
     layouts = default_layouts() if layouts is None else list(layouts)

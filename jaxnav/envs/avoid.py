@@ -16,6 +16,7 @@ from flax import struct
 from mujoco import mjx
 
 from jaxnav import robot
+from jaxnav.checks import require_finite
 from jaxnav.randomize import LayoutBank, RandomizeConfig, SceneParams, sample
 from jaxnav.scene import Scene, SceneConfig
 from jaxnav.sensors import SensorConfig, observe
@@ -51,6 +52,7 @@ class AvoidConfig:
     """Start a new episode (new room, new spawn) inside `step` when one ends, as training needs."""
 
     def __post_init__(self):
+        require_finite(self)
         if not 0 < self.forward_speed <= robot.MAX_LINEAR_SPEED:
             raise ValueError(
                 f"AvoidConfig.forward_speed: must be in (0, {robot.MAX_LINEAR_SPEED}] m/s, "
@@ -134,7 +136,9 @@ class AvoidEnv:
     def _new_episode(self, key: jax.Array) -> tuple[SceneParams, mjx.Data]:
         params = sample(key, self.randomize, self.bank)
         data = self._data0.replace(qpos=params.spawn)
-        return params, self._settle(self.scene.model_for(params), data)
+        # Kinematics places the new room's geoms for the rays; the first physics step of the
+        # episode computes its contacts, so no collision pass is needed here.
+        return params, mjx.kinematics(self.scene.model_for(params), data)
 
     def _settle(self, m: mjx.Model, d: mjx.Data) -> mjx.Data:
         """Geometry and contacts of the current pose, for the sensor and the collision check."""

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 
+from jaxnav.checks import require_finite
 from jaxnav.ppo.networks import CRITIC_OUTPUTS
+
+
+def _flag(name: str) -> str:
+    """The command-line flag of PPOConfig field `name`: errors name it as the user typed it."""
+    return "--" + name.replace("_", "-")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,9 +70,7 @@ class PPOConfig:
         )
         for name in positive:
             if getattr(self, name) < 1:
-                raise ValueError(
-                    f"--{name.replace('_', '-')}: must be >= 1, got {getattr(self, name)}"
-                )
+                raise ValueError(f"{_flag(name)}: must be >= 1, got {getattr(self, name)}")
         if self.batch_size % self.minibatch_size:
             raise ValueError(
                 f"--minibatch-size {self.minibatch_size} must divide --num-envs x --rollout-length = "
@@ -77,15 +81,25 @@ class PPOConfig:
                 f"--total-steps {self.total_steps} is less than one rollout "
                 f"(--num-envs x --rollout-length = {self.batch_size})"
             )
+        require_finite(self, _flag)
         for name in ("gamma", "gae_lambda"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"--{name.replace('_', '-')}: must be in [0, 1]")
-        if self.learning_rate <= 0 or self.clip_eps <= 0 or self.max_grad_norm <= 0:
-            raise ValueError("--learning-rate, --clip-eps and --max-grad-norm: must be > 0")
+                raise ValueError(f"{_flag(name)}: must be in [0, 1], got {getattr(self, name)}")
+        for name in ("learning_rate", "clip_eps", "max_grad_norm", "reward_scale"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{_flag(name)}: must be > 0, got {getattr(self, name)}")
+        for name in ("vf_coef", "ent_coef"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{_flag(name)}: must be >= 0, got {getattr(self, name)}")
         if self.critic_output not in CRITIC_OUTPUTS:
-            raise ValueError(f"--critic-output: must be one of {CRITIC_OUTPUTS}")
+            raise ValueError(
+                f"--critic-output: must be one of {', '.join(CRITIC_OUTPUTS)}, "
+                f"got {self.critic_output!r}"
+            )
         if not self.hidden or min(self.hidden) < 1:
-            raise ValueError("--hidden: need at least one layer of >= 1 unit")
+            raise ValueError(
+                f"--hidden: need at least one layer, each of >= 1 unit, got {list(self.hidden)}"
+            )
 
     @property
     def batch_size(self) -> int:

@@ -217,8 +217,11 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             key=key,
             update=ts.update + 1,
         )
-        metrics = {**episode_metrics(traj), **jax.tree_util.tree_map(jnp.mean, losses),
-                   "obs_finite": jnp.isfinite(traj.raw_obs).all()}
+        metrics = {
+            **episode_metrics(traj),
+            **jax.tree_util.tree_map(jnp.mean, losses),
+            "obs_finite": jnp.isfinite(traj.raw_obs).all(),
+        }
         return ts, metrics
 
     def _update_or_skip(ts: TrainState, _):

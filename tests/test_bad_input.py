@@ -1,0 +1,385 @@
+"""Bad input everywhere: every user mistake exits 2 with one `error:` line naming the file, field or
+flag, and no traceback (DESIGN.md, command-line contract).
+
+Most cases call the CLIs' `main(argv)` in-process, since a subprocess costs a JAX import (3-5 s);
+`test_in_a_process` runs four of them as real processes, started together before the other tests
+so that their imports overlap.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+import jaxnav
+import jaxnav.evaluate
+import jaxnav.export
+import jaxnav.train
+from jaxnav import checkpoint
+from jaxnav.config import RunConfig
+from jaxnav.layouts import Box, Cylinder, RoomLayout, save_layouts
+from jaxnav.ppo.config import preset
+from jaxnav.ppo.networks import init_stats
+from jaxnav.ppo.train import TrainState, make_network
+from jaxnav.scene import SceneConfig
+
+# A valid room; each bad layout breaks one thing in a copy of it (tests/test_layouts.py checks the
+# messages of the parser itself; here they go through the command lines).
+GOOD_ROOM = {
+    "name": "office",
+    "room": {"size": [4.0, 4.0]},
+    "robot": {"pos": [0.0, 0.0]},
+    "obstacles": [{"type": "box", "pos": [1.2, 0.5], "size": [0.6, 0.4]}],
+}
+BAD_LAYOUTS = {  # file name: (change to GOOD_ROOM's first obstacle or room, what the message names)
+    "unknown_type.json": ({"type": "cone"}, "obstacles[0].type"),
+    "negative_size.json": ({"size": [-0.6, 0.4]}, "obstacles[0].size"),
+    "outside_room.json": ({"pos": [3.0, 0.5]}, "obstacles[0]"),
+    "spawn_overlap.json": ({"pos": [0.2, 0.0]}, "robot.pos"),
+    "unknown_key.json": ({"colour": "red"}, "obstacles[0].colour"),
+    "wrong_type.json": ({"room": {"size": "4x4"}}, "room.size"),
+}
+# Reached by a training run whose config passed every check: these tests must never get there.
+PASSED = "the config passed validation"
+
+
+def _bad_room(change: dict) -> dict:
+    room = json.loads(json.dumps(GOOD_ROOM))
+    if "room" in change:
+        room.update(change)
+    else:
+        room["obstacles"][0].update(change)
+    return room
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("layouts")
+    for name, (change, _) in BAD_LAYOUTS.items():
+        (root / name).write_text(json.dumps(_bad_room(change)))
+    return root
+
+
+def _make_run(run: Path) -> Path:
+    """A run folder with one checkpoint of an untrained tiny network (no env, no training)."""
+    ppo = preset("cpu", num_envs=2, rollout_length=4, minibatch_size=8, total_steps=8, hidden=(8,))
+    params = make_network(ppo, 3).init(jax.random.PRNGKey(0), jnp.zeros((1, 8)))
+    ts = TrainState(params, (), init_stats(8), (), jax.random.PRNGKey(0), jnp.int32(1))
+    return checkpoint.save(run, ts, RunConfig(ppo=ppo), {})
+
+
+def _edit_config(ckpt: Path, **changes) -> None:
+    config = json.loads((ckpt / "config.json").read_text())
+    for group, fields in changes.items():
+        config[group].update(fields)
+    (ckpt / "config.json").write_text(json.dumps(config))
+
+
+# Broken copies of a good run: (what is done to its checkpoint, what the message names).
+BROKEN_RUNS = {
+    "missing": (None, "missing"),
+    "empty": (None, "empty"),
+    "corrupt_msgpack": (
+        lambda c: (c / "policy.msgpack").write_bytes(b"\x93not msgpack\xff"),
+        "policy.msgpack",
+    ),
+    "truncated_msgpack": (
+        lambda c: (c / "policy.msgpack").write_bytes((c / "policy.msgpack").read_bytes()[:40]),
+        "policy.msgpack",
+    ),
+    "no_msgpack": (lambda c: (c / "policy.msgpack").unlink(), "policy.msgpack"),
+    "garbage_config": (lambda c: (c / "config.json").write_text("{ppo: ???"), "config.json"),
+    "config_wrong_type": (lambda c: _edit_config(c, ppo={"num_envs": "many"}), "ppo.num_envs"),
+    "config_mismatch": (lambda c: _edit_config(c, ppo={"hidden": [64, 64]}), "policy.msgpack"),
+}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("runs")
+    good = _make_run(root / "good")
+    (root / "empty").mkdir()
+    for name, (damage, _) in BROKEN_RUNS.items():
+        if damage is not None:
+            shutil.copytree(root / "good", root / name)
+            damage(root / name / good.relative_to(root / "good"))
+    return root
+
+
+def _call(main, argv, capsys) -> tuple[int, str]:
+    """(exit code, stderr) of an in-process CLI call; argparse's SystemExit counts as an exit."""
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as stop:
+        code = stop.code
+    return code, capsys.readouterr().err
+
+
+def assert_one_error_line(code, err: str, *names: str) -> None:
+    assert code == 2, f"exit code {code}: {err}"
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    for name in names:
+        assert name in lines[0], f"{name!r} not named in: {lines[0]}"
+
+
+@pytest.fixture
+def train_main(monkeypatch, tmp_path):
+    """`jaxnav.train.main` (with --out in tmp_path unless `out=False`); a config that passes
+    validation fails the test at once instead of starting to train."""
+
+    def refuse(config, *args, **kwargs):
+        raise AssertionError(f"{PASSED}: {config}")
+
+    monkeypatch.setattr(jaxnav.train, "run", refuse)
+    monkeypatch.chdir(tmp_path)
+
+    def main(argv, out=True):
+        argv = ["--out", tmp_path / "run", *argv] if out else argv
+        return jaxnav.train.main([str(a) for a in argv])
+
+    return main
+
+
+# ------------------------------------------------------------------------------
+# Four real processes: one `error:` line, no traceback, exit code 2
+
+
+def _start(module: str, *args, cwd) -> subprocess.Popen:
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    cmd = [sys.executable, "-m", module, *map(str, args)]
+    return subprocess.Popen(
+        cmd, cwd=cwd, env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+
+
+@pytest.fixture(scope="module", autouse=True)
+def processes(files, runs, tmp_path_factory):
+    """{name: (process, names its message must hold)}, started before the in-process tests."""
+    cwd = tmp_path_factory.mktemp("cwd")
+    bad = files / "unknown_type.json"
+    procs = {
+        "train_layout": (
+            _start("jaxnav.train", "--out", cwd / "a", "--layouts", bad, cwd=cwd),
+            (str(bad), "obstacles[0].type"),
+        ),
+        "train_flag": (
+            _start("jaxnav.train", "--out", cwd / "b", "--task.forward-speed", "3", cwd=cwd),
+            ("AvoidConfig.forward_speed",),
+        ),
+        "evaluate_layout": (
+            _start("jaxnav.evaluate", "--policy", "forward", "--layouts", bad, cwd=cwd),
+            ("--layouts", str(bad), "obstacles[0].type"),
+        ),
+        "export_corrupt": (
+            _start("jaxnav.export", runs / "corrupt_msgpack", cwd=cwd),
+            ("policy.msgpack",),
+        ),
+    }
+    yield procs
+    for proc, _ in procs.values():
+        if proc.poll() is None:  # a test failed before waiting for it
+            proc.kill()
+            proc.communicate()
+
+
+@pytest.mark.parametrize(
+    "name", ["train_layout", "train_flag", "evaluate_layout", "export_corrupt"]
+)
+def test_in_a_process(processes, name):
+    proc, names = processes[name]
+    _, stderr = proc.communicate(timeout=180)
+    assert_one_error_line(proc.returncode, stderr, *names)
+
+
+# ------------------------------------------------------------------------------
+# Layouts through both command lines
+
+
+@pytest.mark.parametrize("file", sorted(BAD_LAYOUTS))
+def test_train_bad_layout(files, train_main, capsys, file):
+    code, err = _call(train_main, ["--layouts", files / file], capsys)
+    assert_one_error_line(code, err, file, BAD_LAYOUTS[file][1])
+
+
+@pytest.mark.parametrize("file", sorted(BAD_LAYOUTS))
+def test_evaluate_bad_layout(files, capsys, file):
+    argv = ["--policy", "forward", "--layouts", files / file]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, "--layouts", file, BAD_LAYOUTS[file][1])
+
+
+def test_more_obstacles_than_slots_grows_the_slots(tmp_path, train_main, capsys):
+    """Not an error: `--scene.num-boxes` is a minimum, every layout gets the slots it needs."""
+    boxes = [Box(pos=(-2.0 + 0.5 * i, 1.5), size=(0.3, 0.3)) for i in range(9)]
+    cylinders = [Cylinder(pos=(-2.0 + 0.8 * i, -1.5), radius=0.15) for i in range(5)]
+    room = RoomLayout(name="crowded", size=(5.0, 4.0), obstacles=(*boxes, *cylinders))
+    save_layouts(tmp_path / "crowded.json", room)
+    argv = ["--scene.num-boxes", "1", "--scene.num-cylinders", "0", "--layouts"]
+    with pytest.raises(AssertionError, match=PASSED):  # the CLI accepts it...
+        train_main([*argv, tmp_path / "crowded.json"])
+    assert capsys.readouterr().err == ""
+    scene = SceneConfig(num_boxes=1, num_cylinders=0)  # ...and the env grows its slots to fit
+    env = jaxnav.make_env("avoid", layouts=[room], scene=scene)
+    assert (env.scene.cfg.num_boxes, env.scene.cfg.num_cylinders) == (9, 5)
+    assert env.bank.rooms.box_pos.shape == (1, 9, 2)
+    assert int(env.bank.rooms.box_active.sum()) == 9
+    assert int(env.bank.rooms.cyl_active.sum()) == 5
+
+
+# ------------------------------------------------------------------------------
+# Config fields through `python -m jaxnav.train` (PPO flags are named as flags, the other groups
+# as Class.field, each group consistently)
+
+CONFIG_CASES = [
+    (["--num-envs", "0"], "--num-envs"),
+    (["--learning-rate", "-1"], "--learning-rate"),
+    (["--learning-rate", "nan"], "--learning-rate"),
+    (["--minibatch-size", "3"], "--minibatch-size"),
+    (["--gamma", "2"], "--gamma"),
+    (["--critic-output", "sigmoid"], "--critic-output"),
+    (["--hidden", "0"], "--hidden"),
+    (["--total-steps", "100"], "--total-steps"),
+    (["--preset", "turbo"], "--preset"),
+    (["--task.forward-speed", "3"], "AvoidConfig.forward_speed"),
+    (["--task.max-steps", "0"], "AvoidConfig.max_steps"),
+    (["--task.near-threshold", "inf"], "AvoidConfig.near_threshold"),
+    (["--randomize.friction", "1", "0.5"], "RandomizeConfig.friction"),
+    (["--randomize.friction", "nan", "1"], "RandomizeConfig.friction"),
+    (["--randomize.sampled-room-prob", "1.5"], "RandomizeConfig.sampled_room_prob"),
+    (["--randomize.spawn-clearance", "-1"], "RandomizeConfig.spawn_clearance"),
+    (["--sensor.range-min", "9"], "SensorConfig.range_min"),
+    (["--sensor.fov", "4"], "SensorConfig.fov"),
+    (["--sensor.rays-per-sector", "0"], "SensorConfig.rays_per_sector"),
+    (["--scene.substeps", "0"], "SceneConfig.substeps"),
+    (["--scene.timestep", "nan"], "SceneConfig.timestep"),
+    (["--anneal-lr", "maybe"], "--anneal-lr"),
+    (["--num-envs", "many"], "--num-envs"),
+    (["--num-robots", "8"], "--num-robots"),
+]
+
+
+@pytest.mark.parametrize("argv, name", CONFIG_CASES)
+def test_train_bad_config(train_main, capsys, argv, name):
+    code, err = _call(train_main, argv, capsys)
+    assert_one_error_line(code, err, name)
+
+
+def test_train_out_is_a_file(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "taken").write_text("")
+    tiny = ["--num-envs", "1", "--rollout-length", "2", "--minibatch-size", "2"]  # if it did train
+    argv = ["--out", "taken", *tiny, "--total-steps", "2", "--no-progress"]
+    code, err = _call(jaxnav.train.main, argv, capsys)
+    assert_one_error_line(code, err, "--out", "taken")
+
+
+# ------------------------------------------------------------------------------
+# Checkpoints: train --resume, evaluate and export
+
+
+@pytest.mark.parametrize("run", ["missing", "empty", "garbage_config", "config_wrong_type"])
+def test_train_resume_broken_run(runs, train_main, capsys, run):
+    code, err = _call(lambda a: train_main(a, out=False), ["--resume", runs / run], capsys)
+    assert_one_error_line(code, err, str(runs / run), BROKEN_RUNS[run][1])
+
+
+@pytest.mark.parametrize("run", sorted(BROKEN_RUNS))
+def test_evaluate_broken_checkpoint(runs, capsys, run):
+    argv = ["--checkpoint", runs / run, "--episodes", "1", "--steps", "1"]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, "--checkpoint", str(runs / run), BROKEN_RUNS[run][1])
+
+
+@pytest.mark.parametrize("run", sorted(BROKEN_RUNS))
+def test_export_broken_checkpoint(runs, tmp_path, capsys, run):
+    argv = [runs / run, "--out", tmp_path / "policy.npz"]
+    code, err = _call(jaxnav.export.main, argv, capsys)
+    assert_one_error_line(code, err, str(runs / run), BROKEN_RUNS[run][1])
+
+
+def test_export_unknown_format(runs, tmp_path, capsys):
+    argv = [runs / "good", "--format", "tflite", "--out", tmp_path / "p.tflite"]
+    code, err = _call(jaxnav.export.main, argv, capsys)
+    assert_one_error_line(code, err, "--format", "tflite")
+    assert not (tmp_path / "p.tflite").exists()
+
+
+def test_export_out_is_not_writable(runs, tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    argv = [runs / "good", "--out", tmp_path / "file" / "policy.npz"]
+    code, err = _call(jaxnav.export.main, argv, capsys)
+    assert_one_error_line(code, err, "--out", "policy.npz")
+
+
+# ------------------------------------------------------------------------------
+# Evaluate's own flags
+
+
+@pytest.mark.parametrize(
+    "argv, names",
+    [
+        (["--policy", "forward", "--episodes", "0"], ("--episodes",)),
+        (["--policy", "forward", "--steps", "-5"], ("--steps",)),
+        (["--policy", "forward", "--episodes", "ten"], ("--episodes", "ten")),
+        (["--policy", "forward", "--checkpoint", "."], ("--checkpoint", "--policy")),
+        (["--policy", "straight"], ("--policy", "straight")),
+        (["--episodes", "4"], ("--policy", "--checkpoint")),
+        (["--policy", "forward", "--video", "a_file"], ("--video", "a_file")),
+        (["--policy", "forward", "--plots", "a_file"], ("--plots", "a_file")),
+    ],
+)
+def test_evaluate_bad_flags(tmp_path, monkeypatch, capsys, argv, names):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a_file").write_text("")
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, *names)
+
+
+# ------------------------------------------------------------------------------
+# The Python API names fields as the dataclasses do
+
+
+def test_config_json_errors_name_the_field():
+    raw = RunConfig().to_dict()
+    cases = {
+        "ppo.num_envs": {"ppo": {"num_envs": "8"}},
+        "randomize.friction": {"randomize": {"friction": [0.5]}},
+        "ppo.hidden": {"ppo": {"hidden": [64, "wide"]}},
+        "unknown keys in 'task'": {"task": {"speed": 1.0}},
+        "seed": {"seed": 0.5},
+    }
+    for name, change in cases.items():
+        with pytest.raises(ValueError, match=name.replace(".", r"\.").replace("(", r"\(")):
+            RunConfig.from_dict({**raw, **change})
+
+
+def test_make_env_unknown_override():
+    with pytest.raises(ValueError, match="near_treshold.*valid: forward_speed"):
+        jaxnav.make_env("avoid", near_treshold=0.8)
+
+
+def test_config_classes_reject_nan():
+    from jaxnav.envs.avoid import AvoidConfig
+    from jaxnav.randomize import RandomizeConfig
+    from jaxnav.sensors import SensorConfig
+
+    nan = float("nan")
+    for cls, field, value in [
+        (AvoidConfig, "collision_reward", nan),
+        (RandomizeConfig, "sensor_noise", (0.0, nan)),
+        (SensorConfig, "range_max", nan),
+        (SceneConfig, "timestep", nan),
+    ]:
+        with pytest.raises(ValueError, match=f"{cls.__name__}.{field}"):
+            dataclasses.replace(cls(), **{field: value})
