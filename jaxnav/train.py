@@ -340,6 +340,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def _new_run_dir(root: Path, name: str) -> Path:
+    """root/name, or root/name-2, -3, ... if taken: a plain re-run never collides with an old run."""
+    candidates = (root / (name if i == 1 else f"{name}-{i}") for i in range(1, 10_000))
+    return next(p for p in candidates if not p.exists())
+
+
 def _start(args, stop: list) -> tuple[Path, Path]:
     """Runs what the flags ask for; returns (run folder, final checkpoint)."""
     overrides = overrides_from_args(args)
@@ -359,7 +365,7 @@ def _start(args, stop: list) -> tuple[Path, Path]:
         total = overrides["ppo"].get("total_steps")
         return args.resume, resume(args.resume, total, not args.no_progress, stop)
     config = build_config(args.preset or "cpu", args.seed or 0, args.layouts, overrides)
-    out = args.out or Path(f"runs/avoid-{config.preset}")
+    out = args.out or _new_run_dir(Path("runs"), f"avoid-{config.preset}")
     cfg = config.ppo
     print(
         f"jaxnav: training '{config.env}' with the {config.preset} preset: {cfg.num_envs} robots, "

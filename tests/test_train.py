@@ -129,3 +129,12 @@ def test_python_api_names():
     layout = jaxnav.load_layout(jaxnav.scene.SCENES_DIR / "inference_room.json")
     result = jaxnav.evaluate(forward_policy(), layout, episodes=2, steps=5)
     assert result["overall"]["episodes"] == 2
+
+
+def test_default_run_folder_never_collides(tmp_path):
+    from jaxnav.train import _new_run_dir
+
+    assert _new_run_dir(tmp_path, "avoid-cpu") == tmp_path / "avoid-cpu"
+    (tmp_path / "avoid-cpu").mkdir()
+    (tmp_path / "avoid-cpu-2").mkdir()
+    assert _new_run_dir(tmp_path, "avoid-cpu") == tmp_path / "avoid-cpu-3"
