@@ -16,7 +16,6 @@ import dataclasses
 import json
 import re
 import sys
-import types
 from pathlib import Path
 
 import jax
@@ -25,6 +24,7 @@ import numpy as np
 from flax import struct
 
 import jaxnav
+from jaxnav.entry import make_callable
 from jaxnav.layouts import LayoutError, RoomLayout
 from jaxnav.policy import BASELINES, Policy
 from jaxnav.randomize import RandomizeConfig, SceneParams
@@ -454,14 +454,7 @@ def main(argv=None) -> int:
     return 0
 
 
-class _CallableModule(types.ModuleType):
-    """Lets `jaxnav.evaluate(...)` work whether `jaxnav.evaluate` names this module or the function."""
-
-    def __call__(self, *args, **kwargs):
-        return evaluate(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule
+make_callable(__name__, evaluate)
 
 if __name__ == "__main__":
     sys.exit(main())

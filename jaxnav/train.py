@@ -17,7 +17,6 @@ import signal
 import sys
 import threading
 import time
-import types
 from pathlib import Path
 
 import jax
@@ -26,6 +25,7 @@ from tqdm import tqdm
 
 from jaxnav import checkpoint
 from jaxnav.config import GROUPS, RunConfig, add_flags, overrides_from_args
+from jaxnav.entry import make_callable
 from jaxnav.envs import make_env
 from jaxnav.layouts import LayoutError, layout_to_dict, load_layout, parse_layouts
 from jaxnav.ppo.config import PRESETS, preset
@@ -400,14 +400,7 @@ def main(argv=None) -> int:
     return 0
 
 
-class _CallableModule(types.ModuleType):
-    """Lets `jaxnav.train(...)` work whether `jaxnav.train` names this module or the function."""
-
-    def __call__(self, *args, **kwargs):
-        return train(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule
+make_callable(__name__, train)
 
 if __name__ == "__main__":
     sys.exit(main())
