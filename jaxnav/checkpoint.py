@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
+from jaxnav import robot
 from jaxnav.config import RunConfig
 from jaxnav.policy import Policy
 
@@ -123,7 +124,7 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True) -> Policy:
         stats = RunningStats(**{k: jnp.asarray(v) for k, v in raw["obs_stats"].items()})
     except (OSError, KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{ckpt / 'policy.msgpack'}: unreadable ({err})") from None
-    network = make_network(config.ppo, 3)
+    network = make_network(config.ppo, len(robot.ACTION_NAMES))
     expected = jax.eval_shape(
         network.init, jax.random.PRNGKey(0), jnp.zeros((1, stats.mean.shape[-1]))
     )

@@ -128,7 +128,7 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop=None) -> Path:
     """
     cfg = config.ppo
     start = time.perf_counter() - elapsed
-    last_ckpt = checkpoint.list_checkpoints(out)[-1] if checkpoint.list_checkpoints(out) else None
+    last_ckpt = (checkpoint.list_checkpoints(out) or [None])[-1]
     bar = tqdm(
         total=cfg.num_updates * cfg.batch_size,
         initial=int(ts.update) * cfg.batch_size,

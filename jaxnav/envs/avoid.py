@@ -107,8 +107,7 @@ class AvoidEnv:
         self._data0 = mjx.make_data(self.scene.model)
         # [3, 2] commanded (forward speed, yaw rate) per action.
         self._commands = jnp.asarray(robot.ACTIONS * np.array([task.forward_speed, task.turn_rate]))
-        if sensor.num_sectors != robot.NUM_SECTORS:
-            self.observation_size = sensor.num_sectors
+        self.observation_size = sensor.num_sectors
 
     def reset(self, key: jax.Array) -> EnvState:
         """A new episode: fresh room, spawn and parameters drawn from the randomisation."""
@@ -139,10 +138,6 @@ class AvoidEnv:
         # Kinematics places the new room's geoms for the rays; the first physics step of the
         # episode computes its contacts, so no collision pass is needed here.
         return params, mjx.kinematics(self.scene.model_for(params), data)
-
-    def _settle(self, m: mjx.Model, d: mjx.Data) -> mjx.Data:
-        """Geometry and contacts of the current pose, for the sensor and the collision check."""
-        return mjx.collision(m, mjx.kinematics(m, d))
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; reward per Table I; end on collision or time."""
@@ -200,7 +195,7 @@ class AvoidEnv:
             return (d, hit | _touching(d)), None
 
         (d, hit), _ = jax.lax.scan(substep, (d, jnp.bool_(False)), None, self.scene.cfg.substeps)
-        d = self._settle(m, d)
+        d = mjx.collision(m, mjx.kinematics(m, d))  # contacts of the final pose
         return d, hit | _touching(d)
 
     def _reward(self, obs: jax.Array, action: jax.Array, hit: jax.Array) -> jax.Array:
