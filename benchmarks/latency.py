@@ -59,8 +59,8 @@ def fresh_run(root: Path) -> Path:
     import jax
     import jax.numpy as jnp
 
-    from jaxnav import checkpoint
-    from jaxnav.config import RunConfig
+    from jaxnav.io import checkpoint
+    from jaxnav.io.runconfig import RunConfig
     from jaxnav.ppo.networks import init_stats
     from jaxnav.ppo.train import TrainState, make_network
 
@@ -77,7 +77,7 @@ def backends(run: Path, tmp: Path) -> dict:
 
     import jaxnav
     from jaxnav.export import export
-    from jaxnav.numpy_policy import NumpyPolicy
+    from jaxnav.robot_side.policy import NumpyPolicy
 
     fns = {"numpy": NumpyPolicy.from_npz(export(run, "numpy", tmp / "policy.npz"))}
     try:

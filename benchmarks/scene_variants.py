@@ -17,9 +17,9 @@ import jax
 import jax.numpy as jnp
 
 import jaxnav
-from jaxnav.randomize import RandomizeConfig
-from jaxnav.scene import SceneConfig
-from jaxnav.sensors import SensorConfig
+from jaxnav.core.randomize import RandomizeConfig
+from jaxnav.core.scene import SceneConfig
+from jaxnav.core.sensors import SensorConfig
 
 VARIANTS = {
     "default (2 x 0.05 s, 4 iterations, 24 rays, 8+4 slots)": {},

@@ -20,10 +20,10 @@ import jax
 import jax.numpy as jnp
 
 import jaxnav
+from jaxnav.core.randomize import RandomizeConfig
+from jaxnav.core.sensors import observe
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.train import make_network, make_train
-from jaxnav.randomize import RandomizeConfig
-from jaxnav.sensors import observe
 
 FULL = RandomizeConfig(num_boxes=(8, 8), num_cylinders=(4, 4), sampled_room_prob=1.0)
 

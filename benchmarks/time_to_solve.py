@@ -19,11 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnav
+from jaxnav.core.scene import SCENES_DIR
 from jaxnav.evaluate import eval_randomize, make_rollout
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
-from jaxnav.scene import SCENES_DIR
 
 
 def make_evaluator(trainer, cfg, episodes, steps):

@@ -9,9 +9,9 @@ import io
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx  # noqa: F401
 
-from jaxnav.checkpoint import load_policy  # noqa: E402
-from jaxnav.envs import make_env  # noqa: E402
-from jaxnav.layouts import LayoutError, RoomLayout, load_layout  # noqa: E402
+from jaxnav.io.checkpoint import load_policy  # noqa: E402
+from jaxnav.io.layouts import LayoutError, RoomLayout, load_layout  # noqa: E402
+from jaxnav.tasks.registry import make_env  # noqa: E402
 
 __all__ = [
     "LayoutError",

@@ -24,11 +24,11 @@ import numpy as np
 from flax import struct
 
 import jaxnav
-from jaxnav.entry import make_callable
-from jaxnav.layouts import LayoutError, RoomLayout
+from jaxnav.cli import make_callable
+from jaxnav.core.randomize import RandomizeConfig, SceneParams
+from jaxnav.core.scene import SCENES_DIR
+from jaxnav.io.layouts import LayoutError, RoomLayout
 from jaxnav.policy import BASELINES, Policy
-from jaxnav.randomize import RandomizeConfig, SceneParams
-from jaxnav.scene import SCENES_DIR
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
 MAX_TRAJECTORIES = 20  # paths kept per layout for the pictures; more only clutter them
@@ -183,7 +183,7 @@ def evaluate(
     "_trajectories": {name: {"paths": [[T_i + 1, 2] arrays], "collided": [bool], "qpos",
     "params", "env"}}}` where metrics are `METRIC_KEYS` (see `metrics`) and at most
     `MAX_TRAJECTORIES` paths per layout are kept; `qpos` [T_0 + 1, 3] (x, y, yaw) and `params`
-    (SceneParams) are the first episode's, and `env` the layout's env, for `jaxnav.render`.
+    (SceneParams) are the first episode's, and `env` the layout's env, for `jaxnav.viz.render`.
     `_trajectories` is for pictures; `strip_private` removes it before writing JSON.
     """
     if episodes < 1:
@@ -308,7 +308,7 @@ def _load_policy(args) -> Policy:
         return BASELINES[args.policy]()
     from flax.errors import FlaxError
 
-    from jaxnav.checkpoint import CheckpointError, load_policy  # lazy: only checkpoints need it
+    from jaxnav.io.checkpoint import CheckpointError, load_policy  # lazy: only checkpoints need it
 
     try:
         policy = load_policy(args.checkpoint)
@@ -360,7 +360,7 @@ def format_table(results: dict) -> str:
 
 def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
     """The JSON (if asked) and one top-down PNG per layout."""
-    from jaxnav.plots import plot_trajectories  # lazy: matplotlib is slow to import
+    from jaxnav.viz.plots import plot_trajectories  # lazy: matplotlib is slow to import
 
     if args.json:
         try:
@@ -392,7 +392,7 @@ def _make_dir(path: Path, flag: str) -> None:
 
 def _write_videos(args, results: dict, layouts: list[RoomLayout]) -> None:
     """One GIF of the first episode per layout; without OpenGL, that episode as a top-down PNG."""
-    from jaxnav import render  # lazy: only --video needs it
+    from jaxnav.viz import render  # lazy: only --video needs it
 
     out = Path(args.video)
     _make_dir(out, "--video")
@@ -410,7 +410,7 @@ def _write_videos(args, results: dict, layouts: list[RoomLayout]) -> None:
                 title=title,
             )
     except render.NoGLError:
-        from jaxnav.plots import plot_trajectories
+        from jaxnav.viz.plots import plot_trajectories
 
         print(f"video: no OpenGL backend ({render.GL_HINT}); top-down PNGs written instead")
         for (name, traj), layout in items:

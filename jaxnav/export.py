@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnav import robot
-from jaxnav.checkpoint import CheckpointError, load_config, load_policy, resolve
-from jaxnav.numpy_policy import FORMAT_VERSION, NumpyPolicy
+from jaxnav.core import robot
+from jaxnav.io.checkpoint import CheckpointError, load_config, load_policy, resolve
 from jaxnav.ppo.networks import LEAKY_SLOPE, normalize
+from jaxnav.robot_side.policy import FORMAT_VERSION, NumpyPolicy
 
 FORMATS = ("numpy", "onnx")
 SUFFIX = {"numpy": ".npz", "onnx": ".onnx"}

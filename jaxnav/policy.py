@@ -8,7 +8,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxnav import robot
+from jaxnav.core import robot
 
 ActFn = Callable[[jax.Array, jax.Array], jax.Array]  # (obs [..., 8], key) -> action int32 [...]
 

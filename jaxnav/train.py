@@ -23,13 +23,13 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxnav import checkpoint
-from jaxnav.config import GROUPS, RunConfig, add_flags, overrides_from_args
-from jaxnav.entry import make_callable
-from jaxnav.envs import make_env
-from jaxnav.layouts import LayoutError, layout_to_dict, load_layout, parse_layouts
+from jaxnav.cli import make_callable
+from jaxnav.io import checkpoint
+from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layout, parse_layouts
+from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, overrides_from_args
 from jaxnav.ppo.config import PRESETS, preset
 from jaxnav.ppo.train import make_train
+from jaxnav.tasks.registry import make_env
 
 CSV_FIELDS = (
     "update",
@@ -275,7 +275,7 @@ def _check_finite(metrics, ts, last_ckpt) -> None:
 
 
 def _plot(out: Path) -> None:
-    from jaxnav.plots import plot_reward_curve
+    from jaxnav.viz.plots import plot_reward_curve
 
     plot_reward_curve(out / "metrics.csv", out / "reward_curve.png")
 

@@ -13,8 +13,8 @@ import jax  # noqa: E402
 import pytest
 
 import jaxnav
-from jaxnav.layouts import Box, Cylinder, RoomLayout
-from jaxnav.randomize import RandomizeConfig
+from jaxnav.core.randomize import RandomizeConfig
+from jaxnav.io.layouts import Box, Cylinder, RoomLayout
 
 # Deterministic physics and sensing: no randomisation of gain, traction or noise.
 EXACT = RandomizeConfig(

@@ -24,13 +24,13 @@ import jaxnav
 import jaxnav.evaluate
 import jaxnav.export
 import jaxnav.train
-from jaxnav import checkpoint
-from jaxnav.config import RunConfig
-from jaxnav.layouts import Box, Cylinder, RoomLayout, save_layouts
+from jaxnav.core.scene import SceneConfig
+from jaxnav.io import checkpoint
+from jaxnav.io.layouts import Box, Cylinder, RoomLayout, save_layouts
+from jaxnav.io.runconfig import RunConfig
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import init_stats
 from jaxnav.ppo.train import TrainState, make_network
-from jaxnav.scene import SceneConfig
 
 # A valid room; each bad layout breaks one thing in a copy of it (tests/test_layouts.py checks the
 # messages of the parser itself; here they go through the command lines).
@@ -370,9 +370,9 @@ def test_make_env_unknown_override():
 
 
 def test_config_classes_reject_nan():
-    from jaxnav.envs.avoid import AvoidConfig
-    from jaxnav.randomize import RandomizeConfig
-    from jaxnav.sensors import SensorConfig
+    from jaxnav.core.randomize import RandomizeConfig
+    from jaxnav.core.sensors import SensorConfig
+    from jaxnav.tasks.avoid import AvoidConfig
 
     nan = float("nan")
     for cls, field, value in [

@@ -10,9 +10,11 @@ import pytest
 from conftest import EXACT
 
 import jaxnav
-from jaxnav import deploy, robot, ros_node
-from jaxnav.layouts import Box, Cylinder, RoomLayout
-from jaxnav.sensors import ray_depths
+from jaxnav.core import robot
+from jaxnav.core.sensors import ray_depths
+from jaxnav.io.layouts import Box, Cylinder, RoomLayout
+from jaxnav.robot_side import observation as deploy
+from jaxnav.robot_side import ros_node
 
 NAN, INF = float("nan"), float("inf")
 

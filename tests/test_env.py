@@ -8,9 +8,9 @@ import pytest
 from conftest import start_in
 
 import jaxnav
-from jaxnav import robot
-from jaxnav.randomize import RandomizeConfig, clearance, sample
-from jaxnav.scene import SCENES_DIR
+from jaxnav.core import robot
+from jaxnav.core.randomize import RandomizeConfig, clearance, sample
+from jaxnav.core.scene import SCENES_DIR
 
 
 @pytest.fixture(scope="module")

@@ -13,10 +13,10 @@ from subprocess import PIPE
 import pytest
 
 import jaxnav
+from jaxnav.core.scene import SCENES_DIR
 from jaxnav.evaluate import METRIC_KEYS, evaluate, main, strip_private
-from jaxnav.plots import METRICS_HEADER, plot_reward_curve
 from jaxnav.policy import forward_policy, random_policy
-from jaxnav.scene import SCENES_DIR
+from jaxnav.viz.plots import METRICS_HEADER, plot_reward_curve
 
 EPISODES, STEPS = 8, 150  # 150 steps: enough for the forward baseline to reach an obstacle
 ROOM = SCENES_DIR / "inference_room.json"
@@ -62,7 +62,7 @@ def test_forward_baseline_drives_straight_into_obstacles(forward_results):
     assert m["mean_steps"] < STEPS
     # Speed over the steps actually run is the commanded one (speed gain 0.8-1.2 averages out;
     # the start from rest and the last, partial step before contact cost a few percent).
-    speed = jaxnav.envs.AvoidConfig().forward_speed
+    speed = jaxnav.tasks.registry.AvoidConfig().forward_speed
     assert m["mean_speed"] == pytest.approx(speed, rel=0.15)
     # Frozen after the collision: distance is speed x time up to then, not over all STEPS steps.
     assert m["mean_distance"] == pytest.approx(m["mean_speed"] * m["mean_steps"] * 0.1, rel=0.15)

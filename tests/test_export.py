@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 import jaxnav
-from jaxnav import checkpoint, export
-from jaxnav.config import RunConfig
-from jaxnav.numpy_policy import NumpyPolicy
+from jaxnav import export
+from jaxnav.io import checkpoint
+from jaxnav.io.runconfig import RunConfig
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import RunningStats, normalize
 from jaxnav.ppo.train import TrainState, make_network
+from jaxnav.robot_side.policy import NumpyPolicy
 
 PACKAGE = Path(jaxnav.__file__).parent
 ROBOT_FILES = ("numpy_policy.py", "deploy.py", "ros_node.py")

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnav.layouts import (
+from jaxnav.core.robot import BASE_RADIUS
+from jaxnav.io.layouts import (
     Box,
     Cylinder,
     LayoutError,
@@ -22,7 +23,6 @@ from jaxnav.layouts import (
     parse_layouts,
     save_layouts,
 )
-from jaxnav.robot import BASE_RADIUS
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 

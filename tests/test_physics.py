@@ -9,9 +9,9 @@ import pytest
 from conftest import EXACT, corridor
 
 import jaxnav
-from jaxnav import robot
-from jaxnav.layouts import Box
-from jaxnav.scene import SceneConfig
+from jaxnav.core import robot
+from jaxnav.core.scene import SceneConfig
+from jaxnav.io.layouts import Box
 
 BOARD = corridor(Box(pos=(1.5, 0.0), size=(0.05, 1.0)))  # a 5 cm thin board 1.5 m ahead
 

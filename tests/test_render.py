@@ -1,4 +1,4 @@
-"""`jaxnav.render` and `python -m jaxnav.evaluate --video`: GIFs of an episode, or PNGs without GL.
+"""`jaxnav.viz.render` and `python -m jaxnav.evaluate --video`: GIFs of an episode, or PNGs without GL.
 
 One short evaluation (one rollout compile) feeds every test; the CLI tests reuse its results.
 """
@@ -13,9 +13,9 @@ from PIL import Image
 
 import jaxnav
 import jaxnav.evaluate
-from jaxnav import render
+from jaxnav.core.scene import SCENES_DIR
 from jaxnav.policy import forward_policy
-from jaxnav.scene import SCENES_DIR
+from jaxnav.viz import render
 
 STEPS = 12
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import TINY_FLAGS, run_cli
 
-from jaxnav import checkpoint
 from jaxnav import train as train_module
+from jaxnav.io import checkpoint
 from jaxnav.ppo.train import make_train
 
 

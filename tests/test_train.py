@@ -11,7 +11,7 @@ import pytest
 from conftest import run_cli
 
 import jaxnav
-from jaxnav import checkpoint
+from jaxnav.io import checkpoint
 from jaxnav.ppo.config import PPOConfig, preset
 from jaxnav.ppo.train import make_train
 
@@ -126,7 +126,7 @@ def test_python_api_names():
     assert callable(jaxnav.train) and callable(jaxnav.evaluate)
     from jaxnav.policy import forward_policy
 
-    layout = jaxnav.load_layout(jaxnav.scene.SCENES_DIR / "inference_room.json")
+    layout = jaxnav.load_layout(jaxnav.core.scene.SCENES_DIR / "inference_room.json")
     result = jaxnav.evaluate(forward_policy(), layout, episodes=2, steps=5)
     assert result["overall"]["episodes"] == 2
 

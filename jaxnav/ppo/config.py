@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from jaxnav.checks import require_finite
+from jaxnav.core.checks import require_finite
 from jaxnav.ppo.networks import CRITIC_OUTPUTS
 
 

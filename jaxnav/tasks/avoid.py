@@ -15,11 +15,11 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
-from jaxnav import robot
-from jaxnav.checks import require_finite
-from jaxnav.randomize import LayoutBank, RandomizeConfig, SceneParams, sample
-from jaxnav.scene import Scene, SceneConfig
-from jaxnav.sensors import SensorConfig, observe
+from jaxnav.core import robot
+from jaxnav.core.checks import require_finite
+from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams, sample
+from jaxnav.core.scene import Scene, SceneConfig
+from jaxnav.core.sensors import SensorConfig, observe
 
 GRAVITY = 9.81  # m/s^2, for the wheels' traction limit
 

@@ -7,11 +7,11 @@ import dataclasses
 import typing
 from typing import Any
 
-from jaxnav.envs.avoid import AvoidConfig
+from jaxnav.core.randomize import RandomizeConfig
+from jaxnav.core.scene import SceneConfig
+from jaxnav.core.sensors import SensorConfig
 from jaxnav.ppo.config import PPOConfig
-from jaxnav.randomize import RandomizeConfig
-from jaxnav.scene import SceneConfig
-from jaxnav.sensors import SensorConfig
+from jaxnav.tasks.avoid import AvoidConfig
 
 # Config groups of a run: (attribute, class, flag prefix). PPO flags have no prefix.
 GROUPS = (

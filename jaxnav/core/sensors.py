@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from jaxnav import robot
-from jaxnav.checks import require_finite
-from jaxnav.scene import OBSTACLE_GROUP
+from jaxnav.core import robot
+from jaxnav.core.checks import require_finite
+from jaxnav.core.scene import OBSTACLE_GROUP
 
 
 @dataclasses.dataclass(frozen=True)

@@ -19,8 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from jaxnav import robot
-from jaxnav.config import RunConfig
+from jaxnav.core import robot
+from jaxnav.io.runconfig import RunConfig
 from jaxnav.policy import Policy
 
 CKPT_DIR = "checkpoints"

@@ -7,7 +7,7 @@ run it there (numpy and rclpy only; no jax):
     python3 ros_node.py --policy policy.npz --scan --topic /scan         # a LaserScan instead
     python3 ros_node.py --policy policy.npz --ros-args -p speed_calibration:=1.2
 
-(`python -m jaxnav.ros_node` works too on a machine with jaxnav installed.) The flags set the defaults
+(`python -m jaxnav.robot_side.ros_node` works too on a machine with jaxnav installed.) The flags set the defaults
 of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, speed_calibration, vfov_deg,
 band_deg, tilt_deg), which `--ros-args -p` overrides. Depth images may be 32FC1 (metres) or 16UC1
 (millimetres); only rows within +-band_deg of the horizon are read (see deploy.horizon_rows), as the
@@ -26,7 +26,7 @@ import sys
 import numpy as np
 
 if __package__:
-    from jaxnav.deploy import ASTRA_VFOV, Controller, Twist, horizon_rows
+    from jaxnav.robot_side.observation import ASTRA_VFOV, Controller, Twist, horizon_rows
 else:  # copied flat onto the robot beside deploy.py
     from deploy import ASTRA_VFOV, Controller, Twist, horizon_rows
 

@@ -42,7 +42,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from jaxnav.robot import BASE_RADIUS
+from jaxnav.core.robot import BASE_RADIUS
 
 _TOL = (
     1e-9  # m; obstacles may touch a wall exactly, float round-off must not turn that into an error

@@ -17,8 +17,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from jaxnav import robot
-from jaxnav.layouts import Box, RoomLayout, box_corners
+from jaxnav.core import robot
+from jaxnav.io.layouts import Box, RoomLayout, box_corners
 
 MAX_PATHS = 20  # paths drawn per picture; beyond that they hide each other and the room
 WALL_THICKNESS = 0.1  # m, as drawn (the simulated walls have no thickness that matters here)

@@ -26,7 +26,7 @@ import jax
 import mujoco
 import numpy as np
 
-from jaxnav import robot
+from jaxnav.core import robot
 
 GL_BACKENDS = ("egl", "osmesa")  # tried in this order when MUJOCO_GL is not set
 GL_HINT = "install libegl1 or libosmesa6"

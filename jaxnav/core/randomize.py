@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxnav import robot
-from jaxnav.checks import require_finite
-from jaxnav.layouts import RoomLayout
+from jaxnav.core import robot
+from jaxnav.core.checks import require_finite
+from jaxnav.io.layouts import RoomLayout
 
 
 @struct.dataclass

@@ -5,11 +5,11 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
-from jaxnav.envs.avoid import AvoidConfig, AvoidEnv, EnvState
-from jaxnav.layouts import RoomLayout, load_layout
-from jaxnav.randomize import RandomizeConfig, make_bank
-from jaxnav.scene import SCENES_DIR, SceneConfig
-from jaxnav.sensors import SensorConfig
+from jaxnav.core.randomize import RandomizeConfig, make_bank
+from jaxnav.core.scene import SCENES_DIR, SceneConfig
+from jaxnav.core.sensors import SensorConfig
+from jaxnav.io.layouts import RoomLayout, load_layout
+from jaxnav.tasks.avoid import AvoidConfig, AvoidEnv, EnvState
 
 ENVS = {"avoid": (AvoidEnv, AvoidConfig)}
 DEFAULT_LAYOUTS = SCENES_DIR / "train_room.json"

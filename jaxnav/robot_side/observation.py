@@ -1,7 +1,7 @@
 """On the robot: depth image or laser scan -> the policy's sector minima -> velocity command.
 
 numpy only (no jax), like `numpy_policy.py`: copy both files (and `ros_node.py` for ROS 2) with the
-exported .npz onto the robot. The conversions reproduce `jaxnav.sensors` exactly:
+exported .npz onto the robot. The conversions reproduce `jaxnav.core.sensors` exactly:
 
 - The simulator casts a horizontal fan of rays, turns each hit distance into camera depth (distance along
   the optical axis: range * cos(angle), what a depth image holds), clips it to [range_min, range_max]
@@ -21,12 +21,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-FOV = math.radians(60.0)  # rad; Astra horizontal field of view (jaxnav.robot.CAMERA_FOV)
+FOV = math.radians(60.0)  # rad; Astra horizontal field of view (jaxnav.core.robot.CAMERA_FOV)
 NUM_SECTORS = 8
-RANGE_MIN, RANGE_MAX = 0.6, 8.0  # m; Astra usable depth range (jaxnav.robot.CAMERA_RANGE)
+RANGE_MIN, RANGE_MAX = 0.6, 8.0  # m; Astra usable depth range (jaxnav.core.robot.CAMERA_RANGE)
 ASTRA_VFOV = math.radians(49.5)  # rad; Astra vertical field of view
 # (forward-speed fraction, yaw-rate fraction) per action: 0 forward, 1 left (+yaw), 2 right.
-# A copy of jaxnav.robot.ACTIONS (importing jaxnav would import jax); the tests keep them equal.
+# A copy of jaxnav.core.robot.ACTIONS (importing jaxnav would import jax); the tests keep them equal.
 ACTIONS = ((1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
 
 
@@ -209,7 +209,7 @@ class Controller:
     def from_npz(cls, path, **kwargs) -> Controller:
         """A controller around the NumpyPolicy exported to `path`."""
         if __package__:
-            from jaxnav.numpy_policy import NumpyPolicy
+            from jaxnav.robot_side.policy import NumpyPolicy
         else:  # copied flat onto the robot, beside numpy_policy.py: no jaxnav (and no jax) needed
             from numpy_policy import NumpyPolicy
         return cls(NumpyPolicy.from_npz(path), **kwargs)

@@ -17,9 +17,9 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from jaxnav.checks import require_finite
+from jaxnav.core.checks import require_finite
 
-SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
 ROBOT_XML = SCENES_DIR / "turtlebot2i.xml"
 
 OBSTACLE_GROUP = 1  # geom group of walls and obstacles: the only geoms the depth rays see

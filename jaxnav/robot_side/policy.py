@@ -10,7 +10,7 @@ Export the weights on the training machine, then copy this single file and the .
     policy = NumpyPolicy.from_npz("policy.npz")
     action = policy(obs)  # obs: the 8 sector minima in metres, right to left -> 0 fwd, 1 left, 2 right
 
-(`import jaxnav.numpy_policy` works too, but the `jaxnav` package itself imports jax.)
+(`import jaxnav.robot_side.policy` works too, but the `jaxnav` package itself imports jax.)
 
 The .npz (FORMAT_VERSION 1) holds: W0, b0, ..., Wk, bk (float32 actor layers; LeakyReLU between them),
 obs_mean, obs_var (the training normaliser's, float32 [8]), obs_std = sqrt(obs_var + 1e-8) (what is
