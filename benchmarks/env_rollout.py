@@ -17,17 +17,18 @@ import jax
 import jax.numpy as jnp
 
 import jaxnav
+from jaxnav.wrappers import AutoReset
 
 
 def measure(num_envs: int, steps: int, repeats: int) -> dict:
-    env = jaxnav.make_env("avoid")
+    env = AutoReset(jaxnav.make_env("avoid"))  # new episodes where they end, as in training
     reset = jax.jit(jax.vmap(env.reset))
 
     @jax.jit
     def rollout(state, key):
         def body(carry, k):
             state, total = carry
-            action = jax.random.randint(k, (num_envs,), 0, env.action_size)
+            action = jax.random.randint(k, (num_envs,), 0, env.action_spec.n)
             state = jax.vmap(env.step)(state, action)
             return (state, total + state.reward.sum()), None
 

@@ -65,14 +65,16 @@ def fresh_run(root: Path) -> Path:
     from jaxnav.ppo.train import TrainState, make_network
 
     config = RunConfig()
-    params = jax.jit(make_network(config.ppo, 3).init)(jax.random.PRNGKey(0), jnp.zeros((1, 8)))
-    ts = TrainState(params, (), init_stats(8), (), jax.random.PRNGKey(1), jnp.int32(0))
+    size = config.sensor.num_sectors
+    init = jax.jit(make_network(config.ppo, config.task.action_spec).init)
+    params = init(jax.random.PRNGKey(0), jnp.zeros((1, size)))
+    ts = TrainState(params, (), init_stats(size), (), jax.random.PRNGKey(1), jnp.int32(0))
     checkpoint.save(root, ts, config, {})
     return root
 
 
 def backends(run: Path, tmp: Path) -> dict:
-    """{name: fn(obs [8] float32) -> int action} of every backend that is installed."""
+    """{name: fn(obs [D] float32) -> int action} of every backend that is installed."""
     import jax
 
     import jaxnav
@@ -105,11 +107,14 @@ def main() -> None:
     args = parser.parse_args()
     if args.core >= 0 and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {args.core})
-    obs = np.random.default_rng(0).uniform(0.6, 8.0, (256, 8)).astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         run = args.checkpoint or fresh_run(tmp / "run")
         fns = backends(run, tmp)
+        sensor = fns["numpy"].sensor  # the observation the policy was trained on
+        rng = np.random.default_rng(0)
+        obs = rng.uniform(sensor.range_min, sensor.range_max, (256, sensor.num_sectors))
+        obs = obs.astype(np.float32)
         actions = {name: [fn(o) for o in obs] for name, fn in fns.items()}
         assert all(a == actions["numpy"] for a in actions.values()), "backends disagree"
         results = {name: time_calls(fn, obs, args.calls) for name, fn in fns.items()}

@@ -21,9 +21,10 @@ import jax.numpy as jnp
 
 import jaxnav
 from jaxnav.core.randomize import RandomizeConfig
-from jaxnav.core.sensors import observe
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.train import make_network, make_train
+from jaxnav.tasks.avoid import AvoidConfig
+from jaxnav.wrappers import AutoReset
 
 FULL = RandomizeConfig(num_boxes=(8, 8), num_cylinders=(4, 4), sampled_room_prob=1.0)
 
@@ -49,30 +50,27 @@ def scan_steps(fn, steps):
 def env_pieces(env, n, steps, repeats):
     """env-steps/s of a whole step and of its pieces, each run alone over `steps` steps."""
     keys = jax.random.split(jax.random.PRNGKey(0), n)
-    state = jax.jit(jax.vmap(env.reset))(keys)
-    actions = jax.random.randint(jax.random.PRNGKey(1), (n,), 0, 3)
-    model = lambda p: env.scene.model_for(p)  # noqa: E731
-    cmd = jnp.array([env.task.forward_speed, 0.0])
+    wrapped = AutoReset(env)  # the step training runs (episode statistics aside)
+    state = jax.jit(jax.vmap(wrapped.reset))(keys)
+    actions = jax.random.randint(jax.random.PRNGKey(1), (n,), 0, env.action_spec.n)
+    cmd = jnp.array(env.action_spec.commands[0])  # forward
 
     def physics(s):
-        d, _ = jax.vmap(lambda m, d, f: env._drive(m, d, cmd, f))(
-            jax.vmap(model)(s.params), s.data, s.params.friction
-        )
+        d, _ = jax.vmap(lambda p, d: env.drive(p, d, cmd))(s.info["params"], s.data)
         return s.replace(data=d)
 
     def sensor(s):
-        obs = jax.vmap(lambda m, d, p, k: observe(m, d, p, k, env.sensor, env.scene.robot_body))(
-            jax.vmap(model)(s.params), s.data, s.params, keys
-        )
+        obs = jax.vmap(env.sense)(s.info["params"], s.data, keys)
         # Nudge the pose so that XLA cannot hoist the (otherwise loop-invariant) rays out of the scan.
         return s.replace(obs=obs, data=s.data.replace(qpos=s.data.qpos + 1e-4 * obs[:, :3]))
 
     def reset_sampling(s):
-        params, data = jax.vmap(env._new_episode)(jax.vmap(jax.random.fold_in)(keys, s.steps))
-        return s.replace(params=params, data=data, steps=s.steps + 1)
+        steps = s.info["steps"]
+        params, data = jax.vmap(env.new_episode)(jax.vmap(jax.random.fold_in)(keys, steps))
+        return s.replace(data=data, info={**s.info, "params": params, "steps": steps + 1})
 
     pieces = {
-        "step": lambda s: jax.vmap(env.step)(s, actions),
+        "step": lambda s: jax.vmap(wrapped.step)(s, actions),
         "physics": physics,
         "sensor": sensor,
         "reset_sampling": reset_sampling,
@@ -89,7 +87,7 @@ def env_pieces(env, n, steps, repeats):
 
 
 def policy_piece(n, steps, repeats):
-    net = make_network(preset("cpu"), 3)
+    net = make_network(preset("cpu"), AvoidConfig().action_spec)
     params = net.init(jax.random.PRNGKey(0), jnp.zeros((1, 8)))
     obs = jnp.ones((n, 8))
     fn = scan_steps(lambda o: o + 1e-6 * net.apply(params, o)[0].sum(-1, keepdims=True), steps)

@@ -29,10 +29,8 @@ from jaxnav.ppo.train import make_train
 def make_evaluator(trainer, cfg, episodes, steps):
     """jit((params, obs_stats, key) -> (collision-free rate, mean speed m/s))."""
     layouts = jaxnav.load_layout(SCENES_DIR / "inference_room.json")
-    env = jaxnav.make_env(
-        "avoid", layouts, randomize=eval_randomize("layout"), auto_reset=False, max_steps=steps
-    )
-    period = env.scene.cfg.control_period
+    env = jaxnav.make_env("avoid", layouts, randomize=eval_randomize("layout"), max_steps=steps)
+    period = env.control_period
 
     @jax.jit
     def evaluate(params, stats, key):

@@ -24,11 +24,12 @@ import numpy as np
 from flax import struct
 
 import jaxnav
-from jaxnav.cli import make_callable
+from jaxnav.cli import Parser, UsageError, make_callable, print_error
 from jaxnav.core.randomize import RandomizeConfig, SceneParams
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.io.layouts import LayoutError, RoomLayout
 from jaxnav.policy import BASELINES, Policy
+from jaxnav.tasks.registry import make_env
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
 MAX_TRAJECTORIES = 20  # paths kept per layout for the pictures; more only clutter them
@@ -46,6 +47,7 @@ class Track:
     steps: jax.Array  # [E] int32, control steps run before it ended
     distance: jax.Array  # [E] float32, path length travelled, m
     xy: jax.Array  # [E, 2] float32, position (the last one before freezing), m
+    metrics: dict  # {name: [E] float32}: the task's metrics summed over each episode
 
 
 @struct.dataclass
@@ -90,16 +92,17 @@ def make_rollout(env, act, episodes: int, steps: int, keep: int = MAX_TRAJECTORI
 
     def body(carry, key):
         state, track = carry
-        nxt = step(state, act(state.obs, key))  # act: obs [E, 8] -> actions [E]
+        nxt = step(state, act(state.obs, key))  # act: obs [E, D] -> actions [E]
         live = ~track.done  # [E]; only episodes still running count this step
         xy = nxt.data.qpos[:, :2]  # [E, 2]
         moved = jnp.linalg.norm(xy - track.xy, axis=-1)  # [E] m
         track = Track(
             done=track.done | nxt.done,
-            collided=track.collided | (live & nxt.collision),
+            collided=track.collided | (live & (nxt.metrics["collision"] > 0)),
             steps=track.steps + live.astype(jnp.int32),
             distance=track.distance + jnp.where(live, moved, 0.0),
             xy=jnp.where(live[:, None], xy, track.xy),
+            metrics={k: v + jnp.where(live, nxt.metrics[k], 0.0) for k, v in track.metrics.items()},
         )
         return (nxt, track), (track.xy[:keep], nxt.data.qpos[0])
 
@@ -107,20 +110,22 @@ def make_rollout(env, act, episodes: int, steps: int, keep: int = MAX_TRAJECTORI
         k_reset, k_act = jax.random.split(key)
         state = reset(jax.random.split(k_reset, episodes))
         xy0 = state.data.qpos[:, :2]  # [E, 2]
-        false = jnp.zeros(episodes, bool)
-        track = Track(false, false, jnp.zeros(episodes, jnp.int32), jnp.zeros(episodes), xy0)
+        false, zero = jnp.zeros(episodes, bool), jnp.zeros(episodes)
+        sums = {k: zero for k in env.metric_names if k != "collision"}
+        track = Track(false, false, jnp.zeros(episodes, jnp.int32), zero, xy0, sums)
         keys = jax.random.split(k_act, steps)
         (_, track), (path, qpos) = jax.lax.scan(body, (state, track), keys)  # [steps, keep, 2]
         path = jnp.concatenate([xy0[None, :keep], path])  # [steps + 1, keep, 2]
         qpos = jnp.concatenate([state.data.qpos[:1], qpos])  # [steps + 1, 3]
-        first = jax.tree_util.tree_map(lambda x: x[0], state.params)
+        first = jax.tree_util.tree_map(lambda x: x[0], state.info["params"])
         return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=qpos, params=first)
 
     return jax.jit(rollout)
 
 
-def metrics(collided, steps_run, distance, control_period) -> dict:
-    """Summary of per-episode arrays [N]: rates in [0, 1], speeds m/s, distances m.
+def metrics(collided, steps_run, distance, control_period, task_metrics=None) -> dict:
+    """Summary of per-episode arrays [N]: rates in [0, 1], speeds m/s, distances m, and the
+    mean over episodes of each task metric's episode sum (`task_metrics`: {name: [N]}).
 
     `control_period` (s) is a float or one per episode [N].
     """
@@ -134,29 +139,30 @@ def metrics(collided, steps_run, distance, control_period) -> dict:
         "mean_speed": float(np.mean(speed)),
         "mean_distance": float(np.mean(distance)),
         "mean_steps": float(np.mean(steps_run)),
+        **{k: float(np.mean(v)) for k, v in (task_metrics or {}).items()},
     }
 
 
 def _env_kwargs(policy: Policy, steps: int, randomize: RandomizeConfig) -> dict:
     """The policy's training env settings, with evaluation's own room, spawn and time limit."""
     kwargs = {k: v for k, v in policy.env_kwargs.items() if k not in ("layouts", "randomize")}
-    return {**kwargs, "randomize": randomize, "auto_reset": False, "max_steps": steps}
+    return {**kwargs, "randomize": randomize, "max_steps": steps}
 
 
 def evaluate_layout(
     policy: Policy, layout: RoomLayout, key, *, episodes, steps, randomize
 ) -> tuple[dict, dict]:
     """One layout -> (per-episode arrays as numpy, its kept trajectories and first episode)."""
-    env = jaxnav.make_env("avoid", layouts=[layout], **_env_kwargs(policy, steps, randomize))
+    env = make_env(policy.env, layouts=[layout], **_env_kwargs(policy, steps, randomize))
     track, kept = jax.device_get(make_rollout(env, policy.act, episodes, steps)(key))
     # Trim each kept path after its episode ended: [steps_run + 1, 2].
     paths = [np.asarray(p[: n + 1]) for p, n in zip(kept.xy, track.steps, strict=False)]
-    period = env.scene.cfg.control_period
     episodes_out = {
         "collided": track.collided,
         "steps": track.steps,
         "distance": track.distance,
-        "control_period": period,
+        "control_period": env.control_period,
+        "metrics": track.metrics,
     }
     return episodes_out, {
         "paths": paths,
@@ -200,7 +206,7 @@ def evaluate(
             policy, layout, key, episodes=episodes, steps=steps, randomize=randomize
         )
         per_layout[name] = metrics(
-            eps["collided"], eps["steps"], eps["distance"], eps["control_period"]
+            eps["collided"], eps["steps"], eps["distance"], eps["control_period"], eps["metrics"]
         )
         everything.append(eps)
     # Overall: pooled over all episodes of all layouts (speed uses each layout's control period).
@@ -208,7 +214,11 @@ def evaluate(
         k: np.concatenate([e[k] for e in everything]) for k in ("collided", "steps", "distance")
     }
     periods = np.concatenate([np.full(episodes, e["control_period"]) for e in everything])
-    overall = metrics(pooled["collided"], pooled["steps"], pooled["distance"], periods)
+    names = everything[0]["metrics"]
+    task_metrics = {k: np.concatenate([e["metrics"][k] for e in everything]) for k in names}
+    overall = metrics(
+        pooled["collided"], pooled["steps"], pooled["distance"], periods, task_metrics
+    )
     return {
         "layouts": per_layout,
         "overall": overall,
@@ -240,18 +250,9 @@ def strip_private(results: dict) -> dict:
 # Command line
 
 
-class UsageError(Exception):
-    """A user mistake; its message is printed as one `error: ...` line."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # argparse would print usage and exit; we want one line
-        raise UsageError(message)
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The CLI flags."""
-    p = _Parser(prog="python -m jaxnav.evaluate", description=__doc__.splitlines()[0])
+    p = Parser(prog="python -m jaxnav.evaluate", description=__doc__.splitlines()[0])
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument(
         "--checkpoint", metavar="DIR", help="a training run folder or a checkpoint in it"
@@ -448,8 +449,7 @@ def main(argv=None) -> int:
     try:
         _run(argv)
     except (UsageError, LayoutError, FileNotFoundError, ValueError) as err:
-        message = " ".join(str(err).split())  # one line, whatever the message held
-        print(f"error: {message}", file=sys.stderr)
+        print_error(err)
         return 2
     return 0
 

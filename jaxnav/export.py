@@ -1,30 +1,43 @@
-"""`python -m jaxnav.export DIR --format numpy|onnx --out FILE`: ship the trained actor out of JAX.
+"""`python -m jaxnav.export RUN --bundle DIR` (or `--format numpy|onnx --out FILE`): ship the actor.
 
-python -m jaxnav.export runs/avoid-cpu --format numpy --out policy.npz   # for jaxnav/numpy_policy.py
+python -m jaxnav.export runs/avoid-cpu --bundle robot/   # all the robot needs, see robot/README.txt
+python -m jaxnav.export runs/avoid-cpu --format numpy --out policy.npz   # for jaxnav.robot_side
 python -m jaxnav.export runs/avoid-cpu --format onnx --out policy.onnx   # for onnxruntime & co.
 
-DIR is a run folder (its latest checkpoint is taken) or one checkpoint folder. Both formats hold the
-actor MLP and the observation normaliser, so they take raw sector distances (metres). The ONNX model
-maps `obs` float32 [N, 8] to `logits` float32 [N, 3] and `action` int64 [N] (greedy); it is built
-node by node with `onnx.helper` (opset 17, IR 8, loadable by onnxruntime >= 1.10), which needs only
-the `onnx` package. After writing, the file is run on random observations and compared with the JAX
-network; the check is printed.
+RUN is a run folder (its latest intact checkpoint is taken) or one checkpoint folder. A bundle is one
+folder holding `jaxnav_robot/` (a copy of `jaxnav.robot_side`: numpy, and rclpy for the ROS 2 node),
+`policy.npz` and `README.txt` with the commands to run on the robot. Both formats hold the actor MLP and
+the observation normaliser, so they take raw sector distances (metres). The ONNX model maps `obs`
+float32 [N, D] to `logits` float32 [N, A] and `action` int64 [N] (greedy); it is built node by node with
+`onnx.helper` (opset 17, IR 8, loadable by onnxruntime >= 1.10), which needs only the `onnx` package.
+After writing, the file is run on random observations and compared with the JAX network; the check is
+printed.
 """
 
 from __future__ import annotations
 
 import argparse
 import inspect
+import json
+import math
+import shutil
 import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from jaxnav.core import robot
-from jaxnav.io.checkpoint import CheckpointError, load_config, load_policy, resolve
+from jaxnav.cli import Parser, UsageError, print_error
+from jaxnav.io.checkpoint import CheckpointError, SavedPolicy, read_policy, resolve
 from jaxnav.ppo.networks import LEAKY_SLOPE, normalize
 from jaxnav.robot_side.policy import FORMAT_VERSION, NumpyPolicy
+
+
+def action_table(config) -> tuple[tuple[str, ...], np.ndarray]:
+    """(names [A], commands float32 [A, 2] of (forward m/s, yaw rad/s)) of the run's actions."""
+    spec = config.task.action_spec
+    return tuple(spec.names), spec.table()
+
 
 FORMATS = ("numpy", "onnx")
 SUFFIX = {"numpy": ".npz", "onnx": ".onnx"}
@@ -35,38 +48,32 @@ CHECK_OBS = 1000
 ONNX_OPSET, ONNX_IR = 17, 8
 
 
-class ExportError(ValueError):
+class ExportError(UsageError):
     """A user mistake (format, file, missing package); the message names the flag or file."""
 
 
-def actor_arrays(ckpt: Path) -> dict[str, np.ndarray]:
-    """The actor weights, normaliser and robot settings of checkpoint folder `ckpt` (the .npz)."""
-    from flax import serialization
-
-    config = load_config(ckpt)
-    file = ckpt / "policy.msgpack"
-    try:
-        raw = serialization.msgpack_restore(file.read_bytes())
-        actor, stats = raw["params"]["params"]["actor"], raw["obs_stats"]
-        names = sorted(actor, key=lambda k: int(k.split("_")[1]))  # Dense_0, Dense_1, ...
-        layers = [(actor[n]["kernel"], actor[n]["bias"]) for n in names]
-        mean, var = stats["mean"], stats["var"]
-    except (OSError, KeyError, TypeError, ValueError, IndexError) as err:
+def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
+    """The actor weights, normaliser, sensor and action table of a checkpoint's policy (the .npz)."""
+    config, names, commands = saved.config, *action_table(saved.config)
+    if saved.num_actions != len(names):
         raise CheckpointError(
-            f"{file}: unreadable actor weights ({type(err).__name__}: {err})"
-        ) from None
-    _check_layers(file, ckpt, config, layers)
+            f"{saved.ckpt / 'policy.msgpack'}: the actor has {saved.num_actions} outputs, but the "
+            f"task of {saved.ckpt / 'config.json'} has {len(names)} actions"
+        )
+    actor = saved.params["params"]["actor"]
     out = {}
-    for i, (w, b) in enumerate(layers):
-        out[f"W{i}"], out[f"b{i}"] = np.asarray(w, np.float32), np.asarray(b, np.float32)
-    size = out["W0"].shape[0]
+    for i in range(len(actor)):  # Dense_0, Dense_1, ...: read_policy checked them
+        layer = actor[f"Dense_{i}"]
+        out[f"W{i}"] = np.asarray(layer["kernel"], np.float32)
+        out[f"b{i}"] = np.asarray(layer["bias"], np.float32)
+    size = config.sensor.num_sectors
     if config.ppo.normalize_obs:
-        mean, var, clip = np.asarray(mean, np.float32), np.asarray(var, np.float32), NORM_CLIP
+        mean = np.asarray(saved.obs_stats.mean, np.float32)
+        var, clip = np.asarray(saved.obs_stats.var, np.float32), NORM_CLIP
         std = np.sqrt(var + NORM_EPS)  # float32, as JAX computes it
     else:  # training fed raw observations: identity normaliser, no clipping
         mean, var, clip = np.zeros(size, np.float32), np.ones(size, np.float32), np.inf
         std = np.ones(size, np.float32)
-    sensor, task = config.sensor, config.task
     return dict(
         out,
         obs_mean=mean,
@@ -74,29 +81,14 @@ def actor_arrays(ckpt: Path) -> dict[str, np.ndarray]:
         obs_std=std,
         clip=np.float32(clip),
         leaky_slope=np.float32(LEAKY_SLOPE),
-        action_names=np.array(robot.ACTION_NAMES),
-        forward_speed=np.float32(task.forward_speed),
-        turn_rate=np.float32(task.turn_rate),
-        fov=np.float32(sensor.fov),
-        range_min=np.float32(sensor.range_min),
-        range_max=np.float32(sensor.range_max),
-        num_sectors=np.int32(sensor.num_sectors),
+        action_names=np.array(names),
+        commands=commands,
+        fov=np.float32(config.sensor.fov),
+        range_min=np.float32(config.sensor.range_min),
+        range_max=np.float32(config.sensor.range_max),
+        num_sectors=np.int32(size),
         format_version=np.int32(FORMAT_VERSION),
     )
-
-
-def _check_layers(file: Path, ckpt: Path, config, layers) -> None:
-    """The actor's layer shapes are the ones config.json describes (else the check and the robot
-    would fail later, far from the cause)."""
-    shapes = [tuple(np.shape(w)) for w, _ in layers]
-    widths = [config.sensor.num_sectors, *config.ppo.hidden, len(robot.ACTION_NAMES)]
-    expected = list(zip(widths[:-1], widths[1:], strict=True))
-    if shapes != expected:
-        raise CheckpointError(
-            f"{file}: actor layers {shapes} do not match {ckpt / 'config.json'} "
-            f"(sensor.num_sectors {widths[0]}, ppo.hidden {list(config.ppo.hidden)}, "
-            f"{widths[-1]} actions: {expected})"
-        )
 
 
 def onnx_model(arrays: dict[str, np.ndarray]):
@@ -145,16 +137,17 @@ def onnx_model(arrays: dict[str, np.ndarray]):
         graph, producer_name="jaxnav", opset_imports=[helper.make_opsetid("", ONNX_OPSET)]
     )
     model.ir_version = ONNX_IR  # older runtimes on robots refuse newer IR versions
-    meta = {k: arrays[k] for k in ("forward_speed", "turn_rate", "fov", "range_min", "range_max")}
+    meta = {k: arrays[k] for k in ("fov", "range_min", "range_max")}
     meta["action_names"] = ",".join(str(a) for a in arrays["action_names"])
+    meta["commands"] = json.dumps(arrays["commands"].tolist())  # [A, 2] (forward m/s, yaw rad/s)
     meta["num_sectors"] = int(arrays["num_sectors"])
     helper.set_model_props(model, {k: str(v) for k, v in meta.items()})
     onnx.checker.check_model(model)
     return model
 
 
-def write(arrays: dict[str, np.ndarray], fmt: str, out: Path) -> None:
-    """Writes the arrays as `fmt` into `out`."""
+def write(arrays: dict[str, np.ndarray], fmt: str, out: Path, flag: str = "--out") -> None:
+    """Writes the arrays as `fmt` into `out`; errors name `flag`."""
     model = onnx_model(arrays) if fmt == "onnx" else None  # before opening: may raise ExportError
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -164,7 +157,7 @@ def write(arrays: dict[str, np.ndarray], fmt: str, out: Path) -> None:
             else:
                 fh.write(model.SerializeToString())
     except OSError as err:
-        raise ExportError(f"--out {out}: cannot write ({err.strerror or err})") from None
+        raise ExportError(f"{flag} {out}: cannot write ({err.strerror or err})") from None
 
 
 def exported_logits(out: Path, fmt: str):
@@ -177,50 +170,32 @@ def exported_logits(out: Path, fmt: str):
     return lambda obs: session.run(["logits"], {"obs": obs})[0]
 
 
-def jax_logits(ckpt: Path):
-    """obs [N, D] -> logits [N, A] of the checkpoint's JAX actor (as `load_policy` computes them)."""
+def verify(
+    saved: SavedPolicy, out: Path, fmt: str, n: int = CHECK_OBS, seed: int = 0
+) -> tuple[float, int]:
+    """(max |exported - JAX| logit, greedy actions that agree with JAX's) on n random obs."""
     import jax
-    import jax.numpy as jnp
-    from flax import serialization
-    from flax.errors import FlaxError
 
-    from jaxnav.ppo.networks import RunningStats
-    from jaxnav.ppo.train import make_network
-
-    config = load_config(ckpt)
-    raw = serialization.msgpack_restore((ckpt / "policy.msgpack").read_bytes())
-    params = jax.tree_util.tree_map(jnp.asarray, raw["params"])
-    stats = RunningStats(**{k: jnp.asarray(v) for k, v in raw["obs_stats"].items()})
-    network = make_network(config.ppo, len(robot.ACTION_NAMES))
-    try:  # actor_arrays checked the actor; this checks the critic too (tracing only, no compile)
-        obs = jax.ShapeDtypeStruct((1, config.sensor.num_sectors), jnp.float32)
-        jax.eval_shape(network.apply, params, obs)
-    except FlaxError as err:
-        detail = str(err).split(" (https://")[0]
-        raise CheckpointError(
-            f"{ckpt / 'policy.msgpack'}: does not fit the network of its config.json ({detail})"
-        ) from None
-
-    @jax.jit
-    def logits(obs):
-        return network.apply(params, normalize(stats, obs) if config.ppo.normalize_obs else obs)[0]
-
-    return lambda obs: np.asarray(logits(obs))
-
-
-def verify(ckpt: Path, out: Path, fmt: str, n: int = CHECK_OBS, seed: int = 0) -> tuple[float, int]:
-    """(max |exported - JAX| logit, greedy actions that agree with `load_policy`) on n random obs."""
-    config = load_config(ckpt)
+    sensor = saved.config.sensor
     rng = np.random.default_rng(seed)
     # Beyond the sensor's range on both sides too, so the normaliser's clipping is exercised.
-    obs = rng.uniform(0.0, 1.25 * config.sensor.range_max, (n, config.sensor.num_sectors))
-    obs = obs.astype(np.float32)
+    obs = rng.uniform(0.0, 1.25 * sensor.range_max, (n, sensor.num_sectors)).astype(np.float32)
     exported = exported_logits(out, fmt)(obs)
-    diff = float(np.max(np.abs(exported - jax_logits(ckpt)(obs))))
-    import jax
+    reference = np.asarray(jax.jit(saved.logits)(obs))  # what load_policy's greedy act argmaxes
+    diff = float(np.max(np.abs(exported - reference)))
+    return diff, int(np.sum(exported.argmax(-1) == reference.argmax(-1)))
 
-    reference = np.asarray(load_policy(ckpt).act(obs, jax.random.PRNGKey(0)))
-    return diff, int(np.sum(exported.argmax(-1) == reference))
+
+def _checked(saved: SavedPolicy, out: Path, fmt: str) -> Path:
+    """`out`, after comparing it with JAX (ExportError beyond TOLERANCE)."""
+    try:
+        diff, _ = verify(saved, out, fmt)
+    except ImportError:
+        warnings.warn("onnxruntime is not installed: the ONNX model was not run", stacklevel=3)
+        return out
+    if diff > TOLERANCE:
+        raise ExportError(f"{out}: logits differ from JAX's by {diff:.2e} > {TOLERANCE}")
+    return out
 
 
 def export(path, fmt: str, out=None, check: bool = True) -> Path:
@@ -230,54 +205,130 @@ def export(path, fmt: str, out=None, check: bool = True) -> Path:
     compared with the JAX network on random observations (ExportError beyond TOLERANCE; ONNX is
     only checked when onnxruntime is installed).
     """
+    saved = read_policy(resolve(path))
+    out = _export(saved, fmt, out)
+    return _checked(saved, out, fmt) if check else out
+
+
+def _export(saved: SavedPolicy, fmt: str, out) -> Path:
     if fmt not in FORMATS:
         raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
-    ckpt = resolve(path)
-    out = Path(out) if out is not None else ckpt / f"policy{SUFFIX[fmt]}"
-    write(actor_arrays(ckpt), fmt, out)
-    if check:
-        try:
-            diff, _ = verify(ckpt, out, fmt)
-        except ImportError:
-            warnings.warn("onnxruntime is not installed: the ONNX model was not run", stacklevel=2)
-            return out
-        if diff > TOLERANCE:
-            raise ExportError(f"{out}: logits differ from JAX's by {diff:.2e} > {TOLERANCE}")
+    out = Path(out) if out is not None else saved.ckpt / f"policy{SUFFIX[fmt]}"
+    write(actor_arrays(saved), fmt, out)
     return out
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # argparse prints usage and exits; we want one `error:` line
-        raise ExportError(message)
+ROBOT_PACKAGE = "jaxnav_robot"  # the name of jaxnav/robot_side in a bundle
+README = """jaxnav policy for the TurtleBot 2i, exported from {ckpt}
+
+Needs Python 3 with numpy, and ROS 2 (rclpy) for the node; no jax. Run in this folder:
+
+  # depth camera -> policy -> Kobuki base (kobuki_ros listens on commands/velocity)
+  python3 -m {package}.ros_node --policy policy.npz --ros-args -r cmd_vel:=commands/velocity
+
+  # a LaserScan instead of the depth image
+  python3 -m {package}.ros_node --policy policy.npz --scan --topic /scan \\
+      --ros-args -r cmd_vel:=commands/velocity
+
+  # the robot moves slower or faster than commanded: scale both speeds
+  python3 -m {package}.ros_node --policy policy.npz \\
+      --ros-args -r cmd_vel:=commands/velocity -p speed_calibration:=1.2
+
+  # all flags (camera tilt, rows read around the horizon, topics)
+  python3 -m {package}.ros_node --help
+
+Without ROS, in Python:
+
+  from {package} import Controller, NumpyPolicy
+  from {package}.observation import horizon_rows
+  controller = Controller(NumpyPolicy.from_npz("policy.npz"))
+  rows = horizon_rows(depth.shape[0], vfov=0.864)  # the rows near the horizon (Astra: 49.5 deg)
+  twist = controller.image_to_twist(depth, rows)   # depth image [H, W] in metres -> (m/s, rad/s)
+
+Trained with: {sensor}; actions (forward m/s, yaw rad/s): {actions}.
+"""
+
+
+def bundle(path, folder, check: bool = True) -> Path:
+    """Writes all the robot needs for the policy of run/checkpoint folder `path` into `folder`:
+    `jaxnav_robot/` (a copy of jaxnav.robot_side), `policy.npz` and `README.txt`; returns it."""
+    saved = read_policy(resolve(path))
+    folder = _bundle(saved, folder)
+    if check:
+        _checked(saved, folder / "policy.npz", "numpy")
+    return folder
+
+
+def _bundle(saved: SavedPolicy, folder) -> Path:
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ExportError(f"--bundle {folder}: exists and is not a folder")
+    arrays = actor_arrays(saved)
+    write(arrays, "numpy", folder / "policy.npz", flag="--bundle")
+    package = folder / ROBOT_PACKAGE
+    shutil.rmtree(package, ignore_errors=True)
+    source = Path(__file__).parent / "robot_side"
+    shutil.copytree(source, package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    sensor = saved.config.sensor
+    commands = ", ".join(
+        f"{name} ({v:g}, {w:g})"
+        for name, (v, w) in zip(arrays["action_names"], arrays["commands"], strict=True)
+    )
+    text = README.format(
+        ckpt=saved.ckpt,
+        package=ROBOT_PACKAGE,
+        sensor=f"{math.degrees(sensor.fov):g} deg field of view in {sensor.num_sectors} sectors, "
+        f"{sensor.range_min:g}-{sensor.range_max:g} m",
+        actions=commands,
+    )
+    (folder / "README.txt").write_text(text)
+    return folder
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = Parser(prog="python -m jaxnav.export", description=__doc__.splitlines()[0])
+    parser.add_argument("dir", metavar="RUN", help="a training run folder or a checkpoint in it")
+    parser.add_argument(
+        "--bundle", type=Path, metavar="DIR", help="write the robot's folder (package, policy.npz)"
+    )
+    parser.add_argument("--format", help=f"one of {', '.join(FORMATS)} (default numpy)")
+    parser.add_argument("--out", type=Path, help="output file (default: RUN's checkpoint/policy.*)")
+    args = parser.parse_args(argv)
+    if args.bundle is not None:
+        for flag in ("format", "out"):
+            if getattr(args, flag) is not None:
+                raise ExportError(f"--{flag}: not with --bundle (it writes DIR/policy.npz)")
+    return args
 
 
 def main(argv=None) -> int:
-    parser = _Parser(prog="python -m jaxnav.export", description=__doc__.splitlines()[0])
-    parser.add_argument("dir", metavar="DIR", help="a training run folder or a checkpoint in it")
-    parser.add_argument("--format", default="numpy", help=f"one of {', '.join(FORMATS)}")
-    parser.add_argument("--out", type=Path, help="output file (default: DIR's checkpoint/policy.*)")
     try:
-        args = parser.parse_args(argv)
-        out = export(args.dir, args.format, args.out, check=False)
-        ckpt = resolve(args.dir)
+        args = parse_args(argv)
+        fmt = args.format or "numpy"
+        if fmt not in FORMATS:  # before reading the checkpoint: the flag is the first mistake
+            raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
+        saved = read_policy(resolve(args.dir))
+        if args.bundle is not None:
+            out = _bundle(saved, args.bundle) / "policy.npz"
+        else:
+            out = _export(saved, fmt, args.out)
     except (ExportError, CheckpointError) as err:
-        print(f"error: {err}", file=sys.stderr)
+        print_error(err)
         return 2
-    print(f"wrote {out} ({args.format}) from {ckpt}")
+    print(f"wrote {args.bundle or out} ({'bundle' if args.bundle else fmt}) from {saved.ckpt}")
     try:
-        diff, agree = verify(ckpt, out, args.format)
+        diff, agree = verify(saved, out, fmt)
     except ImportError:
         print("warning: onnxruntime is not installed; the ONNX model was not run", file=sys.stderr)
         return 0
-    except CheckpointError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
     ok = diff <= TOLERANCE
     print(
         f"check: max |logit - JAX logit| = {diff:.2e} on {CHECK_OBS} random observations "
         f"({'ok' if ok else 'FAILED'}, tolerance {TOLERANCE:.0e}); "
         f"greedy actions agree on {agree}/{CHECK_OBS}"
     )
+    if args.bundle is not None and ok:
+        print(f"on the robot: see {args.bundle / 'README.txt'}")
     return 0 if ok else 1
 
 

@@ -8,9 +8,11 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxnav.core import robot
+from jaxnav.core.types import DiscreteActions
+from jaxnav.tasks.avoid import AvoidConfig
 
-ActFn = Callable[[jax.Array, jax.Array], jax.Array]  # (obs [..., 8], key) -> action int32 [...]
+ActFn = Callable[[jax.Array, jax.Array], jax.Array]  # (obs [..., D], key) -> action int32 [...]
+PAPER_ACTIONS = AvoidConfig().action_spec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,20 +22,22 @@ class Policy:
     name: str
     """Shown in tables and file names."""
     act: ActFn
-    """(obs [..., 8] float32, PRNG key) -> action [...] int32 in {0, 1, 2}."""
+    """(obs [..., D] float32, PRNG key) -> action [...] int32, an index of the task's actions."""
     env_kwargs: dict = dataclasses.field(default_factory=dict)
-    """`make_env` keyword arguments of training (task, sensor, scene configs); {} for baselines."""
+    """`make_env` keyword arguments of training (task, sensor, scene, robot); {} for baselines."""
+    env: str = "avoid"
+    """The registered task the policy acts in."""
 
 
-def forward_policy() -> Policy:
-    """Always drives forward: collides in most rooms, the floor any learned policy must beat."""
-    return Policy("forward", lambda obs, key: jnp.zeros(obs.shape[:-1], jnp.int32))
+def forward_policy(actions: DiscreteActions = PAPER_ACTIONS) -> Policy:
+    """Always the fastest forward action: collides in most rooms, the floor to beat."""
+    fastest = int(actions.table()[:, 0].argmax())
+    return Policy("forward", lambda obs, key: jnp.full(obs.shape[:-1], fastest, jnp.int32))
 
 
-def random_policy() -> Policy:
+def random_policy(actions: DiscreteActions = PAPER_ACTIONS) -> Policy:
     """Uniformly random actions."""
-    n = len(robot.ACTION_NAMES)
-    return Policy("random", lambda obs, key: jax.random.randint(key, obs.shape[:-1], 0, n))
+    return Policy("random", lambda obs, key: jax.random.randint(key, obs.shape[:-1], 0, actions.n))
 
 
 BASELINES = {"forward": forward_policy, "random": random_policy}

@@ -1,4 +1,4 @@
-"""`python -m jaxnav.train`: train PPO on the `avoid` task and write everything into one run folder.
+"""`python -m jaxnav.train`: train PPO on a task (default `avoid`) into one run folder.
 
 python -m jaxnav.train                                  # the cpu preset into runs/avoid-cpu
 python -m jaxnav.train --preset paper --out runs/paper  # the paper's Table II
@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import dataclasses
 import json
-import math
 import signal
 import sys
 import threading
@@ -23,40 +21,31 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxnav.cli import make_callable
-from jaxnav.io import checkpoint
+from jaxnav.cli import Parser, make_callable, print_error
+from jaxnav.io import checkpoint, runlog
 from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layout, parse_layouts
-from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, overrides_from_args
+from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overrides_from_args
 from jaxnav.ppo.config import PRESETS, preset
 from jaxnav.ppo.train import make_train
-from jaxnav.tasks.registry import make_env
-
-CSV_FIELDS = (
-    "update",
-    "env_steps",
-    "episode_reward",
-    "episode_length",
-    "collision_rate",
-    "total_loss",
-    "policy_loss",
-    "value_loss",
-    "entropy",
-    "approx_kl",
-    "steps_per_second",
-    "elapsed_s",
-)
+from jaxnav.tasks.registry import TASKS, make_env
 
 
-def build_config(preset_name="cpu", seed=0, layout_files=None, overrides=None) -> RunConfig:
-    """A RunConfig from a preset, layout files and {group: {field: value}} overrides."""
+def build_config(
+    preset_name="cpu", seed=0, layout_files=None, overrides=None, env="avoid"
+) -> RunConfig:
+    """A RunConfig of task `env` from a preset, layout files and {group: {field: value}}
+    overrides (the randomisation's start from the training distribution)."""
     overrides = overrides or {}
     groups = {"ppo": preset(preset_name, **overrides.get("ppo", {}))}
+    defaults = {"randomize": RunConfig.randomize, "robot": RunConfig.robot}
     for attr, cls, _ in GROUPS[1:]:
-        groups[attr] = cls(**overrides.get(attr, {}))
+        cls = group_class(attr, cls, env)
+        base = defaults.get(attr) or cls()
+        groups[attr] = dataclasses.replace(base, **overrides.get(attr, {}))
     layouts = None
     if layout_files:
         layouts = tuple(layout_to_dict(lay) for f in layout_files for lay in load_layout(f))
-    return RunConfig(**groups, layouts=layouts, seed=seed, preset=preset_name)
+    return RunConfig(**groups, layouts=layouts, seed=seed, preset=preset_name, env=env)
 
 
 def make_run_env(config: RunConfig):
@@ -97,9 +86,10 @@ def run(config: RunConfig, out: Path, progress: bool = True, stop: list | None =
     except OSError as err:
         raise ValueError(f"--out {out}: cannot create the run folder ({err.strerror})") from None
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    trainer = make_train(config.ppo, make_run_env(config))
+    env = make_run_env(config)
+    trainer = make_train(config.ppo, env)
     ts = trainer.init(jax.random.PRNGKey(config.seed))
-    return _loop(config, out, trainer, ts, [], 0.0, progress, stop)
+    return _loop(config, out, trainer, ts, [], 0.0, progress, stop, env.metric_names)
 
 
 def resume(
@@ -114,14 +104,16 @@ def resume(
             config, ppo=dataclasses.replace(config.ppo, total_steps=total_steps)
         )
         (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    trainer = make_train(config.ppo, make_run_env(config))
+    env = make_run_env(config)
+    trainer = make_train(config.ppo, env)
     ts = checkpoint.restore_train_state(ckpt, trainer.init(jax.random.PRNGKey(config.seed)))
     meta = json.loads((ckpt / "meta.json").read_text())
-    rows = [r for r in _read_rows(out / "metrics.csv") if r["update"] <= int(ts.update)]
-    return _loop(config, out, trainer, ts, rows, meta.get("elapsed_s", 0.0), progress, stop)
+    rows = [r for r in runlog.read_rows(out / "metrics.csv") if r["update"] <= int(ts.update)]
+    elapsed = meta.get("elapsed_s", 0.0)
+    return _loop(config, out, trainer, ts, rows, elapsed, progress, stop, env.metric_names)
 
 
-def _loop(config, out, trainer, ts, rows, elapsed, progress, stop=None) -> Path:
+def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names) -> Path:
     """Runs chunks until the budget is spent or a stop is requested; checkpoints on the way.
 
     `stop` is the list a caller's `_stop_requests()` fills; without one, the loop listens itself.
@@ -139,18 +131,21 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop=None) -> Path:
         dynamic_ncols=True,
     )
     listen = _stop_requests() if stop is None else contextlib.nullcontext(stop)
-    with _MetricsLog(out, rows) as log, listen as stop:
+    fields = runlog.columns(metric_names)
+    shown = metric_names[0] if metric_names else "episode_length"  # beside the reward in the bar
+    with runlog.MetricsLog(out, fields, rows) as log, listen as stop:
         while int(ts.update) < cfg.num_updates:
             before, tick = int(ts.update), time.perf_counter()
             ts, metrics = trainer.run_chunk(ts)
             metrics = jax.device_get(metrics)
             rate = (int(ts.update) - before) * cfg.batch_size / (time.perf_counter() - tick)
             _check_finite(metrics, ts, last_ckpt)
-            log.add(_csv_rows(metrics, before, cfg.batch_size, rate, time.perf_counter() - start))
+            elapsed = time.perf_counter() - start
+            log.add(runlog.chunk_rows(metrics, fields, before, cfg.batch_size, rate, elapsed))
             bar.update((int(ts.update) - before) * cfg.batch_size)
             bar.set_postfix(
                 reward=f"{log.last('episode_reward'):.1f}",
-                collisions=f"{log.last('collision_rate'):.2f}",
+                **{shown: f"{log.last(shown):.2f}"},
                 sps=f"{rate:,.0f}",
             )
             update = int(ts.update)
@@ -171,87 +166,6 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop=None) -> Path:
                 )
     bar.close()
     return last_ckpt
-
-
-class _MetricsLog:
-    """metrics.csv (rewritten from `rows`, then appended) and TensorBoard events in out/tb."""
-
-    def __init__(self, out: Path, rows: list[dict]):
-        self.out, self.rows = out, list(rows)
-
-    def __enter__(self):
-        self.fh = open(self.out / "metrics.csv", "w", newline="")
-        self.writer = csv.DictWriter(self.fh, CSV_FIELDS)
-        self.writer.writeheader()
-        self.writer.writerows(self.rows)
-        self.tb = _tensorboard(self.out / "tb")
-        return self
-
-    def add(self, rows: list[dict]) -> None:
-        self.writer.writerows(rows)
-        self.fh.flush()
-        self.rows += rows
-        for row in rows if self.tb else ():
-            for key in CSV_FIELDS[2:]:
-                if not math.isnan(row[key]):
-                    self.tb.add_scalar(f"train/{key}", row[key], row["env_steps"])
-        if self.tb:
-            self.tb.flush()
-
-    def last(self, key) -> float:
-        values = [r[key] for r in self.rows if not math.isnan(r[key])]
-        return values[-1] if values else math.nan
-
-    def __exit__(self, *exc):
-        self.fh.close()
-        if self.tb:
-            self.tb.close()
-
-
-def _tensorboard(logdir: Path):
-    try:
-        from tensorboardX import SummaryWriter
-    except ImportError:  # TensorBoard logs are optional; the CSV always exists
-        return None
-    return SummaryWriter(str(logdir))
-
-
-def _read_rows(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    with open(path, newline="") as fh:
-        return [
-            {
-                k: (int(v) if k == "update" or k == "env_steps" else float(v or "nan"))
-                for k, v in row.items()
-            }
-            for row in csv.DictReader(fh)
-        ]
-
-
-def _csv_rows(metrics, first_update, batch_size, rate, elapsed) -> list[dict]:
-    rows = []
-    for i in np.flatnonzero(metrics["live"]):
-        update = first_update + len(rows) + 1
-        row = {
-            "update": update,
-            "env_steps": update * batch_size,
-            "steps_per_second": round(rate),
-            "elapsed_s": round(elapsed, 2),
-        }
-        for key in (
-            "episode_reward",
-            "episode_length",
-            "collision_rate",
-            "policy_loss",
-            "value_loss",
-            "entropy",
-            "approx_kl",
-        ):
-            row[key] = float(metrics[key][i])
-        row["total_loss"] = float(metrics["total"][i])
-        rows.append(row)
-    return rows
 
 
 def _check_finite(metrics, ts, last_ckpt) -> None:
@@ -286,40 +200,37 @@ def train(
     seed: int = 0,
     layouts=None,
     progress: bool = True,
+    env: str = "avoid",
     task=None,
     randomize=None,
     sensor=None,
     scene=None,
+    robot=None,
     **ppo_overrides,
 ) -> Path:
     """Python API of `python -m jaxnav.train`; returns the final checkpoint folder.
 
-    `layouts` are layout file paths; `task`/`randomize`/`sensor`/`scene` are dicts of field
-    overrides; other keyword arguments override PPO fields (e.g. `num_envs=64`).
+    `env` is a registered task; `layouts` are layout file paths; `task`/`randomize`/`sensor`/
+    `scene`/`robot` are dicts of field overrides; other keyword arguments override PPO fields
+    (e.g. `num_envs=64`).
     """
-    overrides = {
-        "ppo": ppo_overrides,
-        "task": task or {},
-        "randomize": randomize or {},
-        "sensor": sensor or {},
-        "scene": scene or {},
-    }
-    config = build_config(preset, seed, layouts, overrides)
-    return run(config, Path(out or f"runs/avoid-{preset}"), progress)
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one `error:` line from main instead of usage + exit
-        raise ValueError(message)
+    groups = {"task": task, "randomize": randomize, "sensor": sensor, "scene": scene}
+    overrides = {"ppo": ppo_overrides, "robot": robot or {}}
+    overrides.update({k: v or {} for k, v in groups.items()})
+    config = build_config(preset, seed, layouts, overrides, env)
+    return run(config, Path(out or f"runs/{env}-{preset}"), progress)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = _Parser(
+    parser = Parser(
         prog="python -m jaxnav.train",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--out", type=Path, help="run folder (default: runs/avoid-<preset>)")
+    parser.add_argument(
+        "--env", default="avoid", help=f"the task: {', '.join(TASKS)} (default avoid)"
+    )
+    parser.add_argument("--out", type=Path, help="run folder (default: runs/<env>-<preset>)")
     parser.add_argument(
         "--resume",
         type=Path,
@@ -336,7 +247,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="training room files (default: scenes/train_room.json + sampled rooms)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_flags(parser)
+    env = Parser(add_help=False)
+    env.add_argument("--env", default="avoid")
+    name = env.parse_known_args(argv)[0].env
+    if name not in TASKS:
+        raise ValueError(f"--env: unknown task '{name}'; valid: {', '.join(sorted(TASKS))}")
+    add_flags(parser, name)  # the task's own flags
     return parser.parse_args(argv)
 
 
@@ -351,6 +267,7 @@ def _start(args, stop: list) -> tuple[Path, Path]:
     overrides = overrides_from_args(args)
     if args.resume:
         others = [f"--{k}" for k in ("out", "preset", "seed", "layouts") if getattr(args, k)]
+        others += ["--env"] if args.env != "avoid" else []
         others += [
             f"{g}.{k}"
             for g, fields in overrides.items()
@@ -364,8 +281,8 @@ def _start(args, stop: list) -> tuple[Path, Path]:
         print(f"jaxnav: resuming {args.resume}", flush=True)
         total = overrides["ppo"].get("total_steps")
         return args.resume, resume(args.resume, total, not args.no_progress, stop)
-    config = build_config(args.preset or "cpu", args.seed or 0, args.layouts, overrides)
-    out = args.out or _new_run_dir(Path("runs"), f"avoid-{config.preset}")
+    config = build_config(args.preset or "cpu", args.seed or 0, args.layouts, overrides, args.env)
+    out = args.out or _new_run_dir(Path("runs"), f"{config.env}-{config.preset}")
     cfg = config.ppo
     print(
         f"jaxnav: training '{config.env}' with the {config.preset} preset: {cfg.num_envs} robots, "
@@ -386,10 +303,10 @@ def main(argv=None) -> int:
         print(f"interrupted ({stop})")
         return 0
     except FloatingPointError as err:
-        print(f"error: {err}", file=sys.stderr)
+        print_error(err)
         return 1
     except (ValueError, LayoutError, FileNotFoundError) as err:
-        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
+        print_error(err)
         return 2
     meta = json.loads((final / "meta.json").read_text())
     print(

@@ -42,7 +42,7 @@ def probe_env():
         corridor(Cylinder(pos=(1.5, 0.0), radius=0.2)),  # surface at x = 1.3
         RoomLayout(name="wall", size=(3.0, 3.0), robot_pos=(0.0, 0.0), robot_yaw=0.0),
     ]
-    env = jaxnav.make_env("avoid", layouts=layouts, randomize=EXACT, auto_reset=False)
+    env = jaxnav.make_env("avoid", layouts=layouts, randomize=EXACT)
     return env, jax.jit(env.reset), jax.jit(env.step)
 
 
@@ -50,7 +50,7 @@ def start_in(env, reset, layout_id):
     """Resets until the bank's layout `layout_id` is drawn (layouts are drawn uniformly)."""
     for seed in range(200):
         state = reset(jax.random.PRNGKey(seed))
-        if int(state.params.layout_id) == layout_id:
+        if int(state.info["params"].layout_id) == layout_id:
             return state
     raise AssertionError(f"layout {layout_id} never drawn")
 

@@ -31,6 +31,7 @@ from jaxnav.io.runconfig import RunConfig
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import init_stats
 from jaxnav.ppo.train import TrainState, make_network
+from jaxnav.tasks.avoid import AvoidConfig
 
 # A valid room; each bad layout breaks one thing in a copy of it (tests/test_layouts.py checks the
 # messages of the parser itself; here they go through the command lines).
@@ -72,7 +73,9 @@ def files(tmp_path_factory) -> Path:
 def _make_run(run: Path) -> Path:
     """A run folder with one checkpoint of an untrained tiny network (no env, no training)."""
     ppo = preset("cpu", num_envs=2, rollout_length=4, minibatch_size=8, total_steps=8, hidden=(8,))
-    params = make_network(ppo, 3).init(jax.random.PRNGKey(0), jnp.zeros((1, 8)))
+    params = make_network(ppo, AvoidConfig().action_spec).init(
+        jax.random.PRNGKey(0), jnp.zeros((1, 8))
+    )
     ts = TrainState(params, (), init_stats(8), (), jax.random.PRNGKey(0), jnp.int32(1))
     return checkpoint.save(run, ts, RunConfig(ppo=ppo), {})
 

@@ -8,20 +8,25 @@ import jax
 import numpy as np
 import pytest
 from conftest import EXACT
+from test_robot_side import write_policy_npz
 
 import jaxnav
-from jaxnav.core import robot
 from jaxnav.core.sensors import ray_depths
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout
 from jaxnav.robot_side import observation as deploy
 from jaxnav.robot_side import ros_node
+from jaxnav.robot_side.observation import Sensor
+from jaxnav.robot_side.policy import NumpyPolicy
 
 NAN, INF = float("nan"), float("inf")
+# What an exported policy of the default settings carries (test_export checks the export writes it).
+SENSOR = Sensor(fov=math.radians(60.0), num_sectors=8, range_min=0.6, range_max=8.0)
+COMMANDS = np.array([[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]], np.float32)  # forward, left, right
 
 
 @pytest.fixture(scope="module")
 def scene():
-    """(obs [8], per-ray depths [24], ray angles [24], sensor config) of a lopsided room.
+    """(obs [8], per-ray depths [24], ray angles [24], robot-side Sensor) of a lopsided room.
 
     Obstacles on the left and right differ so a mirrored sector order would fail; the room is 20 m
     long so the rays straight ahead read beyond range_max (clipped).
@@ -37,40 +42,40 @@ def scene():
             Cylinder(pos=(1.2, -0.35), radius=0.1),
         ),
     )
-    env = jaxnav.make_env("avoid", layouts=[layout], randomize=EXACT, auto_reset=False)
+    env = jaxnav.make_env("avoid", layouts=[layout], randomize=EXACT)
     state = jax.jit(env.reset)(jax.random.PRNGKey(0))
-    m = env.scene.model_for(state.params)
-    depths = jax.jit(ray_depths, static_argnums=(2, 3))(
-        m, state.data, env.sensor, env.scene.robot_body
+    m = env.scene.model_for(state.info["params"])
+    depths = jax.jit(ray_depths, static_argnums=(2, 3, 4))(
+        m, state.data, env.sensor, env.robot, env.scene.robot_body
     )
     obs, depths = np.asarray(state.obs), np.asarray(depths)
     assert len(set(np.round(obs, 3))) >= 5 and obs.max() == env.sensor.range_max  # a varied scene
-    return obs, depths, env.sensor.ray_angles, env.sensor
+    cfg = env.sensor
+    sensor = Sensor(cfg.fov, cfg.num_sectors, cfg.range_min, cfg.range_max)
+    return obs, depths, cfg.ray_angles, sensor
 
 
 def test_scan_reproduces_simulated_sectors(scene):
-    obs, depths, angles, cfg = scene
+    obs, depths, angles, sensor = scene
     ranges = depths / np.cos(angles)  # what a LaserScan of the same rays would read
-    sensor = dict(fov=cfg.fov, num_sectors=cfg.num_sectors)
-    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, **sensor), obs, atol=1e-4)
+    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, sensor), obs, atol=1e-4)
     # A real scan is wider than the camera: beams beyond +-fov/2 must not count.
     wide = np.linspace(-math.pi / 2, math.pi / 2, 41)
-    outside = np.abs(wide) > cfg.fov / 2
+    outside = np.abs(wide) > sensor.fov / 2
     ranges = np.concatenate([ranges, np.full(outside.sum(), 0.7)])
     angles = np.concatenate([angles, wide[outside]])
-    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, **sensor), obs, atol=1e-4)
+    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, sensor), obs, atol=1e-4)
 
 
 def test_depth_image_reproduces_simulated_sectors(scene):
-    obs, depths, angles, cfg = scene
+    obs, depths, angles, sensor = scene
     row = np.where(np.isinf(depths), 0.0, depths)[::-1]  # column 0 = leftmost ray; 0 = no data
-    sensor = dict(fov=cfg.fov, num_sectors=cfg.num_sectors)
-    np.testing.assert_allclose(deploy.depth_image_to_sectors(row[None], **sensor), obs, atol=1e-4)
+    np.testing.assert_allclose(deploy.depth_image_to_sectors(row[None], sensor), obs, atol=1e-4)
     # The floor below the horizon reads close; only the horizon row must count.
     image = np.stack([row, np.full_like(row, 0.7), np.full_like(row, 0.65)])
-    got = deploy.depth_image_to_sectors(image, rows=[0], **sensor)
+    got = deploy.depth_image_to_sectors(image, sensor, rows=[0])
     np.testing.assert_allclose(got, obs, atol=1e-4)
-    got = deploy.depth_image_to_sectors(image, rows=slice(0, 1), column_angles=angles[::-1])
+    got = deploy.depth_image_to_sectors(image, sensor, rows=slice(0, 1), column_angles=angles[::-1])
     np.testing.assert_allclose(got, obs, atol=1e-4)
 
 
@@ -89,11 +94,11 @@ def test_invalid_readings_are_ignored():
     want = [2.0, 3.0, 8.0, 0.6, 8.0, 1.0, 4.0, 2.5]
     depth = np.array(beams, np.float64).ravel()  # [24], right to left
     image = depth[::-1][None]  # left to right
-    np.testing.assert_allclose(deploy.depth_image_to_sectors(image), want, rtol=1e-6)
-    angles = (np.arange(24) + 0.5) / 24 * deploy.FOV - 0.5 * deploy.FOV  # the simulator's rays
+    np.testing.assert_allclose(deploy.depth_image_to_sectors(image, SENSOR), want, rtol=1e-6)
+    angles = (np.arange(24) + 0.5) / 24 * SENSOR.fov - 0.5 * SENSOR.fov  # the simulator's rays
     ranges = depth / np.cos(angles)
-    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles), want, rtol=1e-6)
-    empty = deploy.depth_image_to_sectors(np.zeros((5, 640), np.float32))
+    np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, SENSOR), want, rtol=1e-6)
+    empty = deploy.depth_image_to_sectors(np.zeros((5, 640), np.float32), SENSOR)
     np.testing.assert_array_equal(empty, np.full(8, 8.0, np.float32))
     assert empty.dtype == np.float32
 
@@ -101,11 +106,11 @@ def test_invalid_readings_are_ignored():
 def test_uneven_widths_and_geometry_helpers():
     # 10 columns into 8 sectors: slices of 1 or 2 columns, rightmost first.
     image = np.arange(1.0, 11.0)[None]  # column 0 (left) = 1 m ... column 9 (right) = 10 m
-    got = deploy.depth_image_to_sectors(image, range_max=20.0)
+    got = deploy.depth_image_to_sectors(image, Sensor(SENSOR.fov, 8, 0.6, 20.0))
     assert got[0] == 10.0 and got[-1] == 1.0 and np.all(np.diff(got) < 0)
     with pytest.raises(ValueError, match="fewer than 8 sectors"):
-        deploy.depth_image_to_sectors(np.ones((2, 5)))
-    angles = deploy.pinhole_column_angles(640)
+        deploy.depth_image_to_sectors(np.ones((2, 5)), SENSOR)
+    angles = deploy.pinhole_column_angles(640, SENSOR.fov)
     assert angles[0] > 0 > angles[-1] and np.allclose(angles, -angles[::-1])
     assert abs(angles[0] - math.radians(30)) < math.radians(0.1)
     rows = deploy.horizon_rows(480, math.radians(49.5), 2.0)
@@ -116,34 +121,43 @@ def test_uneven_widths_and_geometry_helpers():
 
 
 def test_action_to_twist():
-    assert np.array_equal(np.array(deploy.ACTIONS, np.float32), robot.ACTIONS)
-    assert deploy.action_to_twist(0) == (0.5, 0.0)
-    assert deploy.action_to_twist(1) == (0.0, 1.5)  # left = positive yaw rate
-    assert deploy.action_to_twist(2) == (0.0, -1.5)
-    assert deploy.action_to_twist(np.int64(0), 0.4, 1.0, speed_calibration=1.25) == (0.5, 0.0)
-    assert deploy.action_to_twist(2, 0.4, 1.0, speed_calibration=1.25) == (0.0, -1.25)
-    with pytest.raises(ValueError, match="action must be 0, 1 or 2"):
-        deploy.action_to_twist(3)
+    assert deploy.action_to_twist(0, COMMANDS) == (0.5, 0.0)
+    assert deploy.action_to_twist(1, COMMANDS) == (0.0, 1.5)  # left = positive yaw rate
+    assert deploy.action_to_twist(2, COMMANDS) == (0.0, -1.5)
+    assert deploy.action_to_twist(np.int64(0), COMMANDS, speed_calibration=1.25) == (0.625, 0.0)
+    assert deploy.action_to_twist(2, COMMANDS * 0.8, speed_calibration=1.25) == pytest.approx(
+        (0.0, -1.5)
+    )
+    with pytest.raises(ValueError, match=r"action must be in 0\.\.2, got 3"):
+        deploy.action_to_twist(3, COMMANDS)
+
+
+def test_sensor_checks_name_the_field():
+    with pytest.raises(ValueError, match="Sensor.num_sectors"):
+        Sensor(SENSOR.fov, 0, 0.6, 8.0)
+    with pytest.raises(ValueError, match="Sensor.range_min/range_max"):
+        Sensor(SENSOR.fov, 8, 8.0, 0.6)
+
+
+class TurnAway:
+    """A stand-in policy: turns away from the nearer side; carries what a NumpyPolicy carries."""
+
+    sensor, commands = Sensor(SENSOR.fov, 8, 0.6, 8.0), COMMANDS * 0.5
+
+    def __call__(self, obs):
+        return 1 if obs[0] < obs[-1] else 2
 
 
 def test_controller_in_one_call():
-    seen = []
-
-    def policy(obs):
-        seen.append(obs)
-        return 1 if obs[0] < obs[-1] else 2  # turn away from the nearer side
-
-    policy.forward_speed, policy.turn_rate = 0.3, 1.0  # a NumpyPolicy carries its training's
-    controller = deploy.Controller(policy, speed_calibration=1.1)
+    controller = deploy.Controller(TurnAway(), speed_calibration=1.1)
     image = np.full((3, 80), 5.0, np.float32)
     image[:, -10:] = 1.0  # close on the right
-    assert controller.image_to_twist(image) == pytest.approx((0.0, 1.1))
-    assert controller.last_action == 1 and seen[-1][0] == 1.0
+    assert controller.image_to_twist(image) == pytest.approx((0.0, 0.75 * 1.1))
     angles = np.linspace(-0.5, 0.5, 30)
     ranges = np.where(angles > 0.3, 1.0, 5.0)  # close on the left
-    assert controller.scan_to_twist(ranges, angles) == pytest.approx((0.0, -1.1))
-    with pytest.raises(ValueError, match="speed_calibration"):
-        deploy.Controller(policy, speed_calibration=0.0)
+    assert controller.scan_to_twist(ranges, angles) == pytest.approx((0.0, -0.75 * 1.1))
+    with pytest.raises(ValueError, match="Controller.speed_calibration"):
+        deploy.Controller(TurnAway(), speed_calibration=0.0)
 
 
 def test_image_message_conversion():
@@ -182,36 +196,10 @@ def test_scan_and_twist_message_conversion():
 
 
 def test_ros_node_flags():
-    # Importing ros_node without ROS is checked in test_export.test_robot_files_run_without_jax.
+    # Importing ros_node without ROS (and without jax) is checked in test_robot_side.
     args, rest = ros_node.parse_args(["--policy", "p.npz", "--scan", "--ros-args", "-p", "x:=1"])
     assert args.policy == "p.npz" and args.scan and rest == ["--ros-args", "-p", "x:=1"]
     assert args.speed_calibration == 1.0 and args.band_deg == 2.0
-
-
-def write_policy_npz(path):
-    """A small policy file in the export format, written by hand (one hidden layer of 16)."""
-    rng = np.random.default_rng(0)
-    arrays = dict(
-        W0=rng.normal(size=(8, 16)).astype(np.float32),
-        b0=rng.normal(size=16).astype(np.float32),
-        W1=rng.normal(size=(16, 3)).astype(np.float32),
-        b1=np.zeros(3, np.float32),
-        obs_mean=np.zeros(8, np.float32),
-        obs_var=np.ones(8, np.float32),
-        obs_std=np.ones(8, np.float32),
-        clip=np.float32(np.inf),
-        leaky_slope=np.float32(0.01),
-        action_names=np.array(robot.ACTION_NAMES),
-        forward_speed=np.float32(0.4),
-        turn_rate=np.float32(1.0),
-        fov=np.float32(deploy.FOV),
-        range_min=np.float32(0.6),
-        range_max=np.float32(8.0),
-        num_sectors=np.int32(8),
-        format_version=np.int32(1),
-    )
-    np.savez(path, **arrays)
-    return path
 
 
 @pytest.fixture
@@ -269,9 +257,9 @@ def test_ros_node_wiring(fake_ros, tmp_path):
         encoding="16UC1", height=48, width=64, data=depth_mm.tobytes(), step=128, is_bigendian=0
     )
     node.on_image(msg)
-    obs = deploy.depth_image_to_sectors(depth_mm / 1000.0)
-    policy = deploy.Controller.from_npz(npz).policy
-    want = deploy.action_to_twist(policy(obs), 0.4, 1.0, speed_calibration=2.0)
+    obs = deploy.depth_image_to_sectors(depth_mm / 1000.0, SENSOR)
+    policy = NumpyPolicy.from_npz(npz)
+    want = deploy.action_to_twist(policy(obs), policy.commands, speed_calibration=2.0)
     assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == pytest.approx(want)
     node.stop()
     assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == (0.0, 0.0)
@@ -284,6 +272,6 @@ def test_ros_node_wiring(fake_ros, tmp_path):
     )
     node.on_scan(scan)
     ranges, angles = ros_node.scan_msg_to_arrays(scan.ranges, -1.0, 1 / 60)
-    action = policy(deploy.scan_to_sectors(ranges, angles))
-    want = deploy.action_to_twist(action, 0.4, 1.0, speed_calibration=2.0)
+    action = policy(deploy.scan_to_sectors(ranges, angles, SENSOR))
+    want = deploy.action_to_twist(action, policy.commands, speed_calibration=2.0)
     assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == pytest.approx(want)

@@ -8,9 +8,11 @@ import pytest
 from conftest import start_in
 
 import jaxnav
-from jaxnav.core import robot
-from jaxnav.core.randomize import RandomizeConfig, clearance, sample
+from jaxnav.core.randomize import TRAINING, RandomizeConfig, clearance, sample
+from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.core.scene import SCENES_DIR
+from jaxnav.core.sensors import SensorConfig
+from jaxnav.wrappers import AutoReset, EpisodeStats
 
 
 @pytest.fixture(scope="module")
@@ -18,11 +20,11 @@ def mixed_env():
     layouts = jaxnav.load_layout(SCENES_DIR / "train_room.json") + jaxnav.load_layout(
         SCENES_DIR / "inference_room.json"
     )
-    return jaxnav.make_env("avoid", layouts=layouts, max_steps=20)
+    return jaxnav.make_env("avoid", layouts=layouts, randomize=TRAINING, max_steps=20)
 
 
 def test_api_sizes(mixed_env):
-    assert mixed_env.observation_size == 8 and mixed_env.action_size == 3
+    assert mixed_env.observation_size == 8 and mixed_env.action_spec.n == 3
 
 
 def test_unknown_env_lists_valid_names():
@@ -32,10 +34,11 @@ def test_unknown_env_lists_valid_names():
 
 def test_batch_of_mixed_layouts_shapes_and_finite(mixed_env):
     batch = 16
-    reset = jax.jit(jax.vmap(mixed_env.reset))
-    step = jax.jit(jax.vmap(mixed_env.step))
+    env = AutoReset(EpisodeStats(mixed_env))
+    reset = jax.jit(jax.vmap(env.reset))
+    step = jax.jit(jax.vmap(env.step))
     state = reset(jax.random.split(jax.random.PRNGKey(0), batch))
-    ids = set(np.asarray(state.params.layout_id).tolist())
+    ids = set(np.asarray(state.info["params"].layout_id).tolist())
     assert {-1, 0, 1} <= ids, ids  # sampled rooms and both layouts in one batch
     assert state.obs.shape == (batch, 8) and state.obs.dtype == jnp.float32
     key = jax.random.PRNGKey(1)
@@ -45,7 +48,7 @@ def test_batch_of_mixed_layouts_shapes_and_finite(mixed_env):
         assert (
             np.isfinite(np.asarray(state.obs)).all() and np.isfinite(np.asarray(state.reward)).all()
         )
-        lo, hi = robot.CAMERA_RANGE
+        lo, hi = SensorConfig().range_min, SensorConfig().range_max
         assert (np.asarray(state.obs) >= lo - 1e-6).all() and (np.asarray(state.obs) <= hi).all()
     assert state.reward.shape == (batch,) and state.done.shape == (batch,)
 
@@ -54,7 +57,7 @@ def test_batch_of_mixed_layouts_shapes_and_finite(mixed_env):
 def test_obstacle_ahead_read_at_its_distance(probe_env, layout_id, surface_x):
     env, reset, _ = probe_env
     state = start_in(env, reset, layout_id)
-    expected = surface_x - robot.CAMERA_FORWARD
+    expected = surface_x - TURTLEBOT2I.camera_forward
     centre = np.asarray(state.obs)[3:5]  # the two sectors around the optical axis
     np.testing.assert_allclose(centre, expected, atol=0.03)
     # The side sectors look past the obstacle to the walls: farther.
@@ -70,9 +73,9 @@ def test_driving_forward_into_obstacle_ends_with_minus_100(probe_env, layout_id,
         state = step(state, jnp.int32(0))
         if bool(state.done):
             break
-    assert bool(state.collision) and float(state.reward) == -100.0
+    assert bool(state.metrics["collision"]) and float(state.reward) == -100.0
     # It stops where the bumper meets the surface, within one control period of travel.
-    travel = surface_x - robot.BASE_RADIUS
+    travel = surface_x - TURTLEBOT2I.radius
     assert abs((t + 1) - travel / (speed * 0.1)) <= 2.5, t
     assert float(state.data.qpos[0]) == pytest.approx(travel, abs=0.06)
 
@@ -100,11 +103,11 @@ def test_table_one_rewards(probe_env):
 
 
 def test_spawn_never_overlaps(mixed_env):
-    cfg = RandomizeConfig(random_spawn_prob=1.0)
-    params = jax.jit(jax.vmap(lambda k: sample(k, cfg, mixed_env.bank)))(
+    cfg = RandomizeConfig(sampled_room_prob=0.5, random_spawn_prob=1.0)
+    params = jax.jit(jax.vmap(lambda k: sample(k, cfg, mixed_env.bank, TURTLEBOT2I.radius)))(
         jax.random.split(jax.random.PRNGKey(3), 4000)
     )
-    gap = jax.vmap(clearance)(params, params.spawn[:, :2]) - robot.BASE_RADIUS
+    gap = jax.vmap(clearance)(params, params.spawn[:, :2]) - TURTLEBOT2I.radius
     assert float(gap.min()) > 0.0
     # Nearly all spawns also keep the configured clearance (crowded layouts may fall back).
     assert float(jnp.mean(gap >= cfg.spawn_clearance - 1e-4)) > 0.99
@@ -125,7 +128,7 @@ def test_layout_change_does_not_recompile(mixed_env):
     rooms = set()
     for seed in range(12):
         state = reset(jax.random.PRNGKey(seed))
-        rooms.add(int(state.params.layout_id))
+        rooms.add(int(state.info["params"].layout_id))
         for _ in range(2):
             state = step(state, jnp.int32(seed % 3))
     assert len(rooms) >= 2  # different rooms went through the same compiled functions
@@ -135,7 +138,9 @@ def test_batched_model_matches_per_env_model(mixed_env):
     from mujoco import mjx
 
     scene = mixed_env.scene
-    params = jax.jit(jax.vmap(mixed_env.reset))(jax.random.split(jax.random.PRNGKey(5), 4)).params
+    params = jax.jit(jax.vmap(mixed_env.reset))(jax.random.split(jax.random.PRNGKey(5), 4)).info[
+        "params"
+    ]
     model, in_axes = scene.batched_model(params)
     assert model.geom_pos.shape == (4, scene.model.ngeom, 3)
     data = jax.vmap(lambda p: mjx.make_data(scene.model).replace(qpos=p.spawn))(params)

@@ -1,16 +1,17 @@
-"""Exporting the actor out of JAX: numpy and ONNX parity, the jax-free robot files, the CLI."""
+"""Exporting the actor out of JAX: numpy and ONNX parity, the robot bundle, the CLI."""
 
 import importlib.util
+import json
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_robot_side import run_without_jax
 
 import jaxnav
 from jaxnav import export
@@ -20,9 +21,7 @@ from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import RunningStats, normalize
 from jaxnav.ppo.train import TrainState, make_network
 from jaxnav.robot_side.policy import NumpyPolicy
-
-PACKAGE = Path(jaxnav.__file__).parent
-ROBOT_FILES = ("numpy_policy.py", "deploy.py", "ros_node.py")
+from jaxnav.tasks.avoid import AvoidConfig
 
 
 def make_run(root: Path, ppo, seed: int):
@@ -32,7 +31,7 @@ def make_run(root: Path, ppo, seed: int):
     scaled up (its init gain of 0.01 makes all logits nearly equal) and the normaliser holds
     non-trivial statistics, so that the parity checks below mean something.
     """
-    network = make_network(ppo, 3)
+    network = make_network(ppo, AvoidConfig().action_spec)
     params = jax.jit(network.init)(jax.random.PRNGKey(seed), jnp.zeros((1, 8)))
     head = params["params"]["actor"]["Dense_2"]
     params["params"]["actor"]["Dense_2"] = {**head, "kernel": head["kernel"] * 200.0}
@@ -103,7 +102,9 @@ def test_numpy_export_matches_jax(run, tmp_path):
     single = policy(obs[0])
     assert isinstance(single, int) and single == int(policy(obs[:1])[0])
     assert policy.action_names == ("forward", "left", "right")
-    assert (policy.forward_speed, policy.turn_rate, policy.num_sectors) == (0.5, 1.5, 8)
+    assert policy.sensor.num_sectors == 8 and policy.sensor.range_max == 8.0
+    # The default task's speeds: 0.5 m/s forward, 1.5 rad/s turning in place.
+    np.testing.assert_array_equal(policy.commands, [[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]])
 
 
 def test_onnx_export_matches_jax(run, tmp_path):
@@ -122,47 +123,50 @@ def test_onnx_export_matches_jax(run, tmp_path):
     assert_same_greedy_actions(logits, actions, ref)
     props = session.get_modelmeta().custom_metadata_map
     assert props["action_names"] == "forward,left,right"
+    assert json.loads(props["commands"]) == [[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]]
 
 
-def test_numpy_policy_imports_no_jax(one_run, tmp_path):
-    """The module loads on its own (as on the robot) and leaves jax, flax and jaxnav unimported."""
-    npz = export.export(one_run[0], "numpy", tmp_path / "policy.npz", check=False)
+def test_bundle_runs_on_a_robot_without_jax(one_run, tmp_path):
+    """The bundle's folder alone (no jaxnav, no jax) loads the policy and acts as JAX does."""
+    folder = export.bundle(one_run[0], tmp_path / "robot")
+    package = sorted(p.name for p in (folder / "jaxnav_robot").glob("*.py"))
+    assert package == ["__init__.py", "observation.py", "policy.py", "ros_node.py"]
+    readme = (folder / "README.txt").read_text()
+    assert "python3 -m jaxnav_robot.ros_node --policy policy.npz" in readme
+    assert "--ros-args -r cmd_vel:=commands/velocity" in readme
+    obs = random_obs(n=200, seed=3)
+    np.save(tmp_path / "obs.npy", obs)
     code = f"""
-        import importlib.util, sys
-        spec = importlib.util.spec_from_file_location("numpy_policy", {str(PACKAGE / "numpy_policy.py")!r})
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        action = module.NumpyPolicy.from_npz({str(npz)!r})([1.0] * 8)
-        assert action in (0, 1, 2), action
-        loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("jax", "jaxlib", "flax", "jaxnav"))
-        assert not loaded, loaded
-    """
-    proc = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True
-    )
-    assert proc.returncode == 0, proc.stderr
-
-
-def test_robot_files_run_without_jax(one_run, tmp_path):
-    """numpy_policy.py, deploy.py and ros_node.py copied flat beside the .npz: what the robot gets."""
-    export.export(one_run[0], "numpy", tmp_path / "policy.npz", check=False)
-    for name in ROBOT_FILES:
-        shutil.copy(PACKAGE / name, tmp_path / name)
-    code = """
-        import sys
+        import json
         import numpy as np
-        import ros_node
-        from deploy import Controller
-        controller = Controller.from_npz("policy.npz", speed_calibration=2.0)
-        twist = controller.image_to_twist(np.full((4, 64), 3.0, np.float32))
-        assert twist in [(1.0, 0.0), (0.0, 3.0), (0.0, -3.0)], twist
-        loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("jax", "jaxlib", "flax", "jaxnav", "rclpy"))
-        assert not loaded, loaded
+        import jaxnav_robot.ros_node
+        from jaxnav_robot import Controller, NumpyPolicy
+
+        policy = NumpyPolicy.from_npz("policy.npz")
+        twist = Controller(policy).image_to_twist(np.full((4, 64), 3.0, np.float32))
+        actions = policy(np.load({str(tmp_path / "obs.npy")!r})).tolist()
+        jaxnav = sorted(m for m in sys.modules if m.partition(".")[0] == "jaxnav")
+        print(json.dumps({{"actions": actions, "twist": list(twist), "jaxnav": jaxnav}}))
     """
-    proc = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, cwd=tmp_path
-    )
+    proc = run_without_jax(code, cwd=folder)  # no PYTHONPATH: only what is in the folder
     assert proc.returncode == 0, proc.stderr
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    want = jaxnav.load_policy(one_run[0]).act(obs, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(got["actions"], np.asarray(want))
+    assert got["twist"] in ([0.5, 0.0], [0.0, 1.5], [0.0, -1.5]) and got["jaxnav"] == []
+
+
+def test_cli_bundle(one_run, tmp_path, capsys):
+    assert export.main([str(one_run[0]), "--bundle", str(tmp_path / "robot")]) == 0
+    stdout = capsys.readouterr().out
+    assert "(bundle)" in stdout and "greedy actions agree on 1000/1000" in stdout
+    assert (tmp_path / "robot" / "policy.npz").exists()
+    argv = [str(one_run[0]), "--bundle", str(tmp_path / "b"), "--format", "onnx"]
+    assert export.main(argv) == 2
+    assert_one_error_line(capsys.readouterr().err, "--format", "not with --bundle")
+    (tmp_path / "file").write_text("")
+    assert export.main([str(one_run[0]), "--bundle", str(tmp_path / "file")]) == 2
+    assert_one_error_line(capsys.readouterr().err, "--bundle", "not a folder")
 
 
 @pytest.fixture(scope="module")

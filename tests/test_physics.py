@@ -9,7 +9,7 @@ import pytest
 from conftest import EXACT, corridor
 
 import jaxnav
-from jaxnav.core import robot
+from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.core.scene import SceneConfig
 from jaxnav.io.layouts import Box
 
@@ -23,9 +23,8 @@ def fast_env():
         "avoid",
         [BOARD],
         randomize=EXACT,
-        auto_reset=False,
-        forward_speed=robot.MAX_LINEAR_SPEED,
-        turn_rate=robot.MAX_ANGULAR_SPEED,
+        forward_speed=TURTLEBOT2I.max_linear_speed,
+        turn_rate=TURTLEBOT2I.max_angular_speed,
     )
 
 
@@ -43,11 +42,11 @@ def test_speeds_reached_without_sideways_sliding(fast_env):
     reset, step = jax.jit(fast_env.reset), jax.jit(fast_env.step)
     state = reset(jax.random.PRNGKey(0))
     state = step(state, jnp.int32(1))  # turn left in place
-    assert float(state.data.qvel[2]) == pytest.approx(robot.MAX_ANGULAR_SPEED, rel=0.02)
+    assert float(state.data.qvel[2]) == pytest.approx(TURTLEBOT2I.max_angular_speed, rel=0.02)
     assert float(jnp.linalg.norm(state.data.qvel[:2])) < 1e-3
     state = step(state, jnp.int32(0))  # then forward along the new heading
     forward, sideways = body_velocity(state)
-    assert forward == pytest.approx(robot.MAX_LINEAR_SPEED, rel=0.02)
+    assert forward == pytest.approx(TURTLEBOT2I.max_linear_speed, rel=0.02)
     assert abs(sideways) < 1e-3
 
 
@@ -58,8 +57,7 @@ def test_no_tunnelling_at_top_speed(substeps):
         "avoid",
         [BOARD],
         randomize=EXACT,
-        auto_reset=False,
-        forward_speed=robot.MAX_LINEAR_SPEED,
+        forward_speed=TURTLEBOT2I.max_linear_speed,
         scene=scene,
     )
     reset, step = jax.jit(env.reset), jax.jit(env.step)
@@ -70,15 +68,15 @@ def test_no_tunnelling_at_top_speed(substeps):
         xs.append(float(state.data.qpos[0]))
         if bool(state.done):
             break
-    assert bool(state.collision), "drove through the board"
+    assert bool(state.metrics["collision"]), "drove through the board"
     face = 1.5 - 0.025
     assert max(xs) < face  # the centre never passes the board's near face
-    assert max(xs) == pytest.approx(face - robot.BASE_RADIUS, abs=0.08)
+    assert max(xs) == pytest.approx(face - TURTLEBOT2I.radius, abs=0.08)
 
 
 def test_speed_limits_are_the_robot_s():
     with pytest.raises(ValueError, match="forward_speed"):
-        jaxnav.make_env("avoid", forward_speed=robot.MAX_LINEAR_SPEED + 0.1)
+        jaxnav.make_env("avoid", forward_speed=TURTLEBOT2I.max_linear_speed + 0.1)
     with pytest.raises(ValueError, match="turn_rate"):
         jaxnav.make_env("avoid", turn_rate=4.0)
-    assert np.isclose(robot.BASE_RADIUS * 2, 0.354) and robot.BASE_MASS == 2.35
+    assert np.isclose(TURTLEBOT2I.radius * 2, 0.354) and jaxnav.make_env("avoid").scene.mass == 2.35

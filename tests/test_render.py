@@ -7,15 +7,17 @@ from __future__ import annotations
 
 import os
 
+import jax
 import numpy as np
 import pytest
+from matplotlib.figure import Figure
 from PIL import Image
 
 import jaxnav
 import jaxnav.evaluate
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.policy import forward_policy
-from jaxnav.viz import render
+from jaxnav.viz import plots, render
 
 STEPS = 12
 
@@ -52,6 +54,26 @@ def test_evaluate_keeps_the_first_episode(episode):
     np.testing.assert_allclose(qpos[:, :2], paths[0], atol=1e-6)
     np.testing.assert_allclose(qpos[0], episode["params"].spawn, atol=1e-6)
     assert episode["params"].box_pos.ndim == 2  # one episode's params, no batch axis
+
+
+def test_room_shapes_are_the_same_from_a_layout_and_from_its_scene_params(room, episode):
+    from_layout, from_params = plots.room_shapes(room[0]), plots.room_shapes(episode["params"])
+    assert from_layout.walls.shape == (4, 2, 2) and from_layout.boxes.shape == (4, 4, 2)
+    assert from_layout.circles.shape == (4, 3)
+    for field in ("walls", "boxes", "circles", "spawn"):
+        expected = getattr(from_layout, field)
+        np.testing.assert_allclose(getattr(from_params, field), expected, atol=1e-5, err_msg=field)
+    np.testing.assert_allclose(from_layout.outer_half, [2.6, 3.6])  # 5 x 7 m room, 0.1 m walls
+
+
+def test_draw_room_takes_a_layout_or_scene_params(room, episode):
+    fig = Figure()
+    for ax, source in zip(fig.subplots(1, 2), (room[0], episode["params"]), strict=True):
+        plots.draw_room(ax, source)
+        assert len(ax.patches) == 4 + 4 + 4 + 1  # walls, boxes, cylinders, spawn disc
+    batch = jax.tree_util.tree_map(lambda x: x[None], episode["params"])
+    with pytest.raises(ValueError, match="no batch axis"):
+        plots.room_shapes(batch)
 
 
 def test_render_episode_writes_an_animated_gif(needs_gl, episode, tmp_path):

@@ -23,7 +23,7 @@ def test_tiny_training_improves_reward():
     cfg = preset("cpu", **TINY, total_steps=64 * 32 * 40)
     _, metrics = make_train(cfg, env).train(jax.random.PRNGKey(0))
     reward = np.asarray(metrics["episode_reward"])
-    collisions = np.asarray(metrics["collision_rate"])
+    collisions = np.asarray(metrics["collision"])
     assert np.isfinite(np.asarray(metrics["total"])).all()
     first, last = np.nanmean(reward[:8]), np.nanmean(reward[-8:])
     assert last > first + 50, (first, last)
@@ -59,7 +59,7 @@ def test_cli_writes_csv_png_checkpoints(tiny_run):
     with open(out / "metrics.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [int(r["update"]) for r in rows] == [1, 2, 3, 4, 5, 6]
-    assert {"episode_reward", "collision_rate", "entropy", "steps_per_second"} <= set(rows[0])
+    assert {"episode_reward", "collision", "entropy", "steps_per_second"} <= set(rows[0])
     assert (out / "reward_curve.png").stat().st_size > 1000
     ckpts = checkpoint.list_checkpoints(out)
     assert [c.name for c in ckpts] == ["update_000002", "update_000004", "update_000006"]

@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxnav.core import robot
 from jaxnav.core.checks import require_finite
+from jaxnav.core.geometry import signed_distance
 from jaxnav.io.layouts import RoomLayout
 
 
@@ -44,12 +44,16 @@ class SceneParams:
 
 @dataclasses.dataclass(frozen=True)
 class RandomizeConfig:
-    """Ranges of the per-episode randomisation. Pairs are inclusive [low, high] ranges."""
+    """Ranges of the per-episode randomisation. Pairs are inclusive [low, high] ranges.
 
-    sampled_room_prob: float = 0.5
+    The defaults simulate exactly the given rooms from their own spawns; `TRAINING` is the
+    training distribution of `python -m jaxnav.train`, which mixes in sampled rooms and spawns.
+    """
+
+    sampled_room_prob: float = 0.0
     """Probability that an episode uses a sampled room instead of one of the layouts (must be 1 if
     there are no layouts; `make_env` sees to that)."""
-    random_spawn_prob: float = 0.5
+    random_spawn_prob: float = 0.0
     """Probability that a layout with a fixed spawn starts the robot at a random free pose instead."""
     spawn_clearance: float = 0.3
     """Minimum gap between the robot's edge and any obstacle or wall at a sampled spawn, m."""
@@ -66,7 +70,7 @@ class RandomizeConfig:
     cylinder_radius: tuple[float, float] = (0.08, 0.3)
     """Radius of a sampled cylinder, m."""
     obstacle_height: tuple[float, float] = (0.4, 1.0)
-    """Height of a sampled obstacle, m; the camera sits at robot.CAMERA_HEIGHT."""
+    """Height of a sampled obstacle, m; the TurtleBot 2i's camera sits at 0.30 m."""
     friction: tuple[float, float] = (0.5, 1.0)
     """Floor traction coefficient (rubber wheels on office floors)."""
     speed_gain: tuple[float, float] = (0.8, 1.2)
@@ -109,12 +113,19 @@ class RandomizeConfig:
                 f"RandomizeConfig.room_size_min: must not exceed room_size_max per axis, got "
                 f"{self.room_size_min} > {self.room_size_max}"
             )
-        smallest = 2 * (robot.BASE_RADIUS + self.spawn_clearance)
+
+    def check_robot(self, radius: float) -> None:
+        """Sampled rooms must fit a robot of `radius` with its spawn clearance."""
+        smallest = 2 * (radius + self.spawn_clearance)
         if min(self.room_size_min) < smallest:
             raise ValueError(
                 f"RandomizeConfig.room_size_min: must be >= {smallest:.3f} m per axis (the robot "
                 f"and spawn_clearance on both sides), got {self.room_size_min}"
             )
+
+
+TRAINING = RandomizeConfig(sampled_room_prob=0.5, random_spawn_prob=0.5)
+"""The training distribution: half sampled rooms; half of the layout episodes from a random spawn."""
 
 
 @struct.dataclass
@@ -177,19 +188,7 @@ def _layout_params(layout: RoomLayout, nb: int, nc: int) -> SceneParams:
 
 def clearance(params: SceneParams, xy: jax.Array) -> jax.Array:
     """Distance from point `xy` [2] to the nearest wall or active obstacle surface (< 0 inside one)."""
-    walls = jnp.min(params.room_half - jnp.abs(xy))
-    # Boxes: signed distance to a rectangle, in each box's own frame.
-    c, s = jnp.cos(params.box_yaw), jnp.sin(params.box_yaw)  # [Sb]
-    d = xy - params.box_pos  # [Sb, 2]
-    local = jnp.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-    q = jnp.abs(local) - params.box_half
-    box_sdf = jnp.linalg.norm(jnp.maximum(q, 0.0), axis=-1) + jnp.minimum(q.max(-1), 0.0)
-    cyl_sdf = jnp.linalg.norm(xy - params.cyl_pos, axis=-1) - params.cyl_radius  # [Sc]
-    box_sdf = jnp.where(params.box_active, box_sdf, jnp.inf)
-    cyl_sdf = jnp.where(params.cyl_active, cyl_sdf, jnp.inf)
-    return jnp.minimum(
-        walls, jnp.minimum(jnp.min(box_sdf, initial=jnp.inf), jnp.min(cyl_sdf, initial=jnp.inf))
-    )
+    return signed_distance(params, xy)
 
 
 def _uniform(key, bounds, shape=()):
@@ -211,12 +210,14 @@ def _place(key, half, bound, spawn_xy, keep_out, count, n, tries=8):
     return pos, free.any(axis=1) & (jnp.arange(n) < count)
 
 
-def sample_room(key: jax.Array, cfg: RandomizeConfig, nb: int, nc: int) -> SceneParams:
-    """A procedural room with `nb`/`nc` slots; the returned spawn is free by construction."""
+def sample_room(
+    key: jax.Array, cfg: RandomizeConfig, nb: int, nc: int, radius: float
+) -> SceneParams:
+    """A procedural room with `nb`/`nc` slots; the spawn of a robot of `radius` is free by construction."""
     ks = jax.random.split(key, 10)
     # Interior extents: uniform per axis in [room_size_min, room_size_max].
     half = 0.5 * _uniform(ks[0], (jnp.array(cfg.room_size_min), jnp.array(cfg.room_size_max)), (2,))
-    keep_out = robot.BASE_RADIUS + cfg.spawn_clearance
+    keep_out = radius + cfg.spawn_clearance
     # Spawn: uniform over the interior shrunk by the robot and its clearance; heading uniform.
     spawn_xy = jax.random.uniform(ks[1], (2,), minval=-1.0, maxval=1.0) * (half - keep_out)
     spawn = jnp.append(spawn_xy, _uniform(ks[2], (-jnp.pi, jnp.pi)))
@@ -254,33 +255,35 @@ def sample_room(key: jax.Array, cfg: RandomizeConfig, nb: int, nc: int) -> Scene
     )
 
 
-def free_spawn(key: jax.Array, room: SceneParams, clearance_margin: float, tries: int = 64):
-    """[3] a uniform pose whose robot disc keeps `clearance_margin` from walls and obstacles.
+def free_spawn(key, room: SceneParams, radius: float, clearance_margin: float, tries: int = 64):
+    """[3] a uniform pose whose robot disc (`radius`) keeps `clearance_margin` from everything.
 
     Takes the first of `tries` uniform candidates that is free; if none is (a crowded room), the one
     with the most clearance.
     """
     k_pos, k_yaw = jax.random.split(key)
-    half = jnp.maximum(room.room_half - robot.BASE_RADIUS, 0.0)
+    half = jnp.maximum(room.room_half - radius, 0.0)
     cand = jax.random.uniform(k_pos, (tries, 2), minval=-1.0, maxval=1.0) * half  # [tries, 2]
-    gap = jax.vmap(lambda p: clearance(room, p))(cand) - robot.BASE_RADIUS  # [tries]
+    gap = signed_distance(room, cand) - radius  # [tries]
     ok = gap >= clearance_margin
     best = jnp.where(ok.any(), jnp.argmax(ok), jnp.argmax(gap))
     return jnp.append(cand[best], _uniform(k_yaw, (-jnp.pi, jnp.pi)))
 
 
-def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank) -> SceneParams:
-    """One episode's scene: a room, a free spawn pose, physics and sensor parameters."""
+def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float) -> SceneParams:
+    """One episode's scene for a robot of `radius`: a room, a free spawn, physics and sensing."""
     k_pick, k_room, k_layout, k_spawn, k_rand, k_phys = jax.random.split(key, 6)
     nb, nc = bank.rooms.box_pos.shape[1], bank.rooms.cyl_pos.shape[1]
     # Room: a sampled room with probability sampled_room_prob, otherwise a uniform pick of the layouts.
-    sampled = sample_room(k_room, cfg, nb, nc)
+    sampled = sample_room(k_room, cfg, nb, nc, radius)
     idx = jax.random.randint(k_layout, (), 0, bank.size)
     layout = jax.tree_util.tree_map(lambda x: x[idx], bank.rooms).replace(layout_id=idx)
     # Spawn in a layout: its own pose, or with probability random_spawn_prob (always if it has none)
     # a uniform free pose.
     use_random = ~bank.has_spawn[idx] | jax.random.bernoulli(k_rand, cfg.random_spawn_prob)
-    spawn = jnp.where(use_random, free_spawn(k_spawn, layout, cfg.spawn_clearance), layout.spawn)
+    spawn = jnp.where(
+        use_random, free_spawn(k_spawn, layout, radius, cfg.spawn_clearance), layout.spawn
+    )
     layout = layout.replace(spawn=spawn)
     use_sampled = jax.random.bernoulli(k_pick, cfg.sampled_room_prob)
     room = jax.tree_util.tree_map(lambda a, b: jnp.where(use_sampled, a, b), sampled, layout)

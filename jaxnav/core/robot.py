@@ -1,27 +1,48 @@
-"""TurtleBot 2i constants: Kobuki base, Orbbec Astra depth camera and the action table.
+"""Robot specs: the MJCF, footprint, speed limits and camera mount of a robot, as data.
 
-Figures are the manufacturer's public ones (Kobuki user guide, Astra datasheet).
+A robot is a frozen `RobotSpec` passed to `make_env`; `ROBOTS` names the ones that ship. The
+TurtleBot 2i (Kobuki base, Orbbec Astra) is the default. Figures are the manufacturers' public ones
+(Kobuki user guide, Astra datasheet).
 """
 
-import numpy as np
+from __future__ import annotations
 
-BASE_RADIUS = 0.177  # m; Kobuki diameter 0.354 m
-BASE_MASS = 2.35  # kg; Kobuki base without payload
-BASE_HEIGHT = 0.11  # m; top of the Kobuki shell
-WHEELBASE = 0.230  # m; distance between the drive wheels
-WHEEL_RADIUS = 0.035  # m
-MAX_LINEAR_SPEED = 0.7  # m/s; Kobuki top speed
-MAX_ANGULAR_SPEED = np.pi  # rad/s; Kobuki top yaw rate, 180 deg/s
+import dataclasses
+import math
 
-CAMERA_FORWARD = 0.12  # m; camera ahead of the base centre
-CAMERA_HEIGHT = 0.30  # m; optical centre above the floor
-CAMERA_FOV = np.deg2rad(60.0)  # rad; Astra horizontal field of view
-CAMERA_RANGE = (0.6, 8.0)  # m; Astra usable depth range
-NUM_SECTORS = 8  # the paper's observation: 8 shortest distances
+from jaxnav.core.checks import require_finite
 
-CONTROL_PERIOD = 0.1  # s; commands are sent at 10 Hz
 
-# Actions of the paper: (forward speed fraction, yaw rate fraction) of the top speeds.
-# Turning happens in place, as the paper's robot does.
-ACTION_NAMES = ("forward", "left", "right")
-ACTIONS = np.array([[1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], dtype=np.float32)  # [3, 2]
+@dataclasses.dataclass(frozen=True)
+class RobotSpec:
+    """A differential-drive robot with one forward-looking range sensor."""
+
+    name: str = "turtlebot2i"
+    """Shown in logs and stored in the run config."""
+    mjcf: str = "turtlebot2i.xml"
+    """MJCF file of the robot, a file name in jaxnav's scenes or a path. It must define body
+    `base` on slide joints x, y and hinge yaw, motors on them, and the collision geom `bumper`."""
+    radius: float = 0.177
+    """Footprint radius, m (Kobuki diameter 0.354 m): spawns keep it clear of obstacles."""
+    wheelbase: float = 0.230
+    """Distance between the drive wheels, m: bounds the yaw torque the wheels can apply."""
+    max_linear_speed: float = 0.7
+    """Top forward speed, m/s (Kobuki)."""
+    max_angular_speed: float = math.pi
+    """Top yaw rate, rad/s (Kobuki, 180 deg/s)."""
+    camera_forward: float = 0.12
+    """Sensor origin ahead of the base centre, m."""
+    camera_height: float = 0.30
+    """Sensor origin above the floor, m."""
+
+    def __post_init__(self):
+        require_finite(self, lambda name: f"RobotSpec.{name}")
+        for name in ("radius", "wheelbase", "max_linear_speed", "max_angular_speed"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"RobotSpec.{name}: must be > 0, got {getattr(self, name)}")
+        if self.camera_height <= 0:
+            raise ValueError(f"RobotSpec.camera_height: must be > 0 m, got {self.camera_height}")
+
+
+TURTLEBOT2I = RobotSpec()
+ROBOTS: dict[str, RobotSpec] = {"turtlebot2i": TURTLEBOT2I}

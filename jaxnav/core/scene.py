@@ -18,9 +18,11 @@ import numpy as np
 from mujoco import mjx
 
 from jaxnav.core.checks import require_finite
+from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
+from jaxnav.io.assets import scene_file, scenes_dir
 
-SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
-ROBOT_XML = SCENES_DIR / "turtlebot2i.xml"
+SCENES_DIR = scenes_dir()
+ROBOT_XML = scene_file("turtlebot2i.xml")
 
 OBSTACLE_GROUP = 1  # geom group of walls and obstacles: the only geoms the depth rays see
 PARK_DEPTH = -10.0  # m; z of parked slots, far below the floor and the rays
@@ -72,14 +74,24 @@ def _z_to(normal: np.ndarray) -> list[float]:
     return [np.sqrt(0.5), *(np.sqrt(0.5) * axis)]
 
 
-def build_mj_model(cfg: SceneConfig) -> mujoco.MjModel:
+def robot_mjcf(robot: RobotSpec) -> Path:
+    """The robot's MJCF file: a path, or a file name among jaxnav's scenes."""
+    path = Path(robot.mjcf)
+    if not path.is_absolute() and not path.exists():
+        path = SCENES_DIR / robot.mjcf
+    if not path.is_file():
+        raise ValueError(f"RobotSpec.mjcf: no such file: {robot.mjcf}")
+    return path
+
+
+def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.MjModel:
     """Robot MJCF + floor + 4 plane walls + obstacle slots (boxes, then cylinders), all parked.
 
     Cylinders are capsules whose round part spans z in [0, height]: MJX has no cylinder ray and no
     cylinder-box collision, while capsules have both, and below the robot's and camera's heights the two
     shapes are identical.
     """
-    spec = mujoco.MjSpec.from_file(str(ROBOT_XML))
+    spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot)))
     spec.option.timestep = cfg.timestep
     spec.option.iterations = cfg.solver_iterations
     spec.option.ls_iterations = cfg.solver_iterations
@@ -132,9 +144,9 @@ def build_mj_model(cfg: SceneConfig) -> mujoco.MjModel:
 class Scene:
     """The compiled room model and the map from `SceneParams` to per-env `mjx.Model` fields."""
 
-    def __init__(self, cfg: SceneConfig = SceneConfig()):
-        self.cfg = cfg
-        self.mj_model = build_mj_model(cfg)
+    def __init__(self, cfg: SceneConfig = SceneConfig(), robot: RobotSpec = TURTLEBOT2I):
+        self.cfg, self.robot = cfg, robot
+        self.mj_model = build_mj_model(cfg, robot)
         self.model = mjx.put_model(self.mj_model)
         name = lambda n: mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
         self.wall_ids = np.array([name(f"wall{i}") for i in range(4)])
@@ -142,6 +154,17 @@ class Scene:
         self.cyl_ids = np.array([name(f"cylinder{i}") for i in range(cfg.num_cylinders)], dtype=int)
         self.robot_body = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_BODY, "base")
         self.bumper = name("bumper")
+        # The bumper sphere's centre height and radius: what collision detection tests (see
+        # geometry.signed_distance); the MJCF places it on the base's axis.
+        if (
+            self.mj_model.geom_type[self.bumper] != mujoco.mjtGeom.mjGEOM_SPHERE
+            or np.abs(self.mj_model.geom_pos[self.bumper, :2]).max() > 1e-9
+        ):
+            raise ValueError(
+                f"RobotSpec.mjcf: {robot.mjcf}: geom 'bumper' must be a sphere on the base's axis"
+            )
+        self.bumper_z = float(self.mj_model.geom_pos[self.bumper, 2])
+        self.bumper_radius = float(self.mj_model.geom_size[self.bumper, 0])
         self.mass = float(self.mj_model.body_mass[self.robot_body])
         self.yaw_inertia = float(self.mj_model.body_inertia[self.robot_body, 2])
 

@@ -1,8 +1,9 @@
 """The paper's observation: the 8 shortest depth-camera distances, one per slice of the field of view.
 
-A horizontal fan of rays leaves the camera; each ray's hit distance is turned into camera depth (distance
-along the optical axis, what a depth image holds), noised, dropped out, clipped to the camera's range,
-and the minimum is taken per sector. Sectors are ordered right to left (increasing angle, as in a ROS
+A horizontal fan of rays leaves the sensor, mounted where the `RobotSpec` says. For a depth camera each
+ray's hit distance is turned into camera depth (distance along the optical axis, what a depth image
+holds); a lidar reports the range itself and may see all around. Readings are noised, dropped out,
+clipped to the sensor's range, and the minimum is taken per sector. Sectors are ordered right to left (increasing angle, as in a ROS
 LaserScan): obs[0] is the rightmost slice, obs[7] the leftmost.
 """
 
@@ -15,33 +16,46 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from jaxnav.core import robot
 from jaxnav.core.checks import require_finite
+from jaxnav.core.robot import RobotSpec
 from jaxnav.core.scene import OBSTACLE_GROUP
+
+SENSOR_MODELS = ("camera", "lidar")
 
 
 @dataclasses.dataclass(frozen=True)
 class SensorConfig:
-    """The depth fan's geometry and limits."""
+    """The sensor's geometry, limits and reduction to sectors (default: the Orbbec Astra)."""
 
-    num_sectors: int = robot.NUM_SECTORS
-    """Slices of the field of view, one observation each."""
+    model: str = "camera"
+    """'camera': readings are depth along the optical axis (fov < pi); 'lidar': ranges (fov <= 2 pi)."""
+    num_sectors: int = 8
+    """Slices of the field of view, one observation each (the paper: 8)."""
     rays_per_sector: int = 3
     """Rays cast per slice; more rays see thinner obstacles further away."""
-    fov: float = float(robot.CAMERA_FOV)
-    """Horizontal field of view, rad."""
-    range_min: float = robot.CAMERA_RANGE[0]
-    """Nearest readable depth, m; closer surfaces read this value."""
-    range_max: float = robot.CAMERA_RANGE[1]
-    """Farthest readable depth, m; no return reads this value."""
+    fov: float = float(np.deg2rad(60.0))
+    """Horizontal field of view, rad (Astra: 60 deg)."""
+    range_min: float = 0.6
+    """Nearest readable depth, m; closer surfaces read this value (Astra: 0.6)."""
+    range_max: float = 8.0
+    """Farthest readable depth, m; no return reads this value (Astra: 8)."""
 
     def __post_init__(self):
         require_finite(self)
         for name in ("num_sectors", "rays_per_sector"):
             if getattr(self, name) < 1:
                 raise ValueError(f"SensorConfig.{name}: must be >= 1, got {getattr(self, name)}")
-        if not 0 < self.fov < np.pi:
-            raise ValueError(f"SensorConfig.fov: must be in (0, pi) rad, got {self.fov}")
+        if self.model not in SENSOR_MODELS:
+            raise ValueError(
+                f"SensorConfig.model: must be one of {', '.join(SENSOR_MODELS)}, got {self.model!r}"
+            )
+        top, label = (
+            (np.pi, "(0, pi)") if self.model == "camera" else (2 * np.pi + 1e-6, "(0, 2 pi]")
+        )
+        if not 0 < self.fov < top:
+            raise ValueError(
+                f"SensorConfig.fov: must be in {label} rad for a {self.model}, got {self.fov}"
+            )
         if self.range_max <= 0:
             raise ValueError(f"SensorConfig.range_max: must be > 0 m, got {self.range_max}")
         if not 0 <= self.range_min < self.range_max:
@@ -57,29 +71,27 @@ class SensorConfig:
         return (np.arange(n) + 0.5) / n * self.fov - 0.5 * self.fov
 
 
-def camera_pose(qpos: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """World position [3] and yaw [] of the camera for base pose qpos = (x, y, yaw)."""
+def camera_pose(qpos: jax.Array, robot: RobotSpec) -> tuple[jax.Array, jax.Array]:
+    """World position [3] and yaw [] of the sensor for base pose qpos = (x, y, yaw)."""
     x, y, yaw = qpos[0], qpos[1], qpos[2]
+    fwd = robot.camera_forward
     pos = jnp.stack(
-        [
-            x + robot.CAMERA_FORWARD * jnp.cos(yaw),
-            y + robot.CAMERA_FORWARD * jnp.sin(yaw),
-            jnp.asarray(robot.CAMERA_HEIGHT),
-        ]
+        [x + fwd * jnp.cos(yaw), y + fwd * jnp.sin(yaw), jnp.asarray(robot.camera_height)]
     )
     return pos, yaw
 
 
-def ray_depths(m: mjx.Model, d: mjx.Data, cfg: SensorConfig, robot_body: int) -> jax.Array:
-    """[R] noiseless camera depth of each ray, inf where the ray hits nothing."""
-    pos, yaw = camera_pose(d.qpos)
+def ray_depths(m: mjx.Model, d: mjx.Data, cfg: SensorConfig, robot: RobotSpec, robot_body: int):
+    """[R] noiseless reading of each ray (camera depth or lidar range), inf where it hits nothing."""
+    pos, yaw = camera_pose(d.qpos, robot)
     angles = jnp.asarray(cfg.ray_angles, jnp.float32)
     vecs = jnp.stack([jnp.cos(yaw + angles), jnp.sin(yaw + angles), jnp.zeros_like(angles)], -1)
     groups = tuple(int(g == OBSTACLE_GROUP) for g in range(6))
     dist, _ = jax.vmap(lambda v: mjx.ray(m, d, pos, v, geomgroup=groups, bodyexclude=robot_body))(
         vecs
     )
-    return jnp.where(dist < 0, jnp.inf, dist * jnp.cos(angles))
+    reading = dist * jnp.cos(angles) if cfg.model == "camera" else dist
+    return jnp.where(dist < 0, jnp.inf, reading)
 
 
 def sector_minima(depths: jax.Array, cfg: SensorConfig) -> jax.Array:
@@ -88,9 +100,9 @@ def sector_minima(depths: jax.Array, cfg: SensorConfig) -> jax.Array:
     return jnp.clip(per_sector.min(axis=1), cfg.range_min, cfg.range_max)
 
 
-def observe(m, d, params, key, cfg: SensorConfig, robot_body: int) -> jax.Array:
+def observe(m, d, params, key, cfg: SensorConfig, robot: RobotSpec, robot_body: int) -> jax.Array:
     """[num_sectors] float32 observation with the episode's noise std and dropout rate."""
-    depths = ray_depths(m, d, cfg, robot_body)
+    depths = ray_depths(m, d, cfg, robot, robot_body)
     k_noise, k_drop = jax.random.split(key)
     depths = depths + params.noise_std * jax.random.normal(k_noise, depths.shape)
     dropped = jax.random.bernoulli(k_drop, params.dropout, depths.shape)

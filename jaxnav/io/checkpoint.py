@@ -1,17 +1,27 @@
-"""Run folders and checkpoints: atomic writes, the latest checkpoint, and `load_policy`.
+"""Run folders and checkpoints: atomic, checksummed writes, restore by tree path, and the one policy
+loader (`read_policy`, used by `load_policy` and by `jaxnav.export`).
 
 A run folder holds `config.json`, `metrics.csv`, `reward_curve.png` and `checkpoints/update_NNNNNN/`,
 each checkpoint with `policy.msgpack` (network weights and observation normaliser: all a robot needs),
-`train_state.npz` (everything else to continue training) and `meta.json`. A checkpoint is written in a
-hidden temporary folder and renamed into place, so a crash mid-write leaves the previous ones intact.
+`train_state.npz` (the whole TrainState, one entry per leaf named by its tree path, e.g.
+`.params['params']['actor']['Dense_0']['kernel']`, plus `format_version`), `config.json`, `meta.json`
+and, written last, `checksums.json` (sha256 of each of those). A checkpoint is written in a hidden
+temporary folder and renamed into place, so a crash mid-write leaves the previous ones intact.
+Hand-written rather than orbax: four plain files (numpy, msgpack, JSON) that numpy alone can read,
+where orbax adds tensorstore (~66 MB) and async machinery for a few MB of single-host state.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import hashlib
 import json
 import os
 import shutil
+import sys
 import tempfile
+import zipfile
 from pathlib import Path
 
 import jax
@@ -19,16 +29,22 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from jaxnav.core import robot
 from jaxnav.io.runconfig import RunConfig
 from jaxnav.policy import Policy
 
 CKPT_DIR = "checkpoints"
 PREFIX = "update_"
+FORMAT_VERSION = 2  # 1: train_state.npz by flatten order (leaf_00000, ...), no checksums
+CHECKSUMS = "checksums.json"
+# Found in a checkpoint folder, never directly in a run folder (which has config.json too).
+CHECKPOINT_FILES = ("policy.msgpack", "train_state.npz", CHECKSUMS)
 
 
 class CheckpointError(ValueError):
     """A checkpoint or run folder that cannot be used; the message names the path."""
+
+
+# ---------------------------------------------------------------- writing
 
 
 def save(run_dir: Path, ts, config: RunConfig, meta: dict, keep: int = 3) -> Path:
@@ -44,13 +60,11 @@ def save(run_dir: Path, ts, config: RunConfig, meta: dict, keep: int = 3) -> Pat
         (tmp / "policy.msgpack").write_bytes(
             serialization.msgpack_serialize(serialization.to_state_dict(policy))
         )
-        leaves = jax.tree_util.tree_leaves(host)
-        np.savez(
-            tmp / "train_state.npz",
-            **{f"leaf_{i:05d}": np.asarray(x) for i, x in enumerate(leaves)},
-        )
+        save_tree(tmp / "train_state.npz", host)
         (tmp / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
         (tmp / "meta.json").write_text(json.dumps({"update": update, **meta}, indent=2))
+        sums = {f.name: _sha256(f) for f in sorted(tmp.iterdir())}
+        (tmp / CHECKSUMS).write_text(json.dumps(sums, indent=2))
         for f in tmp.iterdir():  # data on disk before the rename makes it visible
             with open(f, "rb") as fh:
                 os.fsync(fh.fileno())
@@ -60,33 +74,102 @@ def save(run_dir: Path, ts, config: RunConfig, meta: dict, keep: int = 3) -> Pat
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    for old in list_checkpoints(run_dir)[:-keep]:
-        shutil.rmtree(old, ignore_errors=True)
+    _prune(root, target, keep)
     return target
 
 
+def _prune(root: Path, newest: Path, keep: int) -> None:
+    """Removes all but the newest `keep` checkpoints, and temporary folders of crashed writes."""
+    for old in list_checkpoints(root.parent)[:-keep]:
+        shutil.rmtree(old, ignore_errors=True)
+    written = newest.stat().st_mtime
+    for stale in root.glob(".tmp-*"):  # older than the newest checkpoint: no write is using them
+        if stale.stat().st_mtime < written:
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def save_tree(file: Path, tree) -> None:
+    """Writes every leaf of `tree` into the .npz `file`, named by its tree path (`keystr`)."""
+    named = jax.tree_util.tree_flatten_with_path(tree)[0]
+    arrays = {jax.tree_util.keystr(path): np.asarray(x) for path, x in named}
+    with open(file, "wb") as fh:  # a handle: np.savez would append .npz to other names
+        np.savez(fh, format_version=np.int32(FORMAT_VERSION), **arrays)
+
+
+def _sha256(file: Path) -> str:
+    with open(file, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+# ---------------------------------------------------------------- finding and checking
+
+
 def list_checkpoints(run_dir: Path) -> list[Path]:
-    """Complete checkpoints of a run, oldest first."""
+    """Checkpoints of a run, oldest first (intact or not: see `verify`)."""
     root = Path(run_dir) / CKPT_DIR
     if not root.is_dir():
         return []
-    found = [p for p in root.iterdir() if p.name.startswith(PREFIX) and (p / "meta.json").exists()]
-    return sorted(found, key=lambda p: p.name)
+    return sorted(p for p in root.iterdir() if p.name.startswith(PREFIX) and p.is_dir())
+
+
+def verify(ckpt: Path) -> None:
+    """Raises CheckpointError naming the first file of `ckpt` that its checksums.json disowns."""
+    file = ckpt / CHECKSUMS
+    try:
+        sums = json.loads(file.read_text())
+    except FileNotFoundError:
+        raise CheckpointError(
+            f"{file}: missing (an incomplete checkpoint, or written by an older jaxnav (format 1))"
+        ) from None
+    except (OSError, ValueError) as err:
+        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
+    if not isinstance(sums, dict):
+        raise CheckpointError(f"{file}: not a JSON object of file name -> sha256")
+    for name, digest in sums.items():
+        try:
+            same = _sha256(ckpt / name) == digest
+        except OSError as err:
+            raise CheckpointError(f"{ckpt / name}: unreadable ({_one_line(err)})") from None
+        if not same:
+            raise CheckpointError(f"{ckpt / name}: corrupt (its sha256 differs from {CHECKSUMS})")
 
 
 def resolve(path: str | os.PathLike) -> Path:
-    """A checkpoint folder from a run folder (its latest checkpoint) or a checkpoint folder."""
+    """A checkpoint folder from a run folder (its newest intact checkpoint) or a checkpoint folder.
+
+    A corrupt newest checkpoint is skipped with a one-line warning on stderr. When none is intact
+    the newest is returned: loading it raises the error that names what is wrong.
+    """
     path = Path(path)
     if not path.exists():
         raise CheckpointError(f"{path}: no such checkpoint or run folder")
-    if (path / "policy.msgpack").exists():
+    if not (path / CKPT_DIR).is_dir() and (
+        path.name.startswith(PREFIX) or any((path / f).exists() for f in CHECKPOINT_FILES)
+    ):
         return path
     found = list_checkpoints(path)
     if not found:
         raise CheckpointError(
             f"{path}: no checkpoint in this folder (expected {CKPT_DIR}/{PREFIX}*)"
         )
+    problem = None
+    for ckpt in reversed(found):
+        try:
+            verify(ckpt)
+        except CheckpointError as err:
+            problem = problem or err
+            continue
+        if problem is not None:
+            print(f"warning: {problem}; using the previous checkpoint {ckpt}", file=sys.stderr)
+        return ckpt
     return found[-1]
+
+
+def _one_line(err: BaseException) -> str:
+    return " ".join(f"{type(err).__name__}: {err}".split())
+
+
+# ---------------------------------------------------------------- reading
 
 
 def load_config(ckpt: Path) -> RunConfig:
@@ -96,55 +179,129 @@ def load_config(ckpt: Path) -> RunConfig:
         raise CheckpointError(f"{ckpt / 'config.json'}: unreadable run config ({err})") from None
 
 
+def load_tree(file: Path, template):
+    """The tree saved by `save_tree` in `file`, shaped like `template`, each leaf found by its path.
+
+    A missing or extra entry, or a leaf whose shape or dtype differs, raises CheckpointError naming
+    the file and the first such entry.
+    """
+    try:
+        with np.load(file, allow_pickle=False) as data:
+            saved = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
+    version = saved.pop("format_version", None)
+    if version is None and any(k.startswith("leaf_") for k in saved):
+        raise CheckpointError(
+            f"{file}: written by an older jaxnav (format 1); this one reads format "
+            f"{FORMAT_VERSION}: start a new run (its policy.msgpack still holds the weights)"
+        )
+    if version is None or int(version) != FORMAT_VERSION:
+        raise CheckpointError(f"{file}: format {version}; this jaxnav reads {FORMAT_VERSION}")
+    named, treedef = jax.tree_util.tree_flatten_with_path(template)
+    keys = [jax.tree_util.keystr(path) for path, _ in named]
+    missing = [k for k in keys if k not in saved]
+    extra = sorted(set(saved) - set(keys))
+    if missing or extra:
+        what = f"no entry {missing[0]}" if missing else f"unexpected entry {extra[0]}"
+        raise CheckpointError(f"{file}: {what} (the saved state does not match this configuration)")
+    for key, (_, leaf) in zip(keys, named, strict=True):
+        want = (np.shape(leaf), np.dtype(getattr(leaf, "dtype", np.asarray(leaf).dtype)))
+        if (saved[key].shape, saved[key].dtype) != want:
+            raise CheckpointError(
+                f"{file}: {key} is {saved[key].dtype}{list(saved[key].shape)}, "
+                f"this configuration needs {want[1]}{list(want[0])}"
+            )
+    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(saved[k]) for k in keys])
+
+
 def restore_train_state(ckpt: Path, template):
     """The TrainState saved in `ckpt`, shaped like `template` (a fresh `Trainer.init` result)."""
-    leaves, treedef = jax.tree_util.tree_flatten(template)
+    ts = load_tree(ckpt / "train_state.npz", template)
+    verify(ckpt)  # after the content checks: their messages name the field at fault
+    return ts
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SavedPolicy:
+    """A checkpoint's policy, its weights checked against its run config (from `read_policy`)."""
+
+    ckpt: Path
+    """The checkpoint folder it was read from."""
+    config: RunConfig
+    """The run's settings (config.json): network, sensor and task."""
+    params: dict
+    """Actor and critic weights (flax variables), shaped as `network` builds them."""
+    obs_stats: object
+    """The observation normaliser (a RunningStats, [D] each); applied when ppo.normalize_obs."""
+
+    @property
+    def num_actions(self) -> int:
+        """A: the width of the actor's output layer."""
+        actor = self.params["params"]["actor"]
+        return int(np.shape(actor[f"Dense_{len(actor) - 1}"]["bias"])[0])
+
+    @functools.cached_property
+    def network(self):
+        """The ActorCritic module the weights belong to."""
+        from jaxnav.ppo.train import make_network
+
+        return make_network(self.config.ppo, self.config.task.action_spec)
+
+    def logits(self, obs: jax.Array) -> jax.Array:
+        """obs [..., D] metres -> action logits [..., A]; jittable."""
+        from jaxnav.ppo.networks import normalize
+
+        x = normalize(self.obs_stats, obs) if self.config.ppo.normalize_obs else obs
+        return self.network.apply(self.params, x)[0]
+
+
+def read_policy(ckpt: Path) -> SavedPolicy:
+    """The policy of checkpoint folder `ckpt`: weights, normaliser and config, checked to fit."""
+    from jaxnav.ppo.networks import RunningStats
+
+    config = load_config(ckpt)
+    file = ckpt / "policy.msgpack"
     try:
-        with np.load(ckpt / "train_state.npz") as data:
-            saved = [data[f"leaf_{i:05d}"] for i in range(len(data.files))]
-    except (OSError, ValueError, KeyError) as err:
-        raise CheckpointError(f"{ckpt / 'train_state.npz'}: unreadable ({err})") from None
-    if len(saved) != len(leaves) or any(
-        a.shape != np.shape(b) for a, b in zip(saved, leaves, strict=True)
-    ):
-        raise CheckpointError(f"{ckpt}: the saved state does not match this configuration")
-    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x) for x in saved])
+        raw = serialization.msgpack_restore(file.read_bytes())
+        params = jax.tree_util.tree_map(jnp.asarray, raw["params"])
+        stats = RunningStats(**{k: jnp.asarray(v) for k, v in raw["obs_stats"].items()})
+        saved = SavedPolicy(ckpt, config, params, stats)
+        saved.num_actions  # noqa: B018 (the actor's output layer exists)
+    except Exception as err:  # noqa: BLE001 (damaged bytes make msgpack raise many kinds)
+        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
+    _check_fits(saved, file)
+    verify(ckpt)  # after the content checks: their messages name the field at fault
+    return saved
+
+
+def _check_fits(saved: SavedPolicy, file: Path) -> None:
+    """The weights have the shapes of the network (and sensor) that config.json describes."""
+    size = saved.config.sensor.num_sectors
+    expected = jax.eval_shape(saved.network.init, jax.random.PRNGKey(0), jnp.zeros((1, size)))
+    shapes = lambda tree: {  # noqa: E731
+        jax.tree_util.keystr(path): tuple(np.shape(x))
+        for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]
+    }
+    want, got = shapes(expected), shapes(saved.params)
+    want[".obs_stats.mean"], got[".obs_stats.mean"] = (size,), np.shape(saved.obs_stats.mean)
+    if want != got:
+        key = next(k for k in [*want, *got] if want.get(k) != got.get(k))
+        raise CheckpointError(
+            f"{file}: weights do not match the network of {saved.ckpt / 'config.json'} "
+            f"({key}: saved {got.get(key)}, the config's network {want.get(key)})"
+        )
 
 
 def load_policy(path: str | os.PathLike, deterministic: bool = True) -> Policy:
     """The trained policy of a run or checkpoint folder: greedy (argmax) or sampling actions."""
-    from jaxnav.ppo.networks import RunningStats, normalize
-    from jaxnav.ppo.train import make_network
-
-    ckpt = resolve(path)
-    config = load_config(ckpt)
-    try:
-        raw = serialization.msgpack_restore((ckpt / "policy.msgpack").read_bytes())
-        params = jax.tree_util.tree_map(jnp.asarray, raw["params"])
-        stats = RunningStats(**{k: jnp.asarray(v) for k, v in raw["obs_stats"].items()})
-    except (OSError, KeyError, TypeError, ValueError) as err:
-        raise CheckpointError(f"{ckpt / 'policy.msgpack'}: unreadable ({err})") from None
-    network = make_network(config.ppo, len(robot.ACTION_NAMES))
-    expected = jax.eval_shape(
-        network.init, jax.random.PRNGKey(0), jnp.zeros((1, stats.mean.shape[-1]))
-    )
-    same = jax.tree_util.tree_structure(expected) == jax.tree_util.tree_structure(params) and all(
-        a.shape == b.shape
-        for a, b in zip(
-            jax.tree_util.tree_leaves(expected), jax.tree_util.tree_leaves(params), strict=True
-        )
-    )
-    if not same:
-        raise CheckpointError(
-            f"{ckpt / 'policy.msgpack'}: weights do not match the network of {ckpt / 'config.json'}"
-        )
-    use_stats = config.ppo.normalize_obs
+    saved = read_policy(resolve(path))
 
     def act(obs, key):
-        logits, _ = network.apply(params, normalize(stats, obs) if use_stats else obs)
+        logits = saved.logits(obs)
         if deterministic:
             return jnp.argmax(logits, axis=-1).astype(jnp.int32)
         return jax.random.categorical(key, logits).astype(jnp.int32)
 
-    name = f"{ckpt.parent.parent.name}/{ckpt.name}"
-    return Policy(name=name, act=act, env_kwargs=config.env_kwargs())
+    name = f"{saved.ckpt.parent.parent.name}/{saved.ckpt.name}"
+    return Policy(name=name, act=act, env_kwargs=saved.config.env_kwargs(), env=saved.config.env)

@@ -42,7 +42,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from jaxnav.core.robot import BASE_RADIUS
+from jaxnav.core import geometry
+from jaxnav.core.robot import TURTLEBOT2I
+
+ROBOT_RADIUS = TURTLEBOT2I.radius  # m; spawns in layout files must fit the default robot
 
 _TOL = (
     1e-9  # m; obstacles may touch a wall exactly, float round-off must not turn that into an error
@@ -255,31 +258,18 @@ def box_corners(box: Box) -> np.ndarray:
     return local @ np.array([[c, s], [-s, c]]) + np.asarray(box.pos)  # rows times R(yaw)^T
 
 
-def _signed_distance(ob: Obstacle, p: np.ndarray) -> np.ndarray:
-    """[...] distance from points p [..., 2] to the obstacle's surface; negative inside."""
-    d = p - np.asarray(ob.pos)
-    if isinstance(ob, Cylinder):
-        return np.linalg.norm(d, axis=-1) - ob.radius
-    c, s = np.cos(ob.yaw), np.sin(ob.yaw)
-    local = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
-    q = np.abs(local) - 0.5 * np.asarray(ob.size)  # per-axis distance beyond each face
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
-    inside = np.minimum(q.max(axis=-1), 0.0)
-    return outside + inside
-
-
-def _obstacle_distances(layout: RoomLayout, p: np.ndarray) -> np.ndarray:
-    """[..., N] signed distance from points p [..., 2] to each obstacle, in layout order."""
-    if not layout.obstacles:
-        return np.zeros((*p.shape[:-1], 0))
-    return np.stack([_signed_distance(ob, p) for ob in layout.obstacles], axis=-1)
-
-
-def _wall_distances(layout: RoomLayout, p: np.ndarray) -> np.ndarray:
-    """[..., 4] distance from points p [..., 2] to the east, west, north, south walls; <0 beyond."""
-    hx, hy = 0.5 * layout.size[0], 0.5 * layout.size[1]
-    x, y = p[..., 0], p[..., 1]
-    return np.stack([hx - x, hx + x, hy - y, hy + y], axis=-1)
+def _distances(layout: RoomLayout, p: np.ndarray) -> np.ndarray:
+    """[..., 4 + N] signed distance (float32, as simulated) from points p [..., 2] to the east,
+    west, north, south walls and then each obstacle in layout order; negative inside or beyond."""
+    cols = [geometry.wall_distance(p, 0.5 * np.asarray(layout.size, np.float32))]
+    for ob in layout.obstacles:
+        pos = np.asarray([ob.pos], np.float32)
+        if isinstance(ob, Cylinder):
+            cols.append(geometry.disc_distance(p, pos, np.float32(ob.radius)))
+        else:
+            half = 0.5 * np.asarray([ob.size], np.float32)
+            cols.append(geometry.box_distance(p, pos, np.float32(ob.yaw), half))
+    return np.concatenate([np.asarray(c) for c in cols], axis=-1)
 
 
 def _points(xy) -> np.ndarray:
@@ -295,9 +285,7 @@ def clearance(layout: RoomLayout, xy) -> float | np.ndarray:
     Negative inside an obstacle or beyond a wall. `xy` is one point [2] (returns a float) or a batch
     [..., 2] (returns an array [...]).
     """
-    p = _points(xy)
-    dist = np.concatenate([_wall_distances(layout, p), _obstacle_distances(layout, p)], axis=-1)
-    out = dist.min(axis=-1)
+    out = _distances(layout, _points(xy)).min(axis=-1)
     return float(out) if out.ndim == 0 else out
 
 
@@ -336,16 +324,15 @@ def _check_inside(layout: RoomLayout) -> None:
 
 def _check_spawn(layout: RoomLayout) -> None:
     """The robot's disc at the spawn position touches no obstacle and no wall."""
-    if layout.robot_pos is None or is_free(layout, layout.robot_pos, BASE_RADIUS):
+    if layout.robot_pos is None or is_free(layout, layout.robot_pos, ROBOT_RADIUS):
         return
-    p = np.asarray(layout.robot_pos)
-    dist = np.concatenate([_wall_distances(layout, p), _obstacle_distances(layout, p)])
+    dist = _distances(layout, np.asarray(layout.robot_pos))
     names = [f"the {w} wall" for w in _WALLS]
     names += [f"obstacles[{i}] ({ob.kind})" for i, ob in enumerate(layout.obstacles)]
     k = int(dist.argmin())
     raise LayoutError(
         "robot.pos",
-        f"the robot (radius {BASE_RADIUS} m) at {_show(list(layout.robot_pos))} overlaps "
+        f"the robot (radius {ROBOT_RADIUS} m) at {_show(list(layout.robot_pos))} overlaps "
         f"{names[k]}: clearance {dist[k]:.3f} m",
     )
 

@@ -7,21 +7,29 @@ import dataclasses
 import typing
 from typing import Any
 
-from jaxnav.core.randomize import RandomizeConfig
+from jaxnav.core.randomize import TRAINING, RandomizeConfig
+from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import SceneConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.tasks.avoid import AvoidConfig
+from jaxnav.tasks.registry import task_entry
 
-# Config groups of a run: (attribute, class, flag prefix). PPO flags have no prefix.
+# Config groups of a run: (attribute, class, flag prefix). PPO flags have no prefix; the task's
+# class (None here) is the config class of the run's task (`group_class`).
 GROUPS = (
     ("ppo", PPOConfig, ""),
-    ("task", AvoidConfig, "task."),
+    ("task", None, "task."),
     ("randomize", RandomizeConfig, "randomize."),
     ("sensor", SensorConfig, "sensor."),
     ("scene", SceneConfig, "scene."),
+    ("robot", RobotSpec, "robot."),
 )
-_NOT_FLAGS = {("task", "auto_reset")}  # training always auto-resets
+
+
+def group_class(attr: str, cls, env: str):
+    """The config class of group `attr` for task `env`."""
+    return task_entry(env).config_cls if attr == "task" else cls
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,14 +38,16 @@ class RunConfig:
 
     ppo: PPOConfig = PPOConfig()
     """Learner hyper-parameters."""
-    task: AvoidConfig = AvoidConfig()
-    """Task: speeds, reward table, episode length."""
-    randomize: RandomizeConfig = RandomizeConfig()
-    """Per-episode randomisation ranges."""
+    task: Any = AvoidConfig()
+    """The task's config (its class is the registered config class of `env`)."""
+    randomize: RandomizeConfig = TRAINING
+    """Per-episode randomisation: the training distribution (sampled rooms and spawns mixed in)."""
     sensor: SensorConfig = SensorConfig()
     """Depth sensor geometry."""
     scene: SceneConfig = SceneConfig()
     """Physics timestep, substeps and obstacle slot counts."""
+    robot: RobotSpec = TURTLEBOT2I
+    """The robot: MJCF, footprint, speed limits and sensor mount."""
     layouts: tuple[dict, ...] | None = None
     """Training rooms in the layout JSON format; None = the default rooms."""
     seed: int = 0
@@ -46,6 +56,11 @@ class RunConfig:
     """Name of the preset the PPO settings started from."""
     env: str = "avoid"
     """Task name for `make_env`."""
+
+    def __post_init__(self):
+        # Limits that need two groups at once, checked before anything is written.
+        self.task.check_robot(self.robot)
+        self.randomize.check_robot(self.robot.radius)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -57,8 +72,15 @@ class RunConfig:
         if not isinstance(raw, dict):
             raise ValueError(f"config: expected a JSON object, got {type(raw).__name__}")
         kwargs = dict(raw)
+        env = kwargs.get("env", "avoid")
+        if not isinstance(env, str):
+            raise ValueError(f"config: env must be a string, got {env!r}")
+        task_entry(env)  # an unknown task lists the valid ones
         for attr, group_cls, _ in GROUPS:
-            kwargs[attr] = _build(group_cls, kwargs.get(attr, {}), attr)
+            default = dataclasses.asdict(TRAINING) if attr == "randomize" else {}
+            kwargs[attr] = _build(
+                group_class(attr, group_cls, env), kwargs.get(attr, default), attr
+            )
         unknown = set(kwargs) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"config: unknown keys {sorted(unknown)}")
@@ -79,7 +101,7 @@ class RunConfig:
     def env_kwargs(self) -> dict[str, Any]:
         """`make_env` keyword arguments that define the robot and task (not the rooms or their
         randomisation, which evaluation chooses itself)."""
-        return dict(task=self.task, sensor=self.sensor, scene=self.scene)
+        return dict(task=self.task, sensor=self.sensor, scene=self.scene, robot=self.robot)
 
 
 _KIND_NAMES = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
@@ -125,17 +147,17 @@ def _build(cls, values: dict, where: str):
     return cls(**fixed)
 
 
-def add_flags(parser: argparse.ArgumentParser) -> None:
-    """One flag per config field: `--num-envs` for PPO, `--task.near-threshold` etc. for the rest.
+def add_flags(parser: argparse.ArgumentParser, env: str = "avoid") -> None:
+    """One flag per config field: `--num-envs` for PPO, `--task.near-threshold` etc. for the rest
+    (the task's flags are those of `env`'s config class).
 
     Defaults are None so that only flags the user gave override the preset.
     """
     for attr, cls, prefix in GROUPS:
+        cls = group_class(attr, cls, env)
         group = parser.add_argument_group(f"{attr} settings" if prefix else "PPO settings")
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
-            if (attr, f.name) in _NOT_FLAGS:
-                continue
             flag = "--" + prefix + f.name.replace("_", "-")
             kind, nargs = _flag_type(hints[f.name])
             help_text = (_field_doc(cls, f.name) + f" (default: {f.default})").replace("%", "%%")

@@ -16,6 +16,7 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from jaxnav.core.types import DiscreteActions
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
 from jaxnav.ppo.networks import (
@@ -27,6 +28,7 @@ from jaxnav.ppo.networks import (
     sample_action,
     update_stats,
 )
+from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
 
 
 @struct.dataclass
@@ -36,7 +38,7 @@ class TrainState:
     params: dict  # actor and critic weights
     opt_state: optax.OptState
     obs_stats: RunningStats  # observation normaliser (identity when normalize_obs is off)
-    env_state: object  # EnvState with a leading [num_envs] axis
+    env_state: object  # the wrapped env's EnvState with a leading [num_envs] axis
     key: jax.Array
     update: jax.Array  # [] int32, updates done
 
@@ -47,12 +49,10 @@ class Transition(NamedTuple):
     action: jax.Array  # [T, N]
     log_prob: jax.Array  # [T, N]
     value: jax.Array  # [T, N]
-    reward: jax.Array  # [T, N] raw Table I reward
+    reward: jax.Array  # [T, N] the task's raw reward
     done: jax.Array  # [T, N]
     truncated: jax.Array  # [T, N]
-    collision: jax.Array  # [T, N]
-    episode_return: jax.Array  # [T, N] return of the episode that ended at this step
-    episode_length: jax.Array  # [T, N]
+    episode: dict  # {"return", "length", *metric_names}: [T, N] sums of the episode that ended
 
 
 class Trainer(NamedTuple):
@@ -70,21 +70,25 @@ def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(lr, eps=1e-5))
 
 
-def make_network(cfg: PPOConfig, action_size: int) -> ActorCritic:
-    return ActorCritic(action_size, hidden=tuple(cfg.hidden), critic_output=cfg.critic_output)
+def make_network(cfg: PPOConfig, action_spec) -> ActorCritic:
+    """The actor-critic for an env's `action_spec` (PPO here handles discrete actions)."""
+    if not isinstance(action_spec, DiscreteActions):
+        raise ValueError(f"PPO: needs discrete actions, the task has {type(action_spec).__name__}")
+    return ActorCritic(action_spec.n, hidden=tuple(cfg.hidden), critic_output=cfg.critic_output)
+
+
+def log_name(key: str) -> str:
+    """The metrics-log column of an episode statistic: return and length get an episode_ prefix."""
+    return {"return": "episode_reward", "length": "episode_length"}.get(key, key)
 
 
 def episode_metrics(traj: Transition) -> dict[str, jax.Array]:
-    """Means over the episodes that ended during a rollout (nan if none did)."""
+    """Means over the episodes that ended during a rollout (nan if none did): episode_reward,
+    episode_length and each of the task's metrics (its per-episode sum), plus `episodes`."""
     done = traj.done.astype(jnp.float32)
     n = done.sum()
     mean = lambda x: jnp.where(n > 0, (x * done).sum() / jnp.maximum(n, 1.0), jnp.nan)  # noqa: E731
-    return {
-        "episode_reward": mean(traj.episode_return),
-        "episode_length": mean(traj.episode_length.astype(jnp.float32)),
-        "collision_rate": mean(traj.collision.astype(jnp.float32)),
-        "episodes": n,
-    }
+    return {**{log_name(k): mean(v) for k, v in traj.episode.items()}, "episodes": n}
 
 
 def shard_envs(num_envs: int, devices=None):
@@ -107,9 +111,10 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
 
     The robots are sharded over `devices` (default: every local device).
     """
-    network = make_network(cfg, env.action_size)
+    network = make_network(cfg, env.action_spec)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
+    env = AutoReset(EpisodeStats(env))
     reset = lambda keys: shard(jax.vmap(env.reset)(keys))  # noqa: E731
     step = lambda state, action: shard(jax.vmap(env.step)(state, action))  # noqa: E731
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
@@ -144,9 +149,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
                 nxt.reward,
                 nxt.done,
                 nxt.truncated,
-                nxt.collision,
-                nxt.last_return,
-                nxt.last_length,
+                nxt.info[EPISODE],
             )
             return (nxt, key), tr
 

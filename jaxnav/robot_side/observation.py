@@ -1,7 +1,8 @@
 """On the robot: depth image or laser scan -> the policy's sector minima -> velocity command.
 
-numpy only (no jax), like `numpy_policy.py`: copy both files (and `ros_node.py` for ROS 2) with the
-exported .npz onto the robot. The conversions reproduce `jaxnav.core.sensors` exactly:
+numpy only (no jax). The sensor's settings and the action table are the ones the policy was trained
+with; they come from the exported .npz (`NumpyPolicy.sensor`, `NumpyPolicy.commands`), never from
+constants here. The conversions reproduce `jaxnav.core.sensors` exactly:
 
 - The simulator casts a horizontal fan of rays, turns each hit distance into camera depth (distance along
   the optical axis: range * cos(angle), what a depth image holds), clips it to [range_min, range_max]
@@ -16,18 +17,36 @@ whereas the simulator reports range_min for such close surfaces.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
 import numpy as np
 
-FOV = math.radians(60.0)  # rad; Astra horizontal field of view (jaxnav.core.robot.CAMERA_FOV)
-NUM_SECTORS = 8
-RANGE_MIN, RANGE_MAX = 0.6, 8.0  # m; Astra usable depth range (jaxnav.core.robot.CAMERA_RANGE)
-ASTRA_VFOV = math.radians(49.5)  # rad; Astra vertical field of view
-# (forward-speed fraction, yaw-rate fraction) per action: 0 forward, 1 left (+yaw), 2 right.
-# A copy of jaxnav.core.robot.ACTIONS (importing jaxnav would import jax); the tests keep them equal.
-ACTIONS = ((1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
+
+@dataclasses.dataclass(frozen=True)
+class Sensor:
+    """The simulated depth sensor a policy was trained with (stored in the exported .npz)."""
+
+    fov: float
+    """Horizontal field of view, rad, split into `num_sectors` equal sectors, right to left."""
+    num_sectors: int
+    """Length of the observation: one minimum distance per sector."""
+    range_min: float
+    """m; valid readings nearer than this read range_min."""
+    range_max: float
+    """m; farther readings, and sectors without a valid reading, read range_max."""
+
+    def __post_init__(self):
+        if not 0 < self.fov < 2 * math.pi:
+            raise ValueError(f"Sensor.fov: must be in (0, 2 pi) rad, got {self.fov}")
+        if self.num_sectors < 1:
+            raise ValueError(f"Sensor.num_sectors: must be >= 1, got {self.num_sectors}")
+        if not 0 <= self.range_min < self.range_max:
+            raise ValueError(
+                f"Sensor.range_min/range_max: need 0 <= range_min < range_max, "
+                f"got {self.range_min}, {self.range_max}"
+            )
 
 
 class Twist(NamedTuple):
@@ -43,33 +62,25 @@ def _valid(x: np.ndarray) -> np.ndarray:
         return np.isfinite(x) & (x > 0)
 
 
-def _finish(minima: np.ndarray, range_min: float, range_max: float) -> np.ndarray:
-    """Sector minima (inf = no valid reading) -> float32 observation clipped to the range."""
-    return np.clip(np.where(np.isinf(minima), range_max, minima), range_min, range_max).astype(
-        np.float32
-    )
+def _finish(minima: np.ndarray, sensor: Sensor) -> np.ndarray:
+    """Sector minima [n] (inf = no valid reading) -> float32 observation clipped to the range."""
+    full = np.where(np.isinf(minima), sensor.range_max, minima)
+    return np.clip(full, sensor.range_min, sensor.range_max).astype(np.float32)
 
 
-def _bin_by_angle(depth, angles, fov: float, num_sectors: int) -> np.ndarray:
+def _bin_by_angle(depth, angles, sensor: Sensor) -> np.ndarray:
     """[num_sectors] minimum depth per angle bin of width fov/num_sectors from -fov/2 (inf if none)."""
-    half = 0.5 * fov
+    half, n = 0.5 * sensor.fov, sensor.num_sectors
     keep = np.abs(angles) <= half
     # The simulator's bins: ray i of R lies at (i + 0.5) / R * fov - fov/2, sector i // (R / n).
-    idx = np.floor((angles[keep] + half) / (fov / num_sectors)).astype(np.int64)
-    idx = np.clip(idx, 0, num_sectors - 1)  # a beam exactly at +fov/2 belongs to the last sector
-    out = np.full(num_sectors, np.inf)
+    idx = np.floor((angles[keep] + half) / (sensor.fov / n)).astype(np.int64)
+    idx = np.clip(idx, 0, n - 1)  # a beam exactly at +fov/2 belongs to the last sector
+    out = np.full(n, np.inf)
     np.minimum.at(out, idx, depth[keep])
     return out
 
 
-def scan_to_sectors(
-    ranges,
-    angles,
-    fov: float = FOV,
-    num_sectors: int = NUM_SECTORS,
-    range_min: float = RANGE_MIN,
-    range_max: float = RANGE_MAX,
-) -> np.ndarray:
+def scan_to_sectors(ranges, angles, sensor: Sensor) -> np.ndarray:
     """[num_sectors] float32 observation from a laser scan, as the simulator computes it.
 
     ranges [N] m and angles [N] rad as in a ROS LaserScan (0 ahead, positive to the left). Beams
@@ -82,23 +93,15 @@ def scan_to_sectors(
         raise ValueError(f"ranges {ranges.shape} and angles {angles.shape} differ in length")
     ok = _valid(ranges)
     depth = ranges[ok] * np.cos(angles[ok])
-    return _finish(_bin_by_angle(depth, angles[ok], fov, num_sectors), range_min, range_max)
+    return _finish(_bin_by_angle(depth, angles[ok], sensor), sensor)
 
 
-def depth_image_to_sectors(
-    depth,
-    fov: float = FOV,
-    num_sectors: int = NUM_SECTORS,
-    range_min: float = RANGE_MIN,
-    range_max: float = RANGE_MAX,
-    rows=None,
-    column_angles=None,
-) -> np.ndarray:
+def depth_image_to_sectors(depth, sensor: Sensor, rows=None, column_angles=None) -> np.ndarray:
     """[num_sectors] float32 observation from a depth image [H, W] in metres (camera depth, z).
 
     Column 0 is the LEFT of the image of a forward-looking camera, so sector 0 holds the rightmost
     columns: the columns are split into num_sectors equal slices right to left (the image is taken
-    to span exactly `fov`), and each sector reads its minimum valid depth over `rows`.
+    to span exactly `sensor.fov`), and each sector reads its minimum valid depth over `rows`.
 
     rows: row indices or a slice; None = all rows. On the robot pass the rows around the horizon
         (`horizon_rows`): the simulator sees a horizontal fan only, and lower rows see the floor,
@@ -116,24 +119,22 @@ def depth_image_to_sectors(
     column_min = np.where(_valid(band), band, np.inf).min(axis=0)  # [W], left to right
     if column_angles is not None:
         angles = np.asarray(column_angles, np.float64)
-        minima = _bin_by_angle(column_min.astype(np.float64), angles, fov, num_sectors)
-        return _finish(minima, range_min, range_max)
-    width = column_min.size
-    if width < num_sectors:
-        raise ValueError(f"depth image has {width} columns, fewer than {num_sectors} sectors")
-    starts = np.arange(num_sectors) * width // num_sectors  # slices differ by at most one column
-    minima = np.minimum.reduceat(column_min[::-1], starts)
-    return _finish(minima, range_min, range_max)
+        return _finish(_bin_by_angle(column_min.astype(np.float64), angles, sensor), sensor)
+    width, n = column_min.size, sensor.num_sectors
+    if width < n:
+        raise ValueError(f"depth image has {width} columns, fewer than {n} sectors")
+    starts = np.arange(n) * width // n  # slices differ by at most one column
+    return _finish(np.minimum.reduceat(column_min[::-1], starts), sensor)
 
 
-def pinhole_column_angles(width: int, hfov: float = FOV) -> np.ndarray:
+def pinhole_column_angles(width: int, hfov: float) -> np.ndarray:
     """[W] angle (rad, positive = left) of each pixel column's centre for a pinhole camera."""
     focal = 0.5 * width / math.tan(0.5 * hfov)
     return np.arctan((0.5 * (width - 1) - np.arange(width)) / focal)
 
 
 def horizon_rows(
-    height: int, vfov: float = ASTRA_VFOV, half_width_deg: float = 2.0, tilt: float = 0.0
+    height: int, vfov: float, half_width_deg: float = 2.0, tilt: float = 0.0
 ) -> np.ndarray:
     """Row indices within +-half_width_deg of the horizontal through the camera (pinhole model).
 
@@ -150,85 +151,42 @@ def horizon_rows(
     return np.arange(lo, hi + 1)
 
 
-def action_to_twist(
-    action, forward_speed: float = 0.5, turn_rate: float = 1.5, speed_calibration: float = 1.0
-) -> Twist:
-    """The command of action 0 (forward), 1 (turn left in place) or 2 (right), as trained.
+def action_to_twist(action, commands: np.ndarray, speed_calibration: float = 1.0) -> Twist:
+    """The command of `action` from the trained table `commands` [A, 2] (forward m/s, yaw rad/s).
 
     speed_calibration multiplies both speeds: set it so that the real robot moves at the speeds the
     simulator assumed (the paper had to recalibrate its robot's speed commands).
     """
     a = int(action)
-    if not 0 <= a < len(ACTIONS):
-        raise ValueError(f"action must be 0, 1 or 2, got {action}")
-    fwd, yaw = ACTIONS[a]
-    return Twist(fwd * forward_speed * speed_calibration, yaw * turn_rate * speed_calibration)
+    if not 0 <= a < len(commands):
+        raise ValueError(f"action must be in 0..{len(commands) - 1}, got {action}")
+    forward, yaw = commands[a]
+    return Twist(float(forward) * speed_calibration, float(yaw) * speed_calibration)
 
 
+@dataclasses.dataclass(frozen=True)
 class Controller:
-    """Sensor reading -> observation -> policy -> Twist, in one call.
+    """Sensor reading -> observation -> policy -> Twist, in one call."""
 
-    policy: any callable obs [num_sectors] float32 -> action int (e.g. `NumpyPolicy`). Settings left
-    None are taken from the policy when it carries them (a NumpyPolicy knows its training's speeds
-    and sensor), else the module defaults. `rows` / `column_angles` go to `depth_image_to_sectors`.
-    """
+    policy: object
+    """A `NumpyPolicy`: callable obs [num_sectors] -> action int, with `.sensor` and `.commands`."""
+    speed_calibration: float = 1.0
+    """Multiplies both speeds of every command (see `action_to_twist`)."""
 
-    def __init__(
-        self,
-        policy,
-        *,
-        fov=None,
-        num_sectors=None,
-        range_min=None,
-        range_max=None,
-        forward_speed=None,
-        turn_rate=None,
-        speed_calibration: float = 1.0,
-        rows=None,
-        column_angles=None,
-    ):
-        pick = lambda value, name, default: (  # noqa: E731
-            value if value is not None else getattr(policy, name, default)
-        )
-        self.policy = policy
-        self.sensor = dict(
-            fov=pick(fov, "fov", FOV),
-            num_sectors=pick(num_sectors, "num_sectors", NUM_SECTORS),
-            range_min=pick(range_min, "range_min", RANGE_MIN),
-            range_max=pick(range_max, "range_max", RANGE_MAX),
-        )
-        self.forward_speed = pick(forward_speed, "forward_speed", 0.5)
-        self.turn_rate = pick(turn_rate, "turn_rate", 1.5)
-        if not speed_calibration > 0:
-            raise ValueError(f"speed_calibration must be > 0, got {speed_calibration}")
-        self.speed_calibration = speed_calibration
-        self.rows, self.column_angles = rows, column_angles
-        self.last_obs, self.last_action = None, None  # for logging
-
-    @classmethod
-    def from_npz(cls, path, **kwargs) -> Controller:
-        """A controller around the NumpyPolicy exported to `path`."""
-        if __package__:
-            from jaxnav.robot_side.policy import NumpyPolicy
-        else:  # copied flat onto the robot, beside numpy_policy.py: no jaxnav (and no jax) needed
-            from numpy_policy import NumpyPolicy
-        return cls(NumpyPolicy.from_npz(path), **kwargs)
+    def __post_init__(self):
+        if not self.speed_calibration > 0:
+            raise ValueError(
+                f"Controller.speed_calibration: must be > 0, got {self.speed_calibration}"
+            )
 
     def act(self, obs) -> Twist:
         """The command for an observation [num_sectors] (metres, right to left)."""
-        self.last_obs = obs
-        self.last_action = int(self.policy(obs))
-        return action_to_twist(
-            self.last_action, self.forward_speed, self.turn_rate, self.speed_calibration
-        )
+        return action_to_twist(self.policy(obs), self.policy.commands, self.speed_calibration)
 
-    def image_to_twist(self, depth) -> Twist:
-        """The command for a depth image [H, W] in metres."""
-        obs = depth_image_to_sectors(
-            depth, rows=self.rows, column_angles=self.column_angles, **self.sensor
-        )
-        return self.act(obs)
+    def image_to_twist(self, depth, rows=None, column_angles=None) -> Twist:
+        """The command for a depth image [H, W] in metres (see `depth_image_to_sectors`)."""
+        return self.act(depth_image_to_sectors(depth, self.policy.sensor, rows, column_angles))
 
     def scan_to_twist(self, ranges, angles) -> Twist:
         """The command for a laser scan: ranges [N] m at angles [N] rad (0 ahead, positive left)."""
-        return self.act(scan_to_sectors(ranges, angles, **self.sensor))
+        return self.act(scan_to_sectors(ranges, angles, self.policy.sensor))

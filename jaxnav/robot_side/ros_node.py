@@ -1,17 +1,17 @@
 """ROS 2 node: depth image (or LaserScan) -> exported policy -> geometry_msgs/Twist, one per message.
 
-On the robot, copy numpy_policy.py, deploy.py and this file with the exported .npz into one folder and
-run it there (numpy and rclpy only; no jax):
+On the robot, in the folder `python -m jaxnav.export RUN --bundle DIR` wrote (numpy and rclpy only):
 
-    python3 ros_node.py --policy policy.npz                              # /camera/depth/image_raw
-    python3 ros_node.py --policy policy.npz --scan --topic /scan         # a LaserScan instead
-    python3 ros_node.py --policy policy.npz --ros-args -p speed_calibration:=1.2
+    python3 -m jaxnav_robot.ros_node --policy policy.npz                        # /camera/depth/image_raw
+    python3 -m jaxnav_robot.ros_node --policy policy.npz --scan --topic /scan   # a LaserScan instead
+    python3 -m jaxnav_robot.ros_node --policy policy.npz --ros-args -r cmd_vel:=commands/velocity
 
-(`python -m jaxnav.robot_side.ros_node` works too on a machine with jaxnav installed.) The flags set the defaults
-of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, speed_calibration, vfov_deg,
-band_deg, tilt_deg), which `--ros-args -p` overrides. Depth images may be 32FC1 (metres) or 16UC1
-(millimetres); only rows within +-band_deg of the horizon are read (see deploy.horizon_rows), as the
-simulator's sensor is a horizontal fan. On shutdown a zero Twist is sent.
+(`python -m jaxnav.robot_side.ros_node` works too where jaxnav is installed.) The flags set the
+defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, speed_calibration,
+vfov_deg, band_deg, tilt_deg), which `--ros-args -p` overrides. Depth images may be 32FC1 (metres) or
+16UC1 (millimetres); only rows within +-band_deg of the horizon are read (see
+`observation.horizon_rows`), as the simulator's sensor is a horizontal fan. On shutdown (Ctrl-C) a zero
+Twist is sent.
 
 rclpy and the message packages are imported inside `main` only: the conversion functions below are
 plain functions of message fields, testable without ROS.
@@ -25,10 +25,10 @@ import sys
 
 import numpy as np
 
-if __package__:
-    from jaxnav.robot_side.observation import ASTRA_VFOV, Controller, Twist, horizon_rows
-else:  # copied flat onto the robot beside deploy.py
-    from deploy import ASTRA_VFOV, Controller, Twist, horizon_rows
+from .observation import Controller, Twist, horizon_rows
+from .policy import NumpyPolicy
+
+ASTRA_VFOV_DEG = 49.5  # Orbbec Astra vertical field of view (the simulator has no vertical extent)
 
 # sensor_msgs/Image encodings of depth: (numpy dtype, metres per unit)
 DEPTH_ENCODINGS = {
@@ -44,7 +44,7 @@ def image_msg_to_array(
     """[height, width] float32 depth in metres from sensor_msgs/Image fields.
 
     `step` is the row length in bytes, which may exceed width * pixel size (padding). 16-bit depth is
-    in millimetres; its 0 (no data) stays 0, which deploy ignores as invalid.
+    in millimetres; its 0 (no data) stays 0, which the observation ignores as invalid.
     """
     if encoding not in DEPTH_ENCODINGS:
         raise ValueError(f"image encoding '{encoding}' is not depth; use {sorted(DEPTH_ENCODINGS)}")
@@ -82,7 +82,7 @@ def parse_args(argv=None):
     p.add_argument("--scan", action="store_true", help="the topic is a sensor_msgs/LaserScan")
     p.add_argument("--cmd-vel", default="cmd_vel", help="geometry_msgs/Twist output topic")
     p.add_argument("--speed-calibration", type=float, default=1.0, help="multiplies both speeds")
-    p.add_argument("--vfov-deg", type=float, default=math.degrees(ASTRA_VFOV), help="camera")
+    p.add_argument("--vfov-deg", type=float, default=ASTRA_VFOV_DEG, help="camera")
     p.add_argument("--band-deg", type=float, default=2.0, help="rows within +-this of horizon")
     p.add_argument("--tilt-deg", type=float, default=0.0, help="camera pitch, positive = down")
     return p.parse_known_args(argv)
@@ -99,9 +99,8 @@ def _make_node(args):
         def __init__(self):
             super().__init__("jaxnav_policy")
             get = {k: self.declare_parameter(k, v).value for k, v in vars(args).items()}
-            self.controller = Controller.from_npz(
-                get["policy"], speed_calibration=get["speed_calibration"]
-            )
+            policy = NumpyPolicy.from_npz(get["policy"])
+            self.controller = Controller(policy, speed_calibration=get["speed_calibration"])
             self.band = (
                 math.radians(get["vfov_deg"]),
                 get["band_deg"],
@@ -119,15 +118,15 @@ def _make_node(args):
                 msg.encoding, msg.height, msg.width, msg.data, msg.step, bool(msg.is_bigendian)
             )
             vfov, band, tilt = self.band
-            self.controller.rows = horizon_rows(msg.height, vfov, band, tilt) if band > 0 else None
-            self.pub.publish(twist_msg(self.controller.image_to_twist(depth), TwistMsg))
+            rows = horizon_rows(msg.height, vfov, band, tilt) if band > 0 else None
+            self.pub.publish(twist_msg(self.controller.image_to_twist(depth, rows), TwistMsg))
 
         def on_scan(self, msg):
             ranges, angles = scan_msg_to_arrays(msg.ranges, msg.angle_min, msg.angle_increment)
             self.pub.publish(twist_msg(self.controller.scan_to_twist(ranges, angles), TwistMsg))
 
         def stop(self):
-            try:  # best effort: after Ctrl-C some rclpy versions have shut the context down
+            try:  # best effort: the context may be gone if rclpy handled the signal itself
                 self.pub.publish(twist_msg(Twist(0.0, 0.0), TwistMsg))
             except Exception as err:  # noqa: BLE001
                 print(f"could not send the stop command: {err}", file=sys.stderr)
@@ -139,7 +138,14 @@ def main(argv=None) -> int:
     args, ros_args = parse_args(argv)
     import rclpy
 
-    rclpy.init(args=[sys.argv[0], *ros_args])
+    argv = [sys.argv[0], *ros_args]
+    try:  # Humble and later: rclpy's own SIGINT handler would shut the context down before the
+        # stop command below could be sent; Python's default one raises KeyboardInterrupt instead.
+        from rclpy.signals import SignalHandlerOptions
+
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except ImportError:
+        rclpy.init(args=argv)
     node = _make_node(args)
     try:
         rclpy.spin(node)

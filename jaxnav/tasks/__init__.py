@@ -1,0 +1,1 @@
+"""Tasks: the registry (`make_env`) and the tasks that ship (`avoid`, the paper's)."""

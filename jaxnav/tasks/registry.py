@@ -1,54 +1,85 @@
-"""Task registry: `make_env(name, layouts=..., **overrides)`."""
+"""Task registry: `make_env(name, layouts=..., **overrides)` and `register` for new tasks.
+
+A task is an env class (the contract of `jaxnav.core.types`, usually a `NavTask`), its frozen config
+class (with `max_steps`, `action_spec` and `check_robot`) and its default rooms. Adding a task is a new
+file and one `register` line.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import NamedTuple
 
-from jaxnav.core.randomize import RandomizeConfig, make_bank
+from jaxnav.core.randomize import TRAINING, RandomizeConfig, make_bank
+from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import SCENES_DIR, SceneConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.io.layouts import RoomLayout, load_layout
-from jaxnav.tasks.avoid import AvoidConfig, AvoidEnv, EnvState
-
-ENVS = {"avoid": (AvoidEnv, AvoidConfig)}
-DEFAULT_LAYOUTS = SCENES_DIR / "train_room.json"
-
-__all__ = ["ENVS", "AvoidConfig", "AvoidEnv", "EnvState", "make_env", "default_layouts"]
+from jaxnav.tasks.avoid import AvoidConfig, AvoidEnv
 
 
-def default_layouts() -> list[RoomLayout]:
-    """The default training rooms: the paper's training room (Fig. 4)."""
-    return load_layout(DEFAULT_LAYOUTS)
+class TaskEntry(NamedTuple):
+    env_cls: type
+    config_cls: type
+    default_layouts: tuple[str, ...]  # file names in jaxnav's scenes: the task's training rooms
+
+
+TASKS: dict[str, TaskEntry] = {}
+
+
+def register(name: str, env_cls: type, config_cls: type, default_layouts=("train_room.json",)):
+    """Makes task `name` available to `make_env`, the CLIs and saved runs."""
+    TASKS[name] = TaskEntry(env_cls, config_cls, tuple(default_layouts))
+
+
+register("avoid", AvoidEnv, AvoidConfig)
+
+
+def task_entry(name: str) -> TaskEntry:
+    """The registered task `name`; an unknown name lists the valid ones."""
+    if name not in TASKS:
+        raise ValueError(f"unknown environment '{name}'; valid names: {', '.join(sorted(TASKS))}")
+    return TASKS[name]
+
+
+def default_layouts(name: str = "avoid") -> list[RoomLayout]:
+    """The task's default training rooms (for `avoid`: the paper's training room, Fig. 4)."""
+    return [lay for f in task_entry(name).default_layouts for lay in load_layout(SCENES_DIR / f)]
 
 
 def make_env(
     name: str = "avoid",
     layouts: Sequence[RoomLayout] | None = None,
     *,
-    task: AvoidConfig | None = None,
+    task=None,
     randomize: RandomizeConfig | None = None,
     sensor: SensorConfig | None = None,
     scene: SceneConfig | None = None,
+    robot: RobotSpec = TURTLEBOT2I,
     **overrides,
 ):
-    """Builds a task. `layouts=None` uses the default rooms; `[]` trains on sampled rooms only.
+    """Builds task `name` for one robot (vmap its `reset`/`step` for a batch; wrap it with
+    `jaxnav.wrappers.AutoReset(EpisodeStats(env))` for training).
 
-    `overrides` are fields of the task config (e.g. `near_threshold=0.8`). Slot counts grow to fit
-    the largest layout and the sampler's maximum obstacle counts.
+    `layouts` given: exactly those rooms, each from its own spawn (random free spawns where a
+    room has none), unless `randomize` says otherwise. `layouts=None`: the task's default rooms
+    with the training distribution `randomize.TRAINING` (sampled rooms and spawns mixed in).
+    `layouts=[]`: sampled rooms only. `overrides` are fields of the task config
+    (e.g. `near_threshold=0.8`). Slot counts grow to fit the largest layout and the sampler.
     """
-    if name not in ENVS:
-        raise ValueError(f"unknown environment '{name}'; valid names: {', '.join(sorted(ENVS))}")
-    env_cls, task_cls = ENVS[name]
-    fields = [f.name for f in dataclasses.fields(task_cls)]
+    entry = task_entry(name)
+    fields = [f.name for f in dataclasses.fields(entry.config_cls)]
     unknown = sorted(set(overrides) - set(fields))
     if unknown:
         raise ValueError(
-            f"make_env: unknown {task_cls.__name__} fields {unknown}; valid: {', '.join(fields)}"
+            f"make_env: unknown {entry.config_cls.__name__} fields {unknown}; "
+            f"valid: {', '.join(fields)}"
         )
-    task = dataclasses.replace(task or task_cls(), **overrides)
-    randomize = randomize or RandomizeConfig()
-    layouts = default_layouts() if layouts is None else list(layouts)
+    task = dataclasses.replace(task or entry.config_cls(), **overrides)
+    if randomize is None:
+        randomize = TRAINING if layouts is None else RandomizeConfig()
+    layouts = default_layouts(name) if layouts is None else list(layouts)
     if not layouts:
         randomize = dataclasses.replace(randomize, sampled_room_prob=1.0)
     scene = scene or SceneConfig()
@@ -58,6 +89,11 @@ def make_env(
     )
     scene = dataclasses.replace(scene, num_boxes=nb, num_cylinders=nc)
     bank = make_bank(layouts, nb, nc)
-    return env_cls(
-        bank, task=task, randomize=randomize, sensor=sensor or SensorConfig(), scene=scene
+    return entry.env_cls(
+        bank,
+        task=task,
+        randomize=randomize,
+        sensor=sensor or SensorConfig(),
+        scene=scene,
+        robot=robot,
     )

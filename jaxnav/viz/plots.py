@@ -7,53 +7,117 @@ is left open in pyplot's global state and no display is needed.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
 
+import jax
 import numpy as np
 from matplotlib import patches
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from jaxnav.core import robot
-from jaxnav.io.layouts import Box, RoomLayout, box_corners
+from jaxnav.core.randomize import SceneParams
+from jaxnav.core.robot import TURTLEBOT2I
+from jaxnav.io.layouts import Box, Cylinder, RoomLayout, box_corners
 
+ROBOT_RADIUS = TURTLEBOT2I.radius  # m, as drawn
 MAX_PATHS = 20  # paths drawn per picture; beyond that they hide each other and the room
-WALL_THICKNESS = 0.1  # m, as drawn (the simulated walls have no thickness that matters here)
-METRICS_HEADER = (
-    "update,env_steps,episode_reward,episode_length,collision_rate,total_loss,policy_loss,"
-    "value_loss,entropy,approx_kl,steps_per_second,elapsed_s"
-).split(",")
+WALL_THICKNESS = (
+    0.1  # m, as drawn (the simulated walls are planes: their thickness does not matter)
+)
+FLOOR_MARGIN = 0.2  # m of floor shown beyond the walls
+METRICS_HEADER = ("update", "env_steps", "episode_reward", "episode_length")  # always present
 
 _OBSTACLE = {"facecolor": "0.55", "edgecolor": "0.25", "linewidth": 0.8, "zorder": 2}
 
 
-def draw_room(ax: Axes, layout: RoomLayout) -> None:
-    """Walls, boxes, cylinders and the layout's spawn (if any), top-down, in metres."""
-    hx, hy = 0.5 * layout.size[0], 0.5 * layout.size[1]
-    t = WALL_THICKNESS
-    # Walls as a dark frame around the interior outline.
-    ax.add_patch(patches.Rectangle((-hx - t, -hy - t), 2 * (hx + t), 2 * (hy + t), color="0.2"))
-    ax.add_patch(patches.Rectangle((-hx, -hy), 2 * hx, 2 * hy, color="white", zorder=1))
-    for ob in layout.obstacles:
-        if isinstance(ob, Box):
-            ax.add_patch(patches.Polygon(box_corners(ob), closed=True, **_OBSTACLE))
-        else:
-            ax.add_patch(patches.Circle(ob.pos, ob.radius, **_OBSTACLE))
-    if layout.robot_pos is not None:
-        draw_robot(ax, layout.robot_pos, layout.robot_yaw, color="tab:blue")
-    ax.set_xlim(-hx - 3 * t, hx + 3 * t)
-    ax.set_ylim(-hy - 3 * t, hy + 3 * t)
+@dataclasses.dataclass(frozen=True)
+class RoomShapes:
+    """A room from above as plain shapes, in metres: what `draw_room` and `jaxnav.viz.render` draw."""
+
+    walls: np.ndarray  # [4, 2, 2] east, west, north, south wall: centre (x, y), half extents (x, y)
+    boxes: np.ndarray  # [Nb, 4, 2] corners of each box, counter-clockwise
+    circles: np.ndarray  # [Nc, 3] centre x, y and radius of each cylinder
+    spawn: np.ndarray | None  # [3] robot x, y, yaw; None when the spawn is sampled per episode
+
+    @property
+    def outer_half(self) -> np.ndarray:
+        """[2] half extents of the room with its walls."""
+        return (np.abs(self.walls[:, 0]) + self.walls[:, 1]).max(axis=0)
+
+
+def room_shapes(room: RoomLayout | SceneParams) -> RoomShapes:
+    """The shapes of a layout, or of one env's `SceneParams` (active obstacle slots only)."""
+    if isinstance(room, RoomLayout):
+        spawn = None if room.robot_pos is None else np.array([*room.robot_pos, room.robot_yaw])
+        return _shapes(0.5 * np.asarray(room.size), room.boxes, room.cylinders, spawn)
+    if not isinstance(room, SceneParams):
+        raise TypeError(f"room: must be a RoomLayout or SceneParams, got {type(room).__name__}")
+    p = jax.device_get(room)
+    if np.shape(p.room_half) != (2,):
+        raise ValueError(
+            f"room: one env's SceneParams (no batch axis), got room_half of shape {p.room_half.shape}"
+        )
+    boxes = [
+        Box(pos, 2 * half, yaw)
+        for pos, half, yaw, on in zip(p.box_pos, p.box_half, p.box_yaw, p.box_active, strict=True)
+        if on
+    ]
+    cylinders = [
+        Cylinder(pos, radius)
+        for pos, radius, on in zip(p.cyl_pos, p.cyl_radius, p.cyl_active, strict=True)
+        if on
+    ]
+    return _shapes(np.asarray(p.room_half), boxes, cylinders, np.asarray(p.spawn))
+
+
+def _shapes(half, boxes: Sequence[Box], cylinders: Sequence[Cylinder], spawn) -> RoomShapes:
+    """Walls of `WALL_THICKNESS` just outside the interior of half extents `half` [2], and the
+    obstacles' footprints."""
+    hx, hy = half
+    t = 0.5 * WALL_THICKNESS
+    walls = [
+        [(hx + t, 0.0), (t, hy + 2 * t)],
+        [(-hx - t, 0.0), (t, hy + 2 * t)],
+        [(0.0, hy + t), (hx + 2 * t, t)],
+        [(0.0, -hy - t), (hx + 2 * t, t)],
+    ]
+    return RoomShapes(
+        walls=np.array(walls, np.float64),
+        boxes=np.array([box_corners(b) for b in boxes], np.float64).reshape(-1, 4, 2),
+        circles=np.array([[*c.pos, c.radius] for c in cylinders], np.float64).reshape(-1, 3),
+        spawn=spawn,
+    )
+
+
+def draw_room(ax: Axes, room: RoomLayout | SceneParams) -> None:
+    """Walls, boxes, cylinders and the robot's spawn (if fixed), top-down, in metres.
+
+    `room` is a layout or one env's `SceneParams` (see `room_shapes`).
+    """
+    shapes = room_shapes(room)
+    for centre, half in shapes.walls:
+        ax.add_patch(patches.Rectangle(centre - half, *(2 * half), color="0.2"))
+    for corners in shapes.boxes:
+        ax.add_patch(patches.Polygon(corners, closed=True, **_OBSTACLE))
+    for x, y, radius in shapes.circles:
+        ax.add_patch(patches.Circle((x, y), radius, **_OBSTACLE))
+    if shapes.spawn is not None:
+        draw_robot(ax, shapes.spawn[:2], float(shapes.spawn[2]), color="tab:blue")
+    lim = shapes.outer_half + FLOOR_MARGIN
+    ax.set_xlim(-lim[0], lim[0])
+    ax.set_ylim(-lim[1], lim[1])
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
 
 
-def draw_robot(ax: Axes, xy, yaw: float, color="tab:blue") -> None:
-    """The Kobuki base as a disc of robot.BASE_RADIUS with a tick along its heading."""
-    r = robot.BASE_RADIUS
+def draw_robot(ax: Axes, xy, yaw: float, color="tab:blue", radius: float = ROBOT_RADIUS) -> None:
+    """The robot's base as a disc of `radius` (the Kobuki's) with a tick along its heading."""
+    r = radius
     ax.add_patch(patches.Circle(xy, r, fill=False, edgecolor=color, linewidth=1.5, zorder=4))
     tip = (xy[0] + r * math.cos(yaw), xy[1] + r * math.sin(yaw))
     ax.plot([xy[0], tip[0]], [xy[1], tip[1]], color=color, linewidth=1.5, zorder=4)
@@ -144,7 +208,7 @@ def read_metrics(csv_path: str | os.PathLike) -> dict[str, np.ndarray]:
         if missing:
             raise ValueError(f"{os.fspath(csv_path)}: missing columns {', '.join(missing)}")
         rows = list(reader)
-    return {c: np.array([_float(r.get(c)) for r in rows], np.float64) for c in METRICS_HEADER}
+    return {c: np.array([_float(r.get(c)) for r in rows], np.float64) for c in reader.fieldnames}
 
 
 def _float(cell) -> float:
@@ -154,8 +218,11 @@ def _float(cell) -> float:
         return math.nan
 
 
-def plot_reward_curve(csv_path: str | os.PathLike, png_path: str | os.PathLike) -> None:
-    """Writes a PNG of mean episode reward and collision rate vs env steps from a metrics CSV.
+def plot_reward_curve(
+    csv_path: str | os.PathLike, png_path: str | os.PathLike, metric: str = "collision"
+) -> None:
+    """Writes a PNG of mean episode reward and a task metric (default: the collision rate) vs
+    env steps from a metrics CSV; without that column, the episode length.
 
     Rows whose episode_reward is empty or nan (no episode finished yet) are skipped.
     """
@@ -167,10 +234,11 @@ def plot_reward_curve(csv_path: str | os.PathLike, png_path: str | os.PathLike) 
     top.plot(steps, cols["episode_reward"][keep], color="tab:blue", linewidth=1.5)
     top.set_ylabel("mean episode reward")
     top.set_title("Training")
-    rate = cols["collision_rate"][keep]
-    bottom.plot(steps, rate, color="tab:red", linewidth=1.5)
-    bottom.set_ylabel("collision rate")
-    bottom.set_ylim(-0.02, 1.02)
+    metric = metric if metric in cols else "episode_length"
+    bottom.plot(steps, cols[metric][keep], color="tab:red", linewidth=1.5)
+    bottom.set_ylabel("collision rate" if metric == "collision" else metric.replace("_", " "))
+    if metric == "collision":
+        bottom.set_ylim(-0.02, 1.02)
     bottom.set_xlabel("env steps")
     for ax in (top, bottom):
         ax.grid(alpha=0.3)

@@ -26,12 +26,12 @@ import jax
 import mujoco
 import numpy as np
 
-from jaxnav.core import robot
+from jaxnav.viz.plots import room_shapes
 
 GL_BACKENDS = ("egl", "osmesa")  # tried in this order when MUJOCO_GL is not set
 GL_HINT = "install libegl1 or libosmesa6"
-MARGIN = 0.4  # m of floor shown around the room in the top-down view
-WALL_THICKNESS = 0.1  # m, as drawn (the simulated walls are planes)
+MARGIN = 0.4  # m of floor shown around the walls in the top-down view
+WALL_RGBA = (0.45, 0.38, 0.32, 1.0)
 TRAIL_COLOR = (0.85, 0.2, 0.1, 1.0)
 ROBOT_COLOR = (1.0, 0.6, 0.0, 1.0)
 HEADING_COLOR = (0.1, 0.1, 0.1, 1.0)
@@ -121,8 +121,8 @@ def render_episode(
         raise ValueError(f"width, height, fps: must be >= 1, got {width}, {height}, {fps}")
     model = _episode_model(env.scene, params, width, height)
     data = mujoco.MjData(model)
-    room_half = np.asarray(jax.device_get(params.room_half), np.float64)
-    camera = _top_down_camera(model, room_half, width / height, wall_height)
+    shapes = room_shapes(params)
+    camera = _top_down_camera(model, shapes.outer_half, width / height, wall_height)
     backend = gl_backend()
     if backend is None:
         raise NoGLError(f"no OpenGL backend ({GL_HINT})")
@@ -139,12 +139,12 @@ def render_episode(
             data.qpos[:] = qpos[i]
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera)
-            _add_walls(renderer.scene, room_half, wall_height)
-            _add_trail(renderer.scene, qpos[: i + 1])
+            _add_walls(renderer.scene, shapes.walls, wall_height)
+            _add_trail(renderer.scene, qpos[: i + 1], env.robot, env.sensor.fov)
             views = [renderer.render()]
             if robot_view:
                 renderer.update_scene(data, "depth")
-                _add_walls(renderer.scene, room_half, wall_height)
+                _add_walls(renderer.scene, shapes.walls, wall_height)
                 views.append(renderer.render())
             frames.append(np.concatenate(views, axis=1))
     period = env.scene.cfg.control_period
@@ -181,14 +181,15 @@ def _episode_model(scene, params, width: int, height: int) -> mujoco.MjModel:
     return model
 
 
-def _top_down_camera(model, room_half: np.ndarray, aspect: float, wall_height: float):
-    """A free camera looking straight down, +x to the right and +y up, framing the room."""
+def _top_down_camera(model, outer_half: np.ndarray, aspect: float, wall_height: float):
+    """A free camera looking straight down, +x to the right and +y up, framing a room whose walls
+    reach `outer_half` [2] from its centre."""
     cam = mujoco.MjvCamera()
     cam.type = mujoco.mjtCamera.mjCAMERA_FREE
     cam.lookat[:] = (0.0, 0.0, 0.0)
     cam.azimuth, cam.elevation = 90.0, -90.0
     tan = np.tan(np.deg2rad(model.vis.global_.fovy) / 2)
-    half = room_half + WALL_THICKNESS + MARGIN
+    half = outer_half + MARGIN
     cam.distance = wall_height + max(half[1] / tan, half[0] / (tan * aspect))
     return cam
 
@@ -219,36 +220,31 @@ def _add_line(scene, start, end, width, rgba, kind=mujoco.mjtGeom.mjGEOM_CAPSULE
     scene.ngeom += 1
 
 
-def _add_walls(scene, room_half: np.ndarray, wall_height: float) -> None:
-    """The four walls as boxes of `wall_height` just outside the interior."""
-    hx, hy = room_half
-    t = WALL_THICKNESS / 2
-    rgba = (0.45, 0.38, 0.32, 1.0)
-    for pos, size in (
-        ((hx + t, 0.0), (t, hy + 2 * t)),
-        ((-hx - t, 0.0), (t, hy + 2 * t)),
-        ((0.0, hy + t), (hx + 2 * t, t)),
-        ((0.0, -hy - t), (hx + 2 * t, t)),
-    ):
-        half = (*size, wall_height / 2)
-        _add_geom(scene, mujoco.mjtGeom.mjGEOM_BOX, half, (*pos, wall_height / 2), np.eye(3), rgba)
+def _add_walls(scene, walls: np.ndarray, wall_height: float) -> None:
+    """The walls (`RoomShapes.walls`: [4, 2, 2] centres and half extents) as boxes of `wall_height`."""
+    for (x, y), (half_x, half_y) in walls:
+        half = (half_x, half_y, wall_height / 2)
+        pos = (x, y, wall_height / 2)
+        _add_geom(scene, mujoco.mjtGeom.mjGEOM_BOX, half, pos, np.eye(3), WALL_RGBA)
 
 
-def _add_trail(scene, qpos: np.ndarray) -> None:
-    """The path so far on the floor, the heading above the robot and the camera's field of view."""
+def _add_trail(scene, qpos: np.ndarray, robot, fov: float) -> None:
+    """The path so far on the floor, the heading above the robot (a `RobotSpec`) and the
+    sensor's field of view `fov` (rad)."""
     z = 0.01
     for a, b in zip(qpos[:-1], qpos[1:], strict=True):
         if np.linalg.norm(b[:2] - a[:2]) > 1e-4:
             _add_line(scene, (*a[:2], z), (*b[:2], z), 0.025, TRAIL_COLOR)
     x, y, yaw = qpos[-1]
     top = 0.5  # above the robot's top plate (0.45 m): a disc of the base's size, and the heading
-    disc = (robot.BASE_RADIUS, robot.BASE_RADIUS, 0.005)
+    r = robot.radius
+    disc = (r, r, 0.005)
     _add_geom(scene, mujoco.mjtGeom.mjGEOM_CYLINDER, disc, (x, y, top), np.eye(3), ROBOT_COLOR)
-    tip = (x + 1.6 * robot.BASE_RADIUS * np.cos(yaw), y + 1.6 * robot.BASE_RADIUS * np.sin(yaw))
+    tip = (x + 1.6 * r * np.cos(yaw), y + 1.6 * r * np.sin(yaw))
     _add_line(scene, (x, y, top + 0.01), (*tip, top + 0.01), 0.06, HEADING_COLOR, _ARROW)
-    eye = np.array([x + robot.CAMERA_FORWARD * np.cos(yaw), y + robot.CAMERA_FORWARD * np.sin(yaw)])
+    eye = np.array([x, y]) + robot.camera_forward * np.array([np.cos(yaw), np.sin(yaw)])
     for side in (-0.5, 0.5):
-        angle = yaw + side * robot.CAMERA_FOV
+        angle = yaw + side * fov
         end = eye + FOV_LENGTH * np.array([np.cos(angle), np.sin(angle)])
         _add_line(scene, (*eye, z), (*end, z), 0.01, FOV_COLOR)
 

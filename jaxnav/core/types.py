@@ -1,0 +1,87 @@
+"""The env contract: the state every task's `reset`/`step` returns and what a task declares.
+
+An env is any object with `reset(key) -> EnvState`, `step(state, action) -> EnvState` (pure, for one
+robot; `jax.vmap` them for a batch), `observation_size`, `action_spec`, `metric_names` and
+`control_period`. PPO, the run log, evaluation, export and checkpoints read only this contract.
+Auto-reset and episode statistics are wrappers (`jaxnav.wrappers`), not fields of every task.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Protocol
+
+import jax
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscreteActions:
+    """A fixed table of velocity commands; the policy picks one index per control step."""
+
+    names: tuple[str, ...]
+    """Name of each action, in index order (shown in logs and stored with exported policies)."""
+    commands: tuple[tuple[float, float], ...]
+    """Per action: (forward speed m/s, yaw rate rad/s, positive = left) sent to the base."""
+
+    def __post_init__(self):
+        if not self.names or len(self.names) != len(self.commands):
+            raise ValueError(
+                f"DiscreteActions: need one command per name, got {len(self.names)} names and "
+                f"{len(self.commands)} commands"
+            )
+
+    @property
+    def n(self) -> int:
+        """Number of actions."""
+        return len(self.names)
+
+    def table(self) -> np.ndarray:
+        """[n, 2] float32 commands (forward m/s, yaw rad/s)."""
+        return np.asarray(self.commands, np.float32).reshape(self.n, 2)
+
+
+@dataclasses.dataclass(frozen=True)
+class ContinuousActions:
+    """The policy outputs the command itself, within per-dimension bounds."""
+
+    low: tuple[float, ...]
+    """Lower bound per action dimension (e.g. forward m/s, yaw rad/s)."""
+    high: tuple[float, ...]
+    """Upper bound per action dimension."""
+
+    @property
+    def size(self) -> int:
+        """Action dimensions."""
+        return len(self.low)
+
+
+ActionSpec = DiscreteActions | ContinuousActions
+
+
+@struct.dataclass
+class EnvState:
+    """One robot's state (a batch adds a leading axis to every array)."""
+
+    data: mjx.Data  # physics state
+    obs: jax.Array  # [observation_size] float32
+    reward: jax.Array  # [] float32, of the last step
+    done: jax.Array  # [] bool: the last step ended the episode (collision, success or time)
+    truncated: jax.Array  # [] bool: it ended by the time limit only (bootstrap the value there)
+    metrics: dict[str, jax.Array]  # [] float32 per name in `env.metric_names`, of the last step
+    info: dict[str, Any]  # the task's own traced state (episode parameters, step counter, key)
+
+
+class Env(Protocol):
+    """What PPO, evaluation and export need from a task."""
+
+    observation_size: int
+    action_spec: ActionSpec
+    metric_names: tuple[str, ...]  # per-step values summed over an episode; "collision" is one
+    control_period: float  # s per step
+
+    def reset(self, key: jax.Array) -> EnvState: ...
+
+    def step(self, state: EnvState, action: jax.Array) -> EnvState: ...

@@ -1,0 +1,96 @@
+"""The training metrics log of a run folder: `metrics.csv` and TensorBoard events in `tb/`.
+
+One row per update. Its columns come from the task's declared metrics: `update`, `env_steps`,
+`episode_reward`, `episode_length`, then one column per task metric (e.g. `collision` for `avoid`:
+the share of finished episodes that collided), then the PPO losses and the speed.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+LOSSES = ("total_loss", "policy_loss", "value_loss", "entropy", "approx_kl")
+_LOSS_KEYS = {"total_loss": "total"}  # metrics key of a column where the two differ
+_INTEGER = ("update", "env_steps")
+
+
+def columns(metric_names) -> tuple[str, ...]:
+    """The CSV header for a task with `metric_names`."""
+    head = ("update", "env_steps", "episode_reward", "episode_length", *metric_names)
+    return (*head, *LOSSES, "steps_per_second", "elapsed_s")
+
+
+def chunk_rows(metrics, fields, first_update, batch_size, rate, elapsed) -> list[dict]:
+    """CSV rows of one chunk's metrics (arrays [updates_per_chunk]); skipped updates left out."""
+    rows = []
+    for i in np.flatnonzero(metrics["live"]):
+        update = first_update + len(rows) + 1
+        row = {
+            "update": update,
+            "env_steps": update * batch_size,
+            "steps_per_second": round(rate),
+            "elapsed_s": round(elapsed, 2),
+        }
+        for key in fields[2:-2]:
+            row[key] = float(metrics[_LOSS_KEYS.get(key, key)][i])
+        rows.append(row)
+    return rows
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The rows of an existing metrics.csv (numbers; empty cells nan); [] if there is none."""
+    if not path.exists():
+        return []
+    with open(path, newline="") as fh:
+        return [
+            {k: (int(v) if k in _INTEGER else float(v or "nan")) for k, v in row.items()}
+            for row in csv.DictReader(fh)
+        ]
+
+
+class MetricsLog:
+    """metrics.csv (rewritten from `rows`, then appended) and TensorBoard events in out/tb."""
+
+    def __init__(self, out: Path, fields: tuple[str, ...], rows: list[dict]):
+        self.out, self.fields, self.rows = out, fields, list(rows)
+
+    def __enter__(self):
+        self.fh = open(self.out / "metrics.csv", "w", newline="")
+        self.writer = csv.DictWriter(self.fh, self.fields)
+        self.writer.writeheader()
+        self.writer.writerows(self.rows)
+        self.tb = _tensorboard(self.out / "tb")
+        return self
+
+    def add(self, rows: list[dict]) -> None:
+        self.writer.writerows(rows)
+        self.fh.flush()
+        self.rows += rows
+        for row in rows if self.tb else ():
+            for key in self.fields[2:]:
+                if not math.isnan(row[key]):
+                    self.tb.add_scalar(f"train/{key}", row[key], row["env_steps"])
+        if self.tb:
+            self.tb.flush()
+
+    def last(self, key) -> float:
+        """The newest finite value of column `key` (nan if none)."""
+        values = [r[key] for r in self.rows if not math.isnan(r[key])]
+        return values[-1] if values else math.nan
+
+    def __exit__(self, *exc):
+        self.fh.close()
+        if self.tb:
+            self.tb.close()
+
+
+def _tensorboard(logdir: Path):
+    try:
+        from tensorboardX import SummaryWriter
+    except ImportError:  # TensorBoard logs are optional; the CSV always exists
+        return None
+    return SummaryWriter(str(logdir))

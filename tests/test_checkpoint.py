@@ -1,0 +1,162 @@
+"""Checkpoints: restore by tree path, format versions, checksums, fallback past a corrupt newest one."""
+
+import json
+import os
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnav.io import checkpoint
+from jaxnav.io.checkpoint import CheckpointError
+from jaxnav.io.runconfig import RunConfig
+from jaxnav.ppo.config import preset
+from jaxnav.ppo.networks import init_stats
+from jaxnav.ppo.train import TrainState, make_network
+from jaxnav.tasks.avoid import AvoidConfig
+
+PPO = preset("cpu", num_envs=2, rollout_length=4, minibatch_size=8, total_steps=8, hidden=(8,))
+
+
+@pytest.fixture(scope="module")
+def state():
+    """A small TrainState (untrained network, no env) and its run config."""
+    params = make_network(PPO, AvoidConfig().action_spec).init(
+        jax.random.PRNGKey(0), jnp.zeros((1, 8))
+    )
+    ts = TrainState(params, (), init_stats(8), (), jax.random.PRNGKey(1), jnp.int32(1))
+    return ts, RunConfig(ppo=PPO)
+
+
+def save_updates(run, state, updates):
+    ts, config = state
+    return [checkpoint.save(run, ts.replace(update=jnp.int32(u)), config, {}) for u in updates]
+
+
+def assert_one_line(err, *needles):
+    text = str(err.value)
+    assert "\n" not in text and all(n in text for n in needles), text
+
+
+class Pair(NamedTuple):
+    a: jax.Array
+    b: jax.Array
+
+
+class Swapped(NamedTuple):  # the same names in the other order: flatten order differs
+    b: jax.Array
+    a: jax.Array
+
+
+class Only(NamedTuple):
+    a: jax.Array
+
+
+class Renamed(NamedTuple):
+    a: jax.Array
+    c: jax.Array
+
+
+def test_tree_is_restored_by_name(tmp_path):
+    file = tmp_path / "tree.npz"
+    x, y = jnp.arange(4.0), -jnp.arange(4.0)
+    checkpoint.save_tree(file, {"a": x, "b": y})
+    got = checkpoint.load_tree(file, {"b": jnp.zeros(4), "a": jnp.zeros(4)})
+    np.testing.assert_array_equal(got["a"], x)
+    np.testing.assert_array_equal(got["b"], y)
+    checkpoint.save_tree(file, Pair(x, y))
+    got = checkpoint.load_tree(file, Swapped(jnp.zeros(4), jnp.zeros(4)))
+    np.testing.assert_array_equal(got.a, x)  # by flatten order it would be y
+    np.testing.assert_array_equal(got.b, y)
+    with pytest.raises(CheckpointError) as err:
+        checkpoint.load_tree(file, Renamed(jnp.zeros(4), jnp.zeros(4)))
+    assert_one_line(err, str(file), "no entry .c")
+    with pytest.raises(CheckpointError) as err:
+        checkpoint.load_tree(file, Only(jnp.zeros(4)))
+    assert_one_line(err, str(file), "unexpected entry .b")
+    with pytest.raises(CheckpointError) as err:
+        checkpoint.load_tree(file, Pair(jnp.zeros(4), jnp.zeros(5)))
+    assert_one_line(err, str(file), ".b is float32[4], this configuration needs float32[5]")
+
+
+def test_train_state_entries_are_tree_paths(tmp_path, state):
+    (ckpt,) = save_updates(tmp_path, state, [1])
+    with np.load(ckpt / "train_state.npz") as data:
+        names = set(data.files)
+        assert int(data["format_version"]) == 2
+    assert ".params['params']['actor']['Dense_0']['kernel']" in names
+    assert ".obs_stats.mean" in names and ".update" in names
+    restored = checkpoint.restore_train_state(ckpt, state[0])
+    for a, b in zip(
+        jax.tree_util.tree_leaves(restored), jax.tree_util.tree_leaves(state[0]), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    sums = json.loads((ckpt / "checksums.json").read_text())
+    assert sorted(sums) == ["config.json", "meta.json", "policy.msgpack", "train_state.npz"]
+
+
+def test_format_1_checkpoint_is_refused_in_one_line(tmp_path, state):
+    (ckpt,) = save_updates(tmp_path, state, [1])
+    leaves = jax.tree_util.tree_leaves(state[0])
+    np.savez(ckpt / "train_state.npz", **{f"leaf_{i:05d}": x for i, x in enumerate(leaves)})
+    with pytest.raises(CheckpointError) as err:
+        checkpoint.restore_train_state(ckpt, state[0])
+    assert_one_line(err, str(ckpt / "train_state.npz"), "written by an older jaxnav (format 1)")
+
+
+def truncate(file):
+    file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
+
+
+CORRUPTIONS = {  # file: what is done to it
+    "train_state.npz": truncate,
+    "policy.msgpack": lambda f: f.write_bytes(np.random.default_rng(0).bytes(64)),
+    "meta.json": truncate,
+}
+
+
+@pytest.mark.parametrize("name", sorted(CORRUPTIONS))
+def test_corrupt_file_is_named(tmp_path, state, name):
+    (ckpt,) = save_updates(tmp_path, state, [1])
+    CORRUPTIONS[name](ckpt / name)
+    with pytest.raises(CheckpointError) as err:
+        if name == "train_state.npz":
+            checkpoint.restore_train_state(ckpt, state[0])
+        else:
+            checkpoint.load_policy(ckpt)
+    assert_one_line(err, str(ckpt / name))
+    with pytest.raises(CheckpointError) as err:
+        checkpoint.verify(ckpt)
+    assert_one_line(err, str(ckpt / name), "corrupt")
+
+
+def test_corrupt_newest_falls_back_to_previous(tmp_path, state, capsys):
+    older, newest = save_updates(tmp_path, state, [1, 2])
+    assert checkpoint.resolve(tmp_path) == newest and capsys.readouterr().err == ""
+    truncate(newest / "train_state.npz")
+    assert checkpoint.resolve(tmp_path) == older
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and str(newest) in lines[0] and str(older) in lines[0], lines
+    checkpoint.restore_train_state(checkpoint.resolve(tmp_path), state[0])
+    assert checkpoint.load_policy(tmp_path).name.endswith("update_000001")
+    with pytest.raises(CheckpointError) as err:  # named explicitly: no fallback
+        checkpoint.load_policy(newest)
+    assert_one_line(err, str(newest / "train_state.npz"), "corrupt")
+    truncate(older / "meta.json")  # none intact: the newest, whose load names the fault
+    assert checkpoint.resolve(tmp_path) == newest
+
+
+def test_save_keeps_newest_three_and_removes_stale_temporaries(tmp_path, state):
+    root = tmp_path / "checkpoints"
+    root.mkdir()
+    stale = root / ".tmp-crashed"
+    stale.mkdir()
+    (stale / "policy.msgpack").write_bytes(b"half")
+    past = time.time() - 60
+    os.utime(stale, (past, past))
+    kept = save_updates(tmp_path, state, [1, 2, 3, 4])
+    assert checkpoint.list_checkpoints(tmp_path) == kept[1:]
+    assert not stale.exists()

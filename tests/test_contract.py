@@ -1,0 +1,141 @@
+"""The env contract: a second task needs no change elsewhere, given rooms are simulated exactly,
+collision detection agrees with MuJoCo's own, and the wrappers keep episode statistics."""
+
+import csv
+import dataclasses
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from stand_still import StandStillConfig, StandStillEnv
+
+import jaxnav
+from jaxnav.core.geometry import signed_distance
+from jaxnav.core.randomize import RandomizeConfig, sample
+from jaxnav.core.scene import SCENES_DIR
+from jaxnav.export import export
+from jaxnav.policy import forward_policy
+from jaxnav.robot_side.policy import NumpyPolicy
+from jaxnav.tasks import registry
+from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
+
+
+@pytest.fixture
+def stand_still():
+    registry.register("stand_still", StandStillEnv, StandStillConfig)
+    yield "stand_still"
+    registry.TASKS.pop("stand_still")
+
+
+def test_a_second_task_trains_logs_evaluates_and_exports(stand_still, tmp_path):
+    tiny = dict(num_envs=16, rollout_length=16, minibatch_size=128, num_epochs=4)
+    ckpt = jaxnav.train(
+        out=tmp_path / "run", env=stand_still, total_steps=16 * 16 * 12, updates_per_chunk=4,
+        learning_rate=3e-3, progress=False, **tiny,
+    )  # fmt: skip
+    with open(tmp_path / "run" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert "drift" in rows[0] and "collision" in rows[0]
+    drift = [float(r["drift"]) for r in rows if r["drift"] not in ("", "nan")]
+    assert len(drift) >= 4 and drift[-1] < drift[0]  # it learns to move less
+    policy = jaxnav.load_policy(tmp_path / "run")
+    assert policy.env == stand_still
+    rooms = jaxnav.load_layout(SCENES_DIR / "inference_room.json")
+    trained = jaxnav.evaluate(policy, rooms, episodes=8, steps=30)
+    spec = StandStillConfig().action_spec
+    creeping = jaxnav.evaluate(
+        dataclasses.replace(forward_policy(spec), env=stand_still), rooms, episodes=8, steps=30
+    )
+    assert trained["overall"]["drift"] < creeping["overall"]["drift"]
+    file = export(ckpt, "numpy", tmp_path / "policy.npz")
+    exported = NumpyPolicy.from_npz(file)
+    assert exported.action_names == spec.names
+    np.testing.assert_allclose(exported.commands, spec.table())
+
+
+def test_unknown_task_names_the_valid_ones():
+    with pytest.raises(ValueError, match="valid names: avoid"):
+        jaxnav.train(env="nope", progress=False)
+
+
+def test_given_layouts_are_simulated_exactly():
+    rooms = jaxnav.load_layout(SCENES_DIR / "train_room.json")
+    rooms += jaxnav.load_layout(SCENES_DIR / "inference_room.json")
+    env = jaxnav.make_env("avoid", layouts=rooms)
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 200))
+    ids = np.asarray(states.info["params"].layout_id)
+    assert set(ids.tolist()) == {0, 1}  # both rooms, never a sampled one
+    spawns = np.array([[*r.robot_pos, r.robot_yaw] for r in rooms], np.float32)
+    np.testing.assert_allclose(np.asarray(states.data.qpos), spawns[ids], atol=1e-6)
+
+
+def test_default_env_is_the_training_mixture():
+    env = jaxnav.make_env("avoid")
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 200))
+    ids = np.asarray(states.info["params"].layout_id)
+    assert 0.35 < np.mean(ids == -1) < 0.65  # about half sampled rooms
+
+
+def _mujoco_touching(env, params, qpos) -> bool:
+    """MuJoCo's own collision (CPU, not MJX) of the bumper with the room `params` at `qpos`."""
+    m = env.scene.mj_model
+    fields = jax.device_get(env.scene.geom_fields(params))
+    m.geom_pos[:], m.geom_quat[:], m.geom_size[:] = (
+        fields["geom_pos"], fields["geom_quat"], fields["geom_size"],
+    )  # fmt: skip
+    # The compiled model knows the parked slots: unrotated (so MuJoCo reuses the world frame)
+    # and small (its collision bounds). Make it recompute frames and bounds for this room.
+    m.geom_sameframe[:] = 0
+    m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_MIDPHASE
+    box, cap, size = m.geom_type == 6, m.geom_type == 3, m.geom_size  # mjGEOM_BOX, _CAPSULE
+    m.geom_rbound[box] = np.linalg.norm(size[box], axis=1)
+    m.geom_aabb[box, 3:] = size[box]
+    m.geom_rbound[cap] = size[cap, 0] + size[cap, 1]
+    m.geom_aabb[cap, 3:] = np.stack([size[cap, 0], size[cap, 0], size[cap].sum(1)], 1)
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    return bool((d.contact.dist[: d.ncon] < 0).any())
+
+
+def test_analytic_collision_agrees_with_mujoco():
+    env = jaxnav.make_env("avoid", layouts=[])
+    cfg = RandomizeConfig(sampled_room_prob=1.0, num_boxes=(6, 8), num_cylinders=(3, 4))
+    keys = jax.random.split(jax.random.PRNGKey(1), 12)
+    rooms = jax.vmap(lambda k: sample(k, cfg, env.bank, env.robot.radius))(keys)
+    # Low obstacles too, some under the bumper's centre height, so the test is 3-D.
+    heights = jax.random.uniform(jax.random.PRNGKey(2), (12, 12), minval=0.05, maxval=0.6)
+    rooms = rooms.replace(box_height=heights[:, :8], cyl_height=heights[:, 8:])
+    rng = np.random.default_rng(0)
+    touching = jax.jit(lambda room, qpos: env.touching(room, SimpleNamespace(qpos=qpos)))
+    agree = checked = 0
+    for i in range(12):
+        room = jax.tree_util.tree_map(lambda x, i=i: x[i], rooms)
+        half = np.asarray(room.room_half)
+        for _ in range(40):
+            qpos = np.array([*rng.uniform(-half, half), rng.uniform(-np.pi, np.pi)], np.float32)
+            gap = float(signed_distance(room, qpos[:2], env.scene.bumper_z))
+            if abs(gap - env.scene.bumper_radius) < 1e-3:
+                continue  # within float32 round-off of touching: either answer is right
+            ours = bool(touching(room, jnp.asarray(qpos)))
+            agree += ours == _mujoco_touching(env, room, qpos)
+            checked += 1
+    assert checked > 400 and agree == checked
+
+
+def test_wrappers_publish_finished_episode_sums():
+    env = jaxnav.make_env("avoid", max_steps=5, randomize=RandomizeConfig(sampled_room_prob=1.0))
+    wrapped = AutoReset(EpisodeStats(env))
+    state = jax.jit(jax.vmap(wrapped.reset))(jax.random.split(jax.random.PRNGKey(3), 8))
+    step = jax.jit(jax.vmap(wrapped.step))
+    returns = np.zeros(8)
+    for _ in range(5):
+        state = step(state, jnp.full(8, 1, jnp.int32))  # turning in place never collides
+        returns += np.asarray(state.reward)
+    assert np.asarray(state.done).all() and np.asarray(state.truncated).all()
+    np.testing.assert_allclose(np.asarray(state.info[EPISODE]["return"]), returns, rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(state.info[EPISODE]["length"]), 5)
+    assert (np.asarray(state.info["steps"]) == 0).all()  # a new episode has started
