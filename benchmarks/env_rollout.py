@@ -1,6 +1,12 @@
 """Env-only throughput: random-policy rollouts of the default `avoid` distribution.
 
     python benchmarks/env_rollout.py --num-envs 1024 --steps 100 --json benchmarks/env_rollout.json
+    python benchmarks/env_rollout.py --fidelity rows,dynamics ...   # with sim-to-real pieces on
+
+`--fidelity` switches on pieces of the sim-to-real model, to time what each costs: `rows` (the
+5-row camera with the Astra's far-range invalid readings), `dynamics` (randomize.FIDELITY: velocity
+smoother, latency, wheel mismatch, noise model, dark obstacles, camera error, low obstacles and
+overhangs).
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per batch size.
@@ -9,6 +15,7 @@ and prints env-steps/s per batch size.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import time
@@ -17,11 +24,23 @@ import jax
 import jax.numpy as jnp
 
 import jaxnav
+from jaxnav.core.randomize import FIDELITY, TRAINING
+from jaxnav.core.sensors import SensorConfig
 from jaxnav.wrappers import AutoReset
 
 
-def measure(num_envs: int, steps: int, repeats: int) -> dict:
-    env = AutoReset(jaxnav.make_env("avoid"))  # new episodes where they end, as in training
+def make(fidelity: tuple[str, ...]):
+    """The training env with the named fidelity pieces on."""
+    kwargs = {}
+    if "rows" in fidelity:
+        kwargs["sensor"] = SensorConfig(rows=5, far_invalid=True)
+    if "dynamics" in fidelity:
+        kwargs["randomize"] = dataclasses.replace(TRAINING, **FIDELITY)
+    return AutoReset(jaxnav.make_env("avoid", **kwargs))  # new episodes where they end
+
+
+def measure(num_envs: int, steps: int, repeats: int, fidelity=()) -> dict:
+    env = make(fidelity)
     reset = jax.jit(jax.vmap(env.reset))
 
     @jax.jit
@@ -48,6 +67,7 @@ def measure(num_envs: int, steps: int, repeats: int) -> dict:
         best = min(best, time.perf_counter() - tick)
     return {
         "num_envs": num_envs,
+        "fidelity": ",".join(fidelity) or "off",
         "steps": steps,
         "compile_s": round(compile_s, 2),
         "seconds": round(best, 4),
@@ -61,8 +81,11 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--fidelity", default="", help="comma-separated: rows, dynamics")
     args = parser.parse_args()
-    rows = [measure(int(n), args.steps, args.repeats) for n in args.num_envs.split(",")]
+    fidelity = tuple(f for f in args.fidelity.split(",") if f)
+    sizes = [int(n) for n in args.num_envs.split(",")]
+    rows = [measure(n, args.steps, args.repeats, fidelity) for n in sizes]
     device = jax.devices()[0]
     result = {
         "device": f"{device.platform}: {device.device_kind}",
@@ -72,7 +95,8 @@ def main() -> None:
         "rows": rows,
     }
     print(
-        f"{'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   ({result['device']})"
+        f"{'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   ({result['device']}, "
+        f"fidelity: {args.fidelity or 'off'})"
     )
     for r in rows:
         print(

@@ -76,3 +76,6 @@ class _QuietWarpProbe(MetaPathFinder):
 
 if _QuietWarpProbe.NAME not in sys.modules:
     sys.meta_path.insert(0, _QuietWarpProbe())
+
+# Ctrl-C honoured from the first instant of `python -m jaxnav.train` (and evaluate, export).
+importlib.import_module("jaxnav.cli").early_interrupts()

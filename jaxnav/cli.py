@@ -1,14 +1,27 @@
-"""What the command-line modules share: one-line user errors, and modules that are also functions.
+"""What the command-line modules share: one-line user errors, Ctrl-C handling, and modules that are
+also functions.
 
 `jaxnav.train` and `jaxnav.evaluate` are both modules (`python -m ...`) and functions.
+
+Ctrl-C (SIGINT) and SIGTERM are honoured from the first instant of `python -m jaxnav.<command>`
+(`jaxnav/__init__.py` installs `Interrupts` before jax is imported): until a command defers them,
+the process cleans up what it started (`Interrupts.at_once`) and ends at once with one line and exit
+status 130, even while XLA compiles (long calls run in a worker thread: `interruptible`). Training
+defers them once it has something to save: the chunk under way finishes and is checkpointed.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
+import threading
 import types
 from collections.abc import Callable
+
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a Ctrl-C
+COMMANDS = ("jaxnav.train", "jaxnav.evaluate", "jaxnav.export")
 
 
 def make_callable(module_name: str, fn: Callable) -> None:
@@ -36,3 +49,80 @@ class Parser(argparse.ArgumentParser):
 def print_error(err: BaseException) -> None:
     """`error: <message>` on stderr, folded onto one line whatever the message held."""
     print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
+
+
+class Interrupts:
+    """SIGINT/SIGTERM in two phases: at once (clean up, one line, exit 130) until `defer()`, then
+    only recorded in `requested` for a loop to stop at its next safe point.
+
+    A context manager: the handlers found on entry are put back on exit. Outside the main thread
+    (where Python cannot catch signals) it does nothing.
+    """
+
+    def __init__(self, deferred: bool = False):
+        self.requested: list[str] = []  # signal names received while deferred
+        self.deferred = deferred
+        self.note, self.cleanup = "nothing was written", None
+        self._previous: dict = {}
+
+    def install(self) -> Interrupts:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous.setdefault(sig, signal.signal(sig, self._handle))
+        return self
+
+    def __enter__(self) -> Interrupts:
+        return self.install()
+
+    def __exit__(self, *exc) -> None:
+        for sig, old in self._previous.items():
+            signal.signal(sig, old)
+
+    def at_once(self, note: str, cleanup: Callable[[], None] | None = None) -> None:
+        """From now on a signal runs `cleanup`, prints `interrupted (SIG...): note` and exits 130."""
+        self.note, self.cleanup, self.deferred = note, cleanup, False
+
+    def defer(self) -> None:
+        """From now on a signal is only recorded in `requested`."""
+        self.deferred = True
+
+    def _handle(self, signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if self.deferred:
+            self.requested.append(name)
+            return
+        if self.cleanup is not None:
+            self.cleanup()
+        sys.stdout.flush()
+        print(f"interrupted ({name}): {self.note}", file=sys.stderr, flush=True)
+        os._exit(EXIT_INTERRUPTED)
+
+
+def interruptible(fn: Callable, *args):
+    """`fn(*args)` in a worker thread while the main thread waits, so that a signal handler runs at
+    once even while `fn` sits in a long C++ call (an XLA compile); its exception is re-raised."""
+    if threading.current_thread() is not threading.main_thread():
+        return fn(*args)
+    box: dict = {}
+
+    def work():
+        try:
+            box["value"] = fn(*args)
+        except BaseException as err:  # noqa: BLE001 (handed to the main thread as it is)
+            box["error"] = err
+
+    worker = threading.Thread(target=work, daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.1)
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
+def early_interrupts() -> None:
+    """Under `python -m jaxnav.<command>`: Ctrl-C ends the process at once from now on, before jax
+    and the command's module are imported (a SIGINT during those imports could be swallowed)."""
+    argv = getattr(sys, "orig_argv", [])
+    if "-m" in argv[:-1] and argv[argv.index("-m") + 1] in COMMANDS:
+        Interrupts().install()

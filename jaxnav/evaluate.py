@@ -1,17 +1,24 @@
 """`python -m jaxnav.evaluate`: a policy in held-out rooms -> collision-free rate, speed, pictures.
 
-Each layout runs on its own env (no sampled rooms). All episodes of a layout run at once: `jax.vmap`
-over episodes inside one jitted `jax.lax.scan` over control steps. An episode ends at its first
+All episodes of all layouts run at once (no sampled rooms): `jax.vmap` over episodes inside one
+jitted `jax.lax.scan` over control steps. An episode ends at its first
 collision or after `steps` control steps; after that it is frozen (masked), so nothing more is counted.
 
     python -m jaxnav.evaluate --checkpoint runs/a --layouts scenes/inference_room.json --json out.json
     python -m jaxnav.evaluate --policy forward --episodes 100 --steps 600
     python -m jaxnav.evaluate --checkpoint runs/a --video videos/   # one GIF per layout
+    python -m jaxnav.evaluate --policy forward --suite benchmark --episodes 20  # every family
+
+All rooms run in one env and one compiled batch (`make_rollout(..., pinned=True)`): the rooms are
+data, so a 32-room suite compiles once. Coverage (`jaxnav.core.families.coverage`) is the share of
+a room's reachable free area (0.1 m cells where the robot's disc fits, flood-filled from the spawn)
+that the robot's path came within 1.0 m of (straight-line distance), averaged over episodes.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import re
@@ -25,15 +32,26 @@ from flax import struct
 
 import jaxnav
 from jaxnav.cli import Parser, UsageError, make_callable, print_error
+from jaxnav.core import families
 from jaxnav.core.randomize import RandomizeConfig, SceneParams
 from jaxnav.core.scene import SCENES_DIR
+from jaxnav.io.assets import scenes_dir
+from jaxnav.io.files import check_writable, write_atomic
 from jaxnav.io.layouts import LayoutError, RoomLayout
 from jaxnav.policy import BASELINES, Policy
 from jaxnav.tasks.registry import make_env
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
 MAX_TRAJECTORIES = 20  # paths kept per layout for the pictures; more only clutter them
-METRIC_KEYS = ("episodes", "collision_free_rate", "mean_speed", "mean_distance", "mean_steps")
+METRIC_KEYS = (
+    "episodes",
+    "collision_free_rate",
+    "mean_speed",
+    "mean_distance",
+    "mean_steps",
+    "time_to_collision",
+    "coverage",
+)
 
 
 @struct.dataclass
@@ -52,11 +70,12 @@ class Track:
 
 @struct.dataclass
 class Kept:
-    """What a rollout keeps besides the counts: K paths for the pictures, episode 0 for a video."""
+    """What a rollout keeps besides the counts. R = rooms (1 unless pinned), K = paths per room."""
 
-    xy: jax.Array  # [K, steps + 1, 2] float32, positions of episodes 0..K-1 (frozen once ended), m
-    qpos: jax.Array  # [steps + 1, 3] float32, x, y, yaw of episode 0 (not frozen: trim it), m, rad
-    params: SceneParams  # episode 0's room and parameters, from its reset (constant: no auto-reset)
+    xy: jax.Array  # [R * K, steps + 1, 2] float32, positions of each room's first K episodes, m
+    qpos: jax.Array  # [R, steps + 1, 3] float32, x, y, yaw of each room's first episode (not
+    # frozen: trim it), m, rad
+    params: SceneParams  # [R] each room's first episode's parameters, from its reset
 
 
 # ------------------------------------------------------------------------------
@@ -85,10 +104,42 @@ def eval_randomize(spawn: str = "layout", stochastic_env: bool = True) -> Random
     )
 
 
-def make_rollout(env, act, episodes: int, steps: int, keep: int = MAX_TRAJECTORIES):
-    """A jitted `rollout(key) -> (Track, Kept)` of `episodes` episodes (`keep` paths kept)."""
-    reset, step = jax.vmap(env.reset), jax.vmap(env.step)
+def reset_in(env, key: jax.Array, room: jax.Array):
+    """`env.reset(key)` with the room fixed to layout `room` (traced int32) of `env.bank`.
+
+    The env's own draw runs on a one-room bank sliced out of its bank, so the spawn (the layout's
+    or a free one) and the physics and sensing come from the same `randomize.sample` as training.
+    """
+    one = jax.tree_util.tree_map(lambda x: jax.lax.dynamic_slice_in_dim(x, room, 1), env.bank)
+    pinned = copy.copy(env)  # shares the scene and the compiled model; only the bank differs
+    pinned.bank = one
+    state = pinned.reset(key)
+    params = state.info["params"].replace(layout_id=jnp.asarray(room, jnp.int32))
+    return state.replace(info={**state.info, "params": params})
+
+
+def _first_state(env, key, episodes: int, pinned: bool):
+    """The batch's reset: E = R * episodes envs, episode e in room e // episodes if `pinned`."""
+    rooms = env.bank.size if pinned else 1
+    keys = jax.random.split(key, rooms * episodes)
+    if not pinned:
+        return jax.vmap(env.reset)(keys)
+    room = jnp.repeat(jnp.arange(rooms, dtype=jnp.int32), episodes)  # [E]
+    return jax.vmap(lambda k, r: reset_in(env, k, r))(keys, room)
+
+
+def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=False):
+    """A jitted `rollout(key) -> (Track, Kept)`.
+
+    `pinned`: `episodes` episodes in every layout of the env's bank (E = R * episodes, episode e
+    in layout e // episodes), all in one compiled batch; otherwise `episodes` episodes drawn by
+    the env's own randomisation (R = 1). `keep` paths per room are kept.
+    """
+    step = jax.vmap(env.step)
+    rooms = env.bank.size if pinned else 1
     keep = min(keep, episodes)
+    kept = (jnp.arange(rooms)[:, None] * episodes + jnp.arange(keep)).reshape(-1)  # [R * K]
+    firsts = jnp.arange(rooms) * episodes  # [R]
 
     def body(carry, key):
         state, track = carry
@@ -104,43 +155,54 @@ def make_rollout(env, act, episodes: int, steps: int, keep: int = MAX_TRAJECTORI
             xy=jnp.where(live[:, None], xy, track.xy),
             metrics={k: v + jnp.where(live, nxt.metrics[k], 0.0) for k, v in track.metrics.items()},
         )
-        return (nxt, track), (track.xy[:keep], nxt.data.qpos[0])
+        return (nxt, track), (track.xy[kept], nxt.data.qpos[firsts])
 
     def rollout(key):
         k_reset, k_act = jax.random.split(key)
-        state = reset(jax.random.split(k_reset, episodes))
+        state = _first_state(env, k_reset, episodes, pinned)
+        n = rooms * episodes
         xy0 = state.data.qpos[:, :2]  # [E, 2]
-        false, zero = jnp.zeros(episodes, bool), jnp.zeros(episodes)
+        false, zero = jnp.zeros(n, bool), jnp.zeros(n)
         sums = {k: zero for k in env.metric_names if k != "collision"}
-        track = Track(false, false, jnp.zeros(episodes, jnp.int32), zero, xy0, sums)
+        track = Track(false, false, jnp.zeros(n, jnp.int32), zero, xy0, sums)
         keys = jax.random.split(k_act, steps)
-        (_, track), (path, qpos) = jax.lax.scan(body, (state, track), keys)  # [steps, keep, 2]
-        path = jnp.concatenate([xy0[None, :keep], path])  # [steps + 1, keep, 2]
-        qpos = jnp.concatenate([state.data.qpos[:1], qpos])  # [steps + 1, 3]
-        first = jax.tree_util.tree_map(lambda x: x[0], state.info["params"])
-        return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=qpos, params=first)
+        (_, track), (path, qpos) = jax.lax.scan(body, (state, track), keys)  # [steps, R * K, 2]
+        path = jnp.concatenate([xy0[None, kept], path])  # [steps + 1, R * K, 2]
+        qpos = jnp.concatenate([state.data.qpos[None, firsts], qpos])  # [steps + 1, R, 3]
+        first = jax.tree_util.tree_map(lambda x: x[firsts], state.info["params"])
+        return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=jnp.swapaxes(qpos, 0, 1), params=first)
 
     return jax.jit(rollout)
 
 
-def metrics(collided, steps_run, distance, control_period, task_metrics=None) -> dict:
-    """Summary of per-episode arrays [N]: rates in [0, 1], speeds m/s, distances m, and the
-    mean over episodes of each task metric's episode sum (`task_metrics`: {name: [N]}).
+def metrics(collided, steps_run, distance, control_period, task_metrics=None, cover=None) -> dict:
+    """Summary of per-episode arrays [N]: rates in [0, 1], speeds m/s, distances m, times s, and
+    the mean over episodes of each task metric's episode sum (`task_metrics`: {name: [N]}).
 
-    `control_period` (s) is a float or one per episode [N].
+    `control_period` (s) is a float or one per episode [N]. `cover` [N] is each episode's
+    coverage (`jaxnav.core.families.coverage`). `time_to_collision` is the mean time to the first
+    collision of the episodes that collided, and the longest episode's time when none did.
     """
     steps_run = np.asarray(steps_run, np.float64)
     distance = np.asarray(distance, np.float64)
+    collided = np.asarray(collided, bool)
+    seconds = steps_run * control_period  # [N]
     # Speed over the steps each episode actually ran, so early collisions do not dilute it.
     speed = distance / (np.maximum(steps_run, 1) * control_period)
-    return {
+    out = {
         "episodes": int(len(steps_run)),
         "collision_free_rate": float(1.0 - np.mean(collided)),
         "mean_speed": float(np.mean(speed)),
         "mean_distance": float(np.mean(distance)),
         "mean_steps": float(np.mean(steps_run)),
+        "time_to_collision": float(
+            np.mean(seconds[collided]) if collided.any() else np.max(seconds)
+        ),
         **{k: float(np.mean(v)) for k, v in (task_metrics or {}).items()},
     }
+    if cover is not None:
+        out["coverage"] = float(np.mean(cover))
+    return out
 
 
 def _env_kwargs(policy: Policy, steps: int, randomize: RandomizeConfig) -> dict:
@@ -149,84 +211,141 @@ def _env_kwargs(policy: Policy, steps: int, randomize: RandomizeConfig) -> dict:
     return {**kwargs, "randomize": randomize, "max_steps": steps}
 
 
-def evaluate_layout(
-    policy: Policy, layout: RoomLayout, key, *, episodes, steps, randomize
-) -> tuple[dict, dict]:
-    """One layout -> (per-episode arrays as numpy, its kept trajectories and first episode)."""
-    env = make_env(policy.env, layouts=[layout], **_env_kwargs(policy, steps, randomize))
-    track, kept = jax.device_get(make_rollout(env, policy.act, episodes, steps)(key))
-    # Trim each kept path after its episode ended: [steps_run + 1, 2].
-    paths = [np.asarray(p[: n + 1]) for p, n in zip(kept.xy, track.steps, strict=False)]
-    episodes_out = {
-        "collided": track.collided,
-        "steps": track.steps,
-        "distance": track.distance,
-        "control_period": env.control_period,
-        "metrics": track.metrics,
-    }
-    return episodes_out, {
-        "paths": paths,
-        "collided": track.collided[: len(paths)].tolist(),
-        "qpos": np.asarray(kept.qpos[: track.steps[0] + 1]),  # [steps_run + 1, 3]
-        "params": kept.params,
-        "env": env,
-    }
+def evaluate_rooms(policy: Policy, layouts, key, *, episodes, steps, randomize) -> list[dict]:
+    """All layouts in one env and one compiled batch -> per room: its per-episode arrays (numpy)
+    and what `evaluate` keeps for pictures (`paths`, `collided`, `qpos`, `params`, `env`)."""
+    env = make_env(policy.env, layouts=layouts, **_env_kwargs(policy, steps, randomize))
+    rollout = make_rollout(env, policy.act, episodes, steps, keep=episodes, pinned=True)
+    track, kept = jax.device_get(rollout(key))
+    out = []
+    for r, layout in enumerate(layouts):
+        room = slice(r * episodes, (r + 1) * episodes)
+        # Trim each path after its episode ended: [steps_run + 1, 2].
+        paths = [
+            np.asarray(p[: n + 1]) for p, n in zip(kept.xy[room], track.steps[room], strict=True)
+        ]
+        params = jax.tree_util.tree_map(lambda x, r=r: x[r], kept.params)
+        out.append(
+            {
+                "collided": track.collided[room],
+                "steps": track.steps[room],
+                "distance": track.distance[room],
+                "control_period": env.control_period,
+                "metrics": {k: v[room] for k, v in track.metrics.items()},
+                "coverage": families.coverage(layout, paths),
+                "paths": paths[:MAX_TRAJECTORIES],
+                "qpos": np.asarray(kept.qpos[r, : track.steps[room][0] + 1]),  # [T_0 + 1, 3]
+                "params": params,
+                "env": env,
+            }
+        )
+    return out
+
+
+def load_suite(name: str) -> dict[str, list[RoomLayout]]:
+    """The rooms of suite `name` (a folder of jaxnav's scenes, e.g. "benchmark"): {family: rooms},
+    one family per JSON file, in file-name order."""
+    folder = scenes_dir() / name
+    files = sorted(folder.glob("*.json")) if folder.is_dir() else []
+    if not files:
+        suites = sorted(
+            p.name for p in scenes_dir().iterdir() if p.is_dir() and any(p.glob("*.json"))
+        )
+        raise FileNotFoundError(f"no suite {name!r} in {scenes_dir()}; suites: {', '.join(suites)}")
+    return {f.stem: jaxnav.load_layout(f) for f in files}
+
+
+def _pool(rooms: list[dict]) -> dict:
+    """Metrics pooled over all episodes of `rooms` (speed uses each room's control period)."""
+    cat = lambda k: np.concatenate([e[k] for e in rooms])  # noqa: E731
+    periods = np.concatenate([np.full(len(e["steps"]), e["control_period"]) for e in rooms])
+    task = {k: np.concatenate([e["metrics"][k] for e in rooms]) for k in rooms[0]["metrics"]}
+    return metrics(cat("collided"), cat("steps"), cat("distance"), periods, task, cat("coverage"))
 
 
 def evaluate(
     policy: Policy,
-    layouts: list[RoomLayout],
+    layouts: list[RoomLayout] | None = None,
     *,
+    suite: str | None = None,
     episodes: int = 100,
     steps: int = 600,
     seed: int = 0,
     spawn: str = "layout",
     stochastic_env: bool = True,
 ) -> dict:
-    """Runs `episodes` episodes of at most `steps` control steps in each layout.
+    """Runs `episodes` episodes of at most `steps` control steps in each layout (or each room of
+    `suite`, see `load_suite`), all rooms in one compiled batch.
 
     Returns `{"layouts": {name: metrics}, "overall": metrics, "policy", "steps", "seed",
     "_trajectories": {name: {"paths": [[T_i + 1, 2] arrays], "collided": [bool], "qpos",
-    "params", "env"}}}` where metrics are `METRIC_KEYS` (see `metrics`) and at most
+    "params", "env"}}}`, and with a suite also `"suite"` and `"families": {family: metrics}`
+    (pooled over its rooms). Metrics are `METRIC_KEYS` (see `metrics`); at most
     `MAX_TRAJECTORIES` paths per layout are kept; `qpos` [T_0 + 1, 3] (x, y, yaw) and `params`
-    (SceneParams) are the first episode's, and `env` the layout's env, for `jaxnav.viz.render`.
+    (SceneParams) are the first episode's, and `env` the env of the batch, for `jaxnav.viz.render`.
     `_trajectories` is for pictures; `strip_private` removes it before writing JSON.
     """
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
     if steps < 1:
         raise ValueError(f"steps: must be >= 1, got {steps}")
+    if (layouts is None) == (suite is None):
+        raise ValueError("layouts, suite: give exactly one of them")
+    groups = load_suite(suite) if suite is not None else {}
+    layouts = [room for rooms in groups.values() for room in rooms] if suite else list(layouts)
     if not layouts:
         raise ValueError("layouts: need at least one layout")
     randomize = eval_randomize(spawn, stochastic_env)
-    per_layout, trajectories, everything = {}, {}, []
-    for i, (name, layout) in enumerate(zip(unique_names(layouts), layouts, strict=True)):
-        key = jax.random.fold_in(jax.random.PRNGKey(seed), i)  # independent episodes per layout
-        eps, trajectories[name] = evaluate_layout(
-            policy, layout, key, episodes=episodes, steps=steps, randomize=randomize
-        )
-        per_layout[name] = metrics(
-            eps["collided"], eps["steps"], eps["distance"], eps["control_period"], eps["metrics"]
-        )
-        everything.append(eps)
-    # Overall: pooled over all episodes of all layouts (speed uses each layout's control period).
-    pooled = {
-        k: np.concatenate([e[k] for e in everything]) for k in ("collided", "steps", "distance")
-    }
-    periods = np.concatenate([np.full(episodes, e["control_period"]) for e in everything])
-    names = everything[0]["metrics"]
-    task_metrics = {k: np.concatenate([e["metrics"][k] for e in everything]) for k in names}
-    overall = metrics(
-        pooled["collided"], pooled["steps"], pooled["distance"], periods, task_metrics
+    rooms = evaluate_rooms(
+        policy,
+        layouts,
+        jax.random.PRNGKey(seed),
+        episodes=episodes,
+        steps=steps,
+        randomize=randomize,
     )
-    return {
+    names = unique_names(layouts)
+    per_layout = {name: _pool([room]) for name, room in zip(names, rooms, strict=True)}
+    for name, m in per_layout.items():
+        _check_finite(m, name)
+    keys = ("paths", "collided", "qpos", "params", "env")
+    trajectories = {
+        name: {
+            **{k: room[k] for k in keys},
+            "collided": room["collided"][:MAX_TRAJECTORIES].tolist(),
+        }
+        for name, room in zip(names, rooms, strict=True)
+    }
+    results = {
         "layouts": per_layout,
-        "overall": overall,
+        "overall": _pool(rooms),
         "policy": policy.name,
         "steps": steps,
         "seed": seed,
         "_trajectories": trajectories,
     }
+    if suite is not None:
+        sizes = np.cumsum([0] + [len(v) for v in groups.values()])
+        results["suite"] = suite
+        results["families"] = {
+            f: _pool(rooms[a:b]) for f, a, b in zip(groups, sizes[:-1], sizes[1:], strict=True)
+        }
+        results["_families"] = {f: names[a] for f, a in zip(groups, sizes[:-1], strict=False)}
+    return results
+
+
+class NotFinite(ValueError):
+    """A metric of a room came out NaN or infinite: the simulation of that room failed."""
+
+
+def _check_finite(room_metrics: dict, name: str) -> None:
+    """No NaN or Inf is ever reported as a result (NotFinite names the room and the metric)."""
+    bad = [k for k, v in room_metrics.items() if not np.isfinite(v)]
+    if bad:
+        raise NotFinite(
+            f"room {name!r}: {bad[0]} is {room_metrics[bad[0]]} (the simulation diverged in this "
+            "room); no results written"
+        )
 
 
 def unique_names(layouts: list[RoomLayout]) -> list[str]:
@@ -260,12 +379,17 @@ def build_parser() -> argparse.ArgumentParser:
     who.add_argument(
         "--policy", choices=sorted(BASELINES), help="a baseline instead of a checkpoint"
     )
-    p.add_argument(
+    rooms = p.add_mutually_exclusive_group()
+    rooms.add_argument(
         "--layouts",
         nargs="+",
         metavar="FILE",
-        default=[str(DEFAULT_LAYOUTS)],
         help="layout files, each a room or a list of rooms (default: scenes/inference_room.json)",
+    )
+    rooms.add_argument(
+        "--suite",
+        metavar="NAME",
+        help="a suite of jaxnav's scenes (benchmark: rooms of every family, per-family metrics)",
     )
     p.add_argument("--episodes", type=int, default=100, help="episodes per layout (default 100)")
     p.add_argument("--steps", type=int, default=600, help="control steps per episode (default 600)")
@@ -302,6 +426,17 @@ def _check_args(args) -> None:
     for flag, value in (("--plots", args.plots), ("--video", args.video)):
         if value is not None and Path(value).exists() and not Path(value).is_dir():
             raise UsageError(f"{flag}: not a directory: {value}")
+    if args.json is not None and Path(args.json).is_dir():
+        raise UsageError(f"--json: {args.json} is a directory, expected a file name")
+
+
+def _check_outputs(args) -> None:
+    """Every folder the results go to can be written, before minutes of evaluation."""
+    if args.json:
+        check_writable(Path(args.json).parent, "--json")
+    check_writable(_plots_dir(args), "--plots")
+    if args.video:
+        check_writable(Path(args.video), "--video")
 
 
 def _load_policy(args) -> Policy:
@@ -346,15 +481,17 @@ def _file_name(name: str) -> str:
 
 
 def format_table(results: dict) -> str:
-    """The metrics as a text table, one row per layout and an `overall` row."""
+    """The metrics as a text table: one row per layout, per family (suites) and `overall`."""
     head = f"{'layout':<24} {'episodes':>8} {'collision-free %':>16} {'speed m/s':>9} "
-    head += f"{'distance m':>10} {'steps':>7}"
-    rows = [*results["layouts"].items(), ("overall", results["overall"])]
+    head += f"{'distance m':>10} {'steps':>7} {'coverage %':>10}"
+    families_ = [(f"family {k}", m) for k, m in results.get("families", {}).items()]
+    rows = [*results["layouts"].items(), *families_, ("overall", results["overall"])]
     lines = [head, "-" * len(head)]
     for name, m in rows:
         lines.append(
             f"{name[:24]:<24} {m['episodes']:>8d} {100 * m['collision_free_rate']:>16.1f} "
-            f"{m['mean_speed']:>9.3f} {m['mean_distance']:>10.2f} {m['mean_steps']:>7.1f}"
+            f"{m['mean_speed']:>9.3f} {m['mean_distance']:>10.2f} {m['mean_steps']:>7.1f} "
+            f"{100 * m['coverage']:>10.1f}"
         )
     return "\n".join(lines)
 
@@ -364,24 +501,27 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
     from jaxnav.viz.plots import plot_trajectories  # lazy: matplotlib is slow to import
 
     if args.json:
+        text = json.dumps(strip_private(results), indent=2, allow_nan=False) + "\n"
         try:
             Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(json.dumps(strip_private(results), indent=2) + "\n")
+            write_atomic(args.json, text)
         except OSError as err:
             raise UsageError(f"--json: cannot write {args.json} ({err.strerror or err})") from None
         print(f"metrics: {args.json}")
     out = _plots_dir(args)
     _make_dir(out, "--plots")
-    for (name, traj), layout in zip(results["_trajectories"].items(), layouts, strict=True):
-        m = results["layouts"][name]
+    # A suite: one picture per family (its first room); otherwise one per layout.
+    by_name = dict(zip(results["_trajectories"], layouts, strict=True))
+    shown = results.get("_families") or {name: name for name in by_name}
+    for label, name in shown.items():
+        traj, m = results["_trajectories"][name], results["layouts"][name]
         title = (
-            f"{name}: {results['policy']}, {100 * m['collision_free_rate']:.0f}% collision-free "
-            f"({m['episodes']} episodes)"
+            f"{name}: {results['policy']}, {100 * m['collision_free_rate']:.0f}% collision-free, "
+            f"coverage {100 * m['coverage']:.0f}% ({m['episodes']} episodes)"
         )
-        plot_trajectories(
-            layout, traj["paths"], traj["collided"], out / f"{_file_name(name)}.png", title
-        )
-    print(f"plots: {out}/ ({len(layouts)} PNG)")
+        path = out / f"{_file_name(label)}.png"
+        plot_trajectories(by_name[name], traj["paths"], traj["collided"], path, title)
+    print(f"plots: {out}/ ({len(shown)} PNG)")
 
 
 def _make_dir(path: Path, flag: str) -> None:
@@ -421,17 +561,30 @@ def _write_videos(args, results: dict, layouts: list[RoomLayout]) -> None:
     print(f"video: {out}/ ({len(items)} GIF, OpenGL via {render.gl_backend()})")
 
 
+def _rooms(args) -> tuple[list[RoomLayout], str | None]:
+    """The layouts of --layouts (default: the inference room) or of --suite, and the suite."""
+    if args.suite is not None:
+        try:
+            return [r for rooms in load_suite(args.suite).values() for r in rooms], args.suite
+        except FileNotFoundError as err:
+            raise UsageError(f"--suite: {err}") from None
+    try:
+        paths = args.layouts or [str(DEFAULT_LAYOUTS)]
+        return [room for path in paths for room in jaxnav.load_layout(path)], None
+    except LayoutError as err:  # its message names the file, room and field; add the flag
+        raise UsageError(f"--layouts: {err}") from None
+
+
 def _run(argv) -> None:
     args = build_parser().parse_args(argv)
     _check_args(args)
-    try:
-        layouts = [room for path in args.layouts for room in jaxnav.load_layout(path)]
-    except LayoutError as err:  # its message names the file, room and field; add the flag
-        raise UsageError(f"--layouts: {err}") from None
+    layouts, suite = _rooms(args)
     policy = _load_policy(args)
+    _check_outputs(args)
     results = evaluate(
         policy,
-        layouts,
+        None if suite else layouts,
+        suite=suite,
         episodes=args.episodes,
         steps=args.steps,
         seed=args.seed,
@@ -448,9 +601,15 @@ def main(argv=None) -> int:
     """`python -m jaxnav.evaluate`; returns the exit code (2 for user mistakes)."""
     try:
         _run(argv)
+    except NotFinite as err:
+        print_error(err)
+        return 1
     except (UsageError, LayoutError, FileNotFoundError, ValueError) as err:
         print_error(err)
         return 2
+    except OSError as err:  # a write that failed after the checks (disk full)
+        print_error(f"{err.filename or 'output'}: cannot write ({err.strerror or err})")
+        return 1
     return 0
 
 

@@ -10,16 +10,19 @@ folder holding `jaxnav_robot/` (a copy of `jaxnav.robot_side`: numpy, and rclpy 
 the observation normaliser, so they take raw sector distances (metres). The ONNX model maps `obs`
 float32 [N, D] to `logits` float32 [N, A] and `action` int64 [N] (greedy); it is built node by node with
 `onnx.helper` (opset 17, IR 8, loadable by onnxruntime >= 1.10), which needs only the `onnx` package.
-After writing, the file is run on random observations and compared with the JAX network; the check is
-printed.
+Before the file gets its name, it is written beside it under a temporary name, run on random
+observations and compared with the JAX network; only a file that passes is renamed into place (a
+failing one is removed: nothing is left that does not match). The check is printed.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import inspect
 import json
 import math
+import os
 import shutil
 import sys
 import warnings
@@ -50,6 +53,10 @@ ONNX_OPSET, ONNX_IR = 17, 8
 
 class ExportError(UsageError):
     """A user mistake (format, file, missing package); the message names the flag or file."""
+
+
+class CheckFailed(ExportError):
+    """The exported file's logits differ from JAX's: it was not written."""
 
 
 def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
@@ -87,6 +94,7 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
         range_min=np.float32(config.sensor.range_min),
         range_max=np.float32(config.sensor.range_max),
         num_sectors=np.int32(size),
+        control_period=np.float64(config.scene.control_period),  # s; float64: exact 10 Hz
         format_version=np.int32(FORMAT_VERSION),
     )
 
@@ -186,16 +194,29 @@ def verify(
     return diff, int(np.sum(exported.argmax(-1) == reference.argmax(-1)))
 
 
-def _checked(saved: SavedPolicy, out: Path, fmt: str) -> Path:
-    """`out`, after comparing it with JAX (ExportError beyond TOLERANCE)."""
+def write_checked(
+    saved: SavedPolicy, arrays, fmt: str, out: Path, check: bool = True, flag: str = "--out"
+) -> tuple[float, int] | None:
+    """Writes `out` through a temporary file beside it that is checked against JAX first; returns
+    the check (max |logit difference|, greedy actions that agree), or None when it was not run
+    (`check` off, or ONNX without onnxruntime). CheckFailed leaves no file behind."""
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    write(arrays, fmt, tmp, flag)
     try:
-        diff, _ = verify(saved, out, fmt)
-    except ImportError:
-        warnings.warn("onnxruntime is not installed: the ONNX model was not run", stacklevel=3)
-        return out
-    if diff > TOLERANCE:
-        raise ExportError(f"{out}: logits differ from JAX's by {diff:.2e} > {TOLERANCE}")
-    return out
+        result = None
+        if check:
+            with contextlib.suppress(ImportError):  # onnxruntime is optional: said by the caller
+                result = verify(saved, tmp, fmt)
+        if result is not None and result[0] > TOLERANCE:
+            raise CheckFailed(
+                f"{flag} {out}: not written: its logits differ from JAX's by {result[0]:.2e} > "
+                f"{TOLERANCE}"
+            )
+        os.replace(tmp, out)
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+    return result
 
 
 def export(path, fmt: str, out=None, check: bool = True) -> Path:
@@ -206,16 +227,18 @@ def export(path, fmt: str, out=None, check: bool = True) -> Path:
     only checked when onnxruntime is installed).
     """
     saved = read_policy(resolve(path))
-    out = _export(saved, fmt, out)
-    return _checked(saved, out, fmt) if check else out
+    out, result = _export(saved, fmt, out, check)
+    if check and result is None:
+        warnings.warn("onnxruntime is not installed: the ONNX model was not run", stacklevel=2)
+    return out
 
 
-def _export(saved: SavedPolicy, fmt: str, out) -> Path:
+def _export(saved: SavedPolicy, fmt: str, out, check: bool = True):
+    """(the file written, its check as `write_checked` returns it)."""
     if fmt not in FORMATS:
         raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
     out = Path(out) if out is not None else saved.ckpt / f"policy{SUFFIX[fmt]}"
-    write(actor_arrays(saved), fmt, out)
-    return out
+    return out, write_checked(saved, actor_arrays(saved), fmt, out, check)
 
 
 ROBOT_PACKAGE = "jaxnav_robot"  # the name of jaxnav/robot_side in a bundle
@@ -253,18 +276,16 @@ def bundle(path, folder, check: bool = True) -> Path:
     """Writes all the robot needs for the policy of run/checkpoint folder `path` into `folder`:
     `jaxnav_robot/` (a copy of jaxnav.robot_side), `policy.npz` and `README.txt`; returns it."""
     saved = read_policy(resolve(path))
-    folder = _bundle(saved, folder)
-    if check:
-        _checked(saved, folder / "policy.npz", "numpy")
-    return folder
+    return _bundle(saved, folder, check)[0]
 
 
-def _bundle(saved: SavedPolicy, folder) -> Path:
+def _bundle(saved: SavedPolicy, folder, check: bool = True):
+    """(the bundle folder, the check of its policy.npz)."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ExportError(f"--bundle {folder}: exists and is not a folder")
     arrays = actor_arrays(saved)
-    write(arrays, "numpy", folder / "policy.npz", flag="--bundle")
+    result = write_checked(saved, arrays, "numpy", folder / "policy.npz", check, "--bundle")
     package = folder / ROBOT_PACKAGE
     shutil.rmtree(package, ignore_errors=True)
     source = Path(__file__).parent / "robot_side"
@@ -282,7 +303,7 @@ def _bundle(saved: SavedPolicy, folder) -> Path:
         actions=commands,
     )
     (folder / "README.txt").write_text(text)
-    return folder
+    return folder, result
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -309,27 +330,26 @@ def main(argv=None) -> int:
             raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
         saved = read_policy(resolve(args.dir))
         if args.bundle is not None:
-            out = _bundle(saved, args.bundle) / "policy.npz"
+            out, result = _bundle(saved, args.bundle)
         else:
-            out = _export(saved, fmt, args.out)
+            out, result = _export(saved, fmt, args.out)
+    except CheckFailed as err:
+        print_error(err)
+        return 1
     except (ExportError, CheckpointError) as err:
         print_error(err)
         return 2
-    print(f"wrote {args.bundle or out} ({'bundle' if args.bundle else fmt}) from {saved.ckpt}")
-    try:
-        diff, agree = verify(saved, out, fmt)
-    except ImportError:
+    print(f"wrote {out} ({'bundle' if args.bundle else fmt}) from {saved.ckpt}")
+    if result is None:
         print("warning: onnxruntime is not installed; the ONNX model was not run", file=sys.stderr)
         return 0
-    ok = diff <= TOLERANCE
     print(
-        f"check: max |logit - JAX logit| = {diff:.2e} on {CHECK_OBS} random observations "
-        f"({'ok' if ok else 'FAILED'}, tolerance {TOLERANCE:.0e}); "
-        f"greedy actions agree on {agree}/{CHECK_OBS}"
+        f"check: max |logit - JAX logit| = {result[0]:.2e} on {CHECK_OBS} random observations "
+        f"(ok, tolerance {TOLERANCE:.0e}); greedy actions agree on {result[1]}/{CHECK_OBS}"
     )
-    if args.bundle is not None and ok:
+    if args.bundle is not None:
         print(f"on the robot: see {args.bundle / 'README.txt'}")
-    return 0 if ok else 1
+    return 0
 
 
 if __name__ == "__main__":

@@ -11,9 +11,8 @@ import argparse
 import contextlib
 import dataclasses
 import json
-import signal
+import shutil
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -21,8 +20,15 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxnav.cli import Parser, make_callable, print_error
-from jaxnav.io import checkpoint, runlog
+from jaxnav.cli import (
+    EXIT_INTERRUPTED,
+    Interrupts,
+    Parser,
+    interruptible,
+    make_callable,
+    print_error,
+)
+from jaxnav.io import checkpoint, files, runlog
 from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layout, parse_layouts
 from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overrides_from_args
 from jaxnav.ppo.config import PRESETS, preset
@@ -57,66 +63,212 @@ class Interrupted(Exception):
     """Training stopped on SIGINT/SIGTERM after writing a checkpoint."""
 
 
-@contextlib.contextmanager
-def _stop_requests():
-    """Turns SIGINT/SIGTERM into a flag checked between chunks (so a chunk always completes)."""
-    requested = []
-    handler = lambda signum, frame: requested.append(signal.Signals(signum).name)  # noqa: E731
-    if threading.current_thread() is not threading.main_thread():
-        yield requested
+class RunFailed(Exception):
+    """Training stopped by the machine (disk full, no permission, no memory); the one-line message
+    names the path and says what was saved."""
+
+
+# ---------------------------------------------------------------- before anything is written
+
+
+def _meminfo_available() -> int | None:
+    """MemAvailable of /proc/meminfo, bytes (None where there is none)."""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    return None
+
+
+def memory_check(config: RunConfig, env, trainer) -> None:
+    """Refuses a --num-envs whose robots cannot fit in memory, before anything is written.
+
+    Bytes per robot come from the shapes of a fresh TrainState (`jax.eval_shape`: nothing is
+    allocated) and of the rollout buffers; compared with MemAvailable on the CPU (all devices share
+    it) or the first accelerator's `bytes_limit`. Where neither is known, nothing is checked.
+    """
+    cfg, devices = config.ppo, jax.local_devices()
+    shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
+    leaves = jax.tree_util.tree_leaves(shapes.env_state)
+    state = sum(x.size * x.dtype.itemsize for x in leaves) / cfg.num_envs
+    # A Transition per step: raw and normalised obs, 6 scalars, the episode sums (float32/int32).
+    step = 4 * (2 * env.observation_size + 8 + len(env.metric_names))
+    # The state, the next one and its auto-reset draw; the rollout and its shuffled copy.
+    per_robot = 3 * state + 2 * cfg.rollout_length * step
+    if devices[0].platform == "cpu":
+        available, where, share = _meminfo_available(), "free CPU memory (MemAvailable)", 1
+    else:
+        stats = devices[0].memory_stats() or {}
+        available, share = stats.get("bytes_limit"), len(devices)
+        where = f"memory of one {devices[0].device_kind}"
+    if available is None or per_robot * cfg.num_envs / share <= available:
         return
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield requested
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
+    fits = int(available * share / per_robot) // len(devices) * len(devices)
+    raise ValueError(
+        f"--num-envs {cfg.num_envs}: needs about {per_robot * cfg.num_envs / share / 1e9:.1f} GB "
+        f"({per_robot / 1e3:.1f} kB per robot) but the {where} is {available / 1e9:.1f} GB; "
+        f"the largest --num-envs that fits is about {fits:,}"
+    )
 
 
-def run(config: RunConfig, out: Path, progress: bool = True, stop: list | None = None) -> Path:
-    """Trains `config` into a new run folder `out`; returns the final checkpoint folder."""
+class _NewRunFolder:
+    """The start of a new run folder: made with its lock and config.json; `remove()` takes back
+    what the start made while no checkpoint exists (a failed or interrupted start)."""
+
+    def __init__(self, out: Path, config: RunConfig):
+        self.out, self.config = out, config
+        self.lock = files.RunLock(out)
+        self.made = False
+
+    def create(self) -> None:
+        try:
+            self.made = not self.out.exists()
+            self.out.mkdir(parents=True, exist_ok=True)
+            self.lock.acquire()
+            files.write_atomic(
+                self.out / "config.json", json.dumps(self.config.to_dict(), indent=2)
+            )
+        except OSError as err:
+            self.remove()
+            raise ValueError(
+                f"--out {self.out}: cannot write the run folder ({err.strerror})"
+            ) from None
+
+    def remove(self) -> None:
+        if not self.out.is_dir() or checkpoint.list_checkpoints(self.out):
+            return  # something was saved: the folder is a run that --resume continues
+        if self.made:
+            shutil.rmtree(self.out, ignore_errors=True)
+            return
+        for name in ("config.json", "metrics.csv", "tb", checkpoint.CKPT_DIR):
+            path = self.out / name
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+        self.lock.release()
+
+
+# ---------------------------------------------------------------- starting and continuing
+
+
+def run(
+    config: RunConfig, out: Path, progress: bool = True, stop: Interrupts | None = None
+) -> Path:
+    """Trains `config` into a new run folder `out`; returns the final checkpoint folder.
+
+    The env is built and the memory need checked before anything is written; a start that fails or
+    is interrupted before the first checkpoint removes what it wrote. `stop` is the command line's
+    `Interrupts` (None: the loop listens to SIGINT/SIGTERM itself once training runs).
+    """
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
     if checkpoint.list_checkpoints(out):
         raise ValueError(
             f"--out {out}: already holds a training run; use --resume {out} or "
             "choose another folder"
         )
+    env, trainer = interruptible(_build, config)
+    memory_check(config, env, trainer)
+    folder = _NewRunFolder(out, config)
+    folder.create()
     try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"--out {out}: cannot create the run folder ({err.strerror})") from None
-    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+        if stop is not None:
+            stop.at_once(f"removed the unfinished run folder {out}", folder.remove)
+        ts = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
+        return _loop(config, out, trainer, ts, [], 0.0, progress, stop, env.metric_names)
+    except BaseException:
+        folder.remove()
+        raise
+    finally:
+        folder.lock.release()
+
+
+def _build(config: RunConfig):
     env = make_run_env(config)
-    trainer = make_train(config.ppo, env)
-    ts = trainer.init(jax.random.PRNGKey(config.seed))
-    return _loop(config, out, trainer, ts, [], 0.0, progress, stop, env.metric_names)
+    return env, make_train(config.ppo, env)
+
+
+def _run_config(out: Path, ckpt: Path) -> RunConfig:
+    """The run's config.json (the one source of its budget), checked against the checkpoint's copy:
+    they may differ in ppo.total_steps only."""
+    if not (out / "config.json").exists():
+        return checkpoint.load_config(ckpt)
+    config, saved = checkpoint.load_config(out), checkpoint.load_config(ckpt)
+    mine, theirs = config.to_dict(), saved.to_dict()
+    mine["ppo"]["total_steps"] = theirs["ppo"]["total_steps"]
+    differ = [k for k in mine if mine[k] != theirs[k]]
+    if differ:
+        key = differ[0]
+        if isinstance(mine[key], dict):
+            key += "." + next(k for k in mine[key] if mine[key][k] != theirs[key].get(k))
+        raise checkpoint.CheckpointError(
+            f"{out / 'config.json'}: {key} differs from the checkpoint's {ckpt / 'config.json'}; "
+            "only ppo.total_steps may change (restore the run's config.json)"
+        )
+    return config
 
 
 def resume(
-    out: Path, total_steps: int | None = None, progress: bool = True, stop: list | None = None
+    out: Path,
+    total_steps: int | None = None,
+    progress: bool = True,
+    stop: Interrupts | None = None,
 ) -> Path:
-    """Continues the run in `out` from its latest checkpoint, optionally to a new step budget."""
+    """Continues the run in `out` from its latest checkpoint, optionally to a new step budget.
+
+    A run folder with config.json but no checkpoint yet (a start killed early) starts from its
+    config.json.
+    """
     out = Path(out)
+    if not checkpoint.list_checkpoints(out) and (out / "config.json").is_file():
+        config = _with_budget(checkpoint.load_config(out), total_steps)
+        print(f"jaxnav: {out} has no checkpoint yet; starting it from its config.json", flush=True)
+        return run(config, out, progress, stop)
     ckpt = checkpoint.resolve(out)
-    config = checkpoint.load_config(ckpt)
-    if total_steps is not None:
-        config = dataclasses.replace(
-            config, ppo=dataclasses.replace(config.ppo, total_steps=total_steps)
+    config = _run_config(out, ckpt)
+    meta = checkpoint.load_meta(ckpt)
+    done = meta["update"] * config.ppo.batch_size
+    if total_steps is not None and total_steps < done:
+        raise ValueError(
+            f"--total-steps {total_steps}: below the run's progress ({done:,} env steps, "
+            f"{ckpt}); give at least {done}"
         )
-        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    env = make_run_env(config)
-    trainer = make_train(config.ppo, env)
-    ts = checkpoint.restore_train_state(ckpt, trainer.init(jax.random.PRNGKey(config.seed)))
-    meta = json.loads((ckpt / "meta.json").read_text())
-    rows = [r for r in runlog.read_rows(out / "metrics.csv") if r["update"] <= int(ts.update)]
-    elapsed = meta.get("elapsed_s", 0.0)
-    return _loop(config, out, trainer, ts, rows, elapsed, progress, stop, env.metric_names)
+    config = _with_budget(config, total_steps)
+    checkpoint.verify(ckpt)  # resolve() found no intact one: this names the damaged file
+    lock = files.RunLock(out)
+    lock.acquire()
+    try:
+        if stop is not None:
+            note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
+            stop.at_once(note, lock.release)
+        checkpoint.remove_stale_writes(out)
+        files.write_atomic(out / "config.json", json.dumps(config.to_dict(), indent=2))
+        env, trainer = interruptible(_build, config)
+        template = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
+        ts = checkpoint.restore_train_state(ckpt, template)
+        rows = [r for r in runlog.read_rows(out / "metrics.csv") if r["update"] <= int(ts.update)]
+        elapsed = meta.get("elapsed_s", 0.0)
+        return _loop(config, out, trainer, ts, rows, elapsed, progress, stop, env.metric_names)
+    finally:
+        lock.release()
+
+
+def _with_budget(config: RunConfig, total_steps: int | None) -> RunConfig:
+    if total_steps is None:
+        return config
+    return dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, total_steps=total_steps))
+
+
+# ---------------------------------------------------------------- the loop
 
 
 def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names) -> Path:
     """Runs chunks until the budget is spent or a stop is requested; checkpoints on the way.
 
-    `stop` is the list a caller's `_stop_requests()` fills; without one, the loop listens itself.
+    The first chunk (the compile) runs interruptibly; then `stop` defers signals to the end of
+    the chunk under way. Without `stop`, the loop listens itself.
     """
     cfg = config.ppo
     start = time.perf_counter() - elapsed
@@ -130,42 +282,84 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names)
         desc="training",
         dynamic_ncols=True,
     )
-    listen = _stop_requests() if stop is None else contextlib.nullcontext(stop)
+    listen = Interrupts(deferred=True) if stop is None else contextlib.nullcontext(stop)
     fields = runlog.columns(metric_names)
-    shown = metric_names[0] if metric_names else "episode_length"  # beside the reward in the bar
-    with runlog.MetricsLog(out, fields, rows) as log, listen as stop:
+    with (
+        _writes(out, lambda: last_ckpt),
+        runlog.MetricsLog(out, fields, rows) as log,
+        listen as stop,
+    ):
+        first = True
         while int(ts.update) < cfg.num_updates:
             before, tick = int(ts.update), time.perf_counter()
-            ts, metrics = trainer.run_chunk(ts)
+            ts, metrics = _first_chunk(trainer, ts, stop) if first else trainer.run_chunk(ts)
+            first = False
             metrics = jax.device_get(metrics)
             rate = (int(ts.update) - before) * cfg.batch_size / (time.perf_counter() - tick)
             _check_finite(metrics, ts, last_ckpt)
             elapsed = time.perf_counter() - start
             log.add(runlog.chunk_rows(metrics, fields, before, cfg.batch_size, rate, elapsed))
-            bar.update((int(ts.update) - before) * cfg.batch_size)
-            bar.set_postfix(
-                reward=f"{log.last('episode_reward'):.1f}",
-                **{shown: f"{log.last(shown):.2f}"},
-                sps=f"{rate:,.0f}",
-            )
+            _show(bar, log, metric_names, rate, int(ts.update) - before, cfg.batch_size)
             update = int(ts.update)
             due = update // cfg.checkpoint_every > before // cfg.checkpoint_every
-            if due or update >= cfg.num_updates or stop:
+            if due or update >= cfg.num_updates or stop.requested:
                 meta = {
                     "env_steps": update * cfg.batch_size,
                     "elapsed_s": time.perf_counter() - start,
                 }
                 last_ckpt = checkpoint.save(out, ts, config, meta)
                 _plot(out)
-            if stop and update < cfg.num_updates:
+            if stop.requested and update < cfg.num_updates:
                 bar.close()
                 raise Interrupted(
-                    f"{stop[0]}: stopped at update {update} of {cfg.num_updates}; "
+                    f"{stop.requested[0]}: stopped at update {update} of {cfg.num_updates}; "
                     f"checkpoint {last_ckpt}; continue with: python -m jaxnav.train "
                     f"--resume {out}"
                 )
     bar.close()
     return last_ckpt
+
+
+def _first_chunk(trainer, ts, stop: Interrupts):
+    """The first chunk of a session (XLA compiles it), interruptible at once; then signals wait
+    for the end of a chunk."""
+    print("jaxnav: compiling the training step (the first chunk)...", flush=True)
+    tick = time.perf_counter()
+    out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)))
+    stop.defer()  # before the line: a signal after it must wait for the chunk and checkpoint
+    print(
+        f"jaxnav: compiled and ran the first chunk in {time.perf_counter() - tick:.1f} s",
+        flush=True,
+    )
+    return out
+
+
+def _show(bar, log, metric_names, rate, updates, batch_size) -> None:
+    shown = metric_names[0] if metric_names else "episode_length"  # beside the reward in the bar
+    bar.update(updates * batch_size)
+    bar.set_postfix(
+        reward=f"{log.last('episode_reward'):.1f}",
+        **{shown: f"{log.last(shown):.2f}"},
+        sps=f"{rate:,.0f}",
+    )
+
+
+@contextlib.contextmanager
+def _writes(out: Path, last_ckpt):
+    """Turns a failed write of the loop (disk full, read-only) into RunFailed: one line naming
+    the path and what is saved (`last_ckpt()`: the newest checkpoint written)."""
+    try:
+        yield
+    except OSError as err:
+        where = err.filename or out / checkpoint.CKPT_DIR
+        saved = last_ckpt()
+        kept = (
+            f"saved: checkpoint {saved} and metrics.csv up to it; free space or fix permissions "
+            f"and continue with: python -m jaxnav.train --resume {out}"
+            if saved
+            else "nothing was saved"
+        )
+        raise RunFailed(f"{where}: cannot write ({err.strerror or err}); {kept}") from None
 
 
 def _check_finite(metrics, ts, last_ckpt) -> None:
@@ -222,6 +416,7 @@ def train(
 
 
 def parse_args(argv=None) -> argparse.Namespace:
+    """The flags; `args.given` lists the flags typed (as typed: `--learning-rate`)."""
     parser = Parser(
         prog="python -m jaxnav.train",
         description=__doc__,
@@ -253,7 +448,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     if name not in TASKS:
         raise ValueError(f"--env: unknown task '{name}'; valid: {', '.join(sorted(TASKS))}")
     add_flags(parser, name)  # the task's own flags
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    args.given = [
+        action.option_strings[0]
+        for action in parser._actions
+        if action.option_strings
+        and action.dest != "help"
+        and getattr(args, action.dest, None) != action.default
+    ]
+    return args
 
 
 def _new_run_dir(root: Path, name: str) -> Path:
@@ -262,18 +465,14 @@ def _new_run_dir(root: Path, name: str) -> Path:
     return next(p for p in candidates if not p.exists())
 
 
-def _start(args, stop: list) -> tuple[Path, Path]:
+RESUME_FLAGS = ("--resume", "--total-steps", "--no-progress")  # the flags --resume takes
+
+
+def _start(args, stop: Interrupts) -> tuple[Path, Path]:
     """Runs what the flags ask for; returns (run folder, final checkpoint)."""
     overrides = overrides_from_args(args)
     if args.resume:
-        others = [f"--{k}" for k in ("out", "preset", "seed", "layouts") if getattr(args, k)]
-        others += ["--env"] if args.env != "avoid" else []
-        others += [
-            f"{g}.{k}"
-            for g, fields in overrides.items()
-            for k in fields
-            if (g, k) != ("ppo", "total_steps")
-        ]
+        others = [flag for flag in args.given if flag not in RESUME_FLAGS]
         if others:
             raise ValueError(
                 f"--resume: continues with the run's own config; drop {', '.join(others)}"
@@ -293,22 +492,40 @@ def _start(args, stop: list) -> tuple[Path, Path]:
     return out, run(config, out, not args.no_progress, stop)
 
 
+def _out_of_memory(err: Exception) -> str | None:
+    """The one-line message for XLA's RESOURCE_EXHAUSTED, else None."""
+    text = " ".join(str(err).split())
+    if "RESOURCE_EXHAUSTED" not in text:
+        return None
+    return f"out of memory ({text[:160]}); nothing new was saved; try a smaller --num-envs"
+
+
 def main(argv=None) -> int:
+    """`python -m jaxnav.train`; returns the exit code (2 for user mistakes, 130 for an interrupt
+    before training started, 1 when the machine stops the run)."""
     start = time.perf_counter()
     try:
-        args = parse_args(argv)
-        with _stop_requests() as stop:  # from here on, Ctrl-C ends with a checkpoint
+        with Interrupts() as stop:  # Ctrl-C: at once until training runs, then after a chunk
+            args = parse_args(argv)
             out, final = _start(args, stop)
-    except Interrupted as stop:
-        print(f"interrupted ({stop})")
+    except Interrupted as stopped:
+        print(f"interrupted ({stopped})")
         return 0
-    except FloatingPointError as err:
+    except KeyboardInterrupt:  # outside the main thread, where Interrupts cannot listen
+        print_error("interrupted")
+        return EXIT_INTERRUPTED
+    except (FloatingPointError, RunFailed) as err:
         print_error(err)
         return 1
     except (ValueError, LayoutError, FileNotFoundError) as err:
         print_error(err)
         return 2
-    meta = json.loads((final / "meta.json").read_text())
+    except jax.errors.JaxRuntimeError as err:
+        if _out_of_memory(err) is None:
+            raise
+        print_error(_out_of_memory(err))
+        return 1
+    meta = checkpoint.load_meta(final)
     print(
         f"done: {meta['env_steps']:,} env steps, {time.perf_counter() - start:.0f} s in this "
         f"session. Results in {out}/: metrics.csv, reward_curve.png, tb/, "

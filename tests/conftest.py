@@ -1,5 +1,6 @@
 """Shared fixtures: environments and a tiny training run are made once per session and reused."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -24,7 +25,18 @@ EXACT = RandomizeConfig(
     speed_gain=(1.0, 1.0),
     sensor_noise=(0.0, 0.0),
     sensor_dropout=(0.0, 0.0),
+    sensor_noise_quadratic=(0.0, 0.0),
+    dark_prob=0.0,
+    camera_height_error=0.0,
+    camera_pitch_error=0.0,
+    camera_yaw_error=0.0,
+    latency_steps=(0, 0),
+    wheel_asymmetry=(0.0, 0.0),
+    accel_limit=(0.0, 0.0),  # no velocity smoother: commanded speeds within one step
+    angular_accel_limit=(0.0, 0.0),
 )
+# The Kobuki's nominal command pipeline: smoother limits 0.3 m/s^2 and 3.5 rad/s^2, no latency.
+KOBUKI = dataclasses.replace(EXACT, accel_limit=(0.3, 0.3), angular_accel_limit=(3.5, 3.5))
 
 
 def corridor(obstacle, size=(8.0, 3.0)) -> RoomLayout:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxnav
@@ -48,6 +49,18 @@ BAD_LAYOUTS = {  # file name: (change to GOOD_ROOM's first obstacle or room, wha
     "spawn_overlap.json": ({"pos": [0.2, 0.0]}, "robot.pos"),
     "unknown_key.json": ({"colour": "red"}, "obstacles[0].colour"),
     "wrong_type.json": ({"room": {"size": "4x4"}}, "room.size"),
+    "no_free_spawn.json": (
+        {"room": {"size": [2.0, 2.0]}, "robot": None, "obstacles": [
+            {"type": "box", "pos": [x, y], "size": [1.0, 1.0]} for x in (-.5, .5) for y in (-.5, .5)
+        ]},
+        "no free spawn",
+    ),
+    "huge_room.json": ({"room": {"size": [1e30, 1e30]}}, "room.size"),
+}  # fmt: skip
+# Files that are not JSON rooms at all: (content, what the message says).
+BAD_FILES = {
+    "deep.json": ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    "digits.json": ('{"room": {"size": [' + "9" * 5000 + ", 4]}}", "invalid JSON"),
 }
 # Reached by a training run whose config passed every check: these tests must never get there.
 PASSED = "the config passed validation"
@@ -57,6 +70,7 @@ def _bad_room(change: dict) -> dict:
     room = json.loads(json.dumps(GOOD_ROOM))
     if "room" in change:
         room.update(change)
+        room = {k: v for k, v in room.items() if v is not None}
     else:
         room["obstacles"][0].update(change)
     return room
@@ -67,6 +81,9 @@ def files(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("layouts")
     for name, (change, _) in BAD_LAYOUTS.items():
         (root / name).write_text(json.dumps(_bad_room(change)))
+    for name, (content, _) in BAD_FILES.items():
+        (root / name).write_text(content)
+    os.mkfifo(root / "fifo.json")
     return root
 
 
@@ -103,7 +120,26 @@ BROKEN_RUNS = {
     "garbage_config": (lambda c: (c / "config.json").write_text("{ppo: ???"), "config.json"),
     "config_wrong_type": (lambda c: _edit_config(c, ppo={"num_envs": "many"}), "ppo.num_envs"),
     "config_mismatch": (lambda c: _edit_config(c, ppo={"hidden": [64, 64]}), "policy.msgpack"),
+    "random_msgpack": (
+        lambda c: (c / "policy.msgpack").write_bytes(np.random.default_rng(0).bytes(64)),
+        "policy.msgpack",
+    ),
+    "truncated_state": (
+        lambda c: (c / "train_state.npz").write_bytes((c / "train_state.npz").read_bytes()[:300]),
+        "train_state.npz",
+    ),
+    "garbled_state": (lambda c: _garble(c / "train_state.npz"), "train_state.npz"),
+    "truncated_meta": (
+        lambda c: (c / "meta.json").write_text((c / "meta.json").read_text()[:15]),
+        "meta.json",
+    ),
 }
+
+
+def _garble(file: Path) -> None:
+    data = bytearray(file.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 64] = np.random.default_rng(1).bytes(64)
+    file.write_bytes(bytes(data))
 
 
 @pytest.fixture(scope="module")
@@ -222,6 +258,46 @@ def test_evaluate_bad_layout(files, capsys, file):
     assert_one_error_line(code, err, "--layouts", file, BAD_LAYOUTS[file][1])
 
 
+SPECIAL = {"deep.json": "nested too deeply", "digits.json": "invalid JSON"}
+SPECIAL |= {"fifo.json": "FIFO", "/dev/zero": "character device", "/dev/urandom": "device"}
+
+
+@pytest.mark.parametrize("file", sorted(SPECIAL))
+def test_layouts_that_are_not_json_rooms(files, capsys, file):
+    """Deep nesting, 5000-digit numbers, a FIFO (blocked forever) and devices (4 GB read)."""
+    path = file if file.startswith("/") else files / file
+    argv = ["--policy", "forward", "--layouts", path]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, "--layouts", str(path), SPECIAL[file])
+
+
+@pytest.mark.parametrize("flag", ["--plots", "--json", "--video"])
+def test_evaluate_unwritable_output_before_evaluating(capsys, monkeypatch, flag):
+    def never(*args, **kwargs):
+        raise AssertionError("evaluated before checking where the results go")
+
+    monkeypatch.setattr(jaxnav.evaluate, "evaluate", never)
+    path = "/proc/results.json" if flag == "--json" else "/proc"
+    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", flag, path], capsys)
+    assert_one_error_line(code, err, flag, "/proc", "cannot write")
+
+
+def test_evaluate_never_reports_nan(tmp_path, capsys, monkeypatch):
+    """A room whose metrics are not finite is an error, and no JSON is written."""
+    real = jaxnav.evaluate.evaluate_rooms
+
+    def diverged(*args, **kwargs):
+        return [{**r, "distance": r["distance"] * np.nan} for r in real(*args, **kwargs)]
+
+    monkeypatch.setattr(jaxnav.evaluate, "evaluate_rooms", diverged)
+    out = tmp_path / "eval.json"
+    argv = ["--policy", "forward", "--episodes", "2", "--steps", "2", "--json", out]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    assert "room 'inference-room'" in err and "mean_speed is nan" in err
+    assert not out.exists()
+
+
 def test_more_obstacles_than_slots_grows_the_slots(tmp_path, train_main, capsys):
     """Not an error: `--scene.num-boxes` is a minimum, every layout gets the slots it needs."""
     boxes = [Box(pos=(-2.0 + 0.5 * i, 1.5), size=(0.3, 0.3)) for i in range(9)]
@@ -291,7 +367,11 @@ def test_train_out_is_a_file(tmp_path, monkeypatch, capsys):
 # Checkpoints: train --resume, evaluate and export
 
 
-@pytest.mark.parametrize("run", ["missing", "empty", "garbage_config", "config_wrong_type"])
+RESUME_BROKEN = ["missing", "empty", "garbage_config", "config_wrong_type", "truncated_state"]
+RESUME_BROKEN += ["garbled_state", "truncated_meta", "random_msgpack"]
+
+
+@pytest.mark.parametrize("run", RESUME_BROKEN)
 def test_train_resume_broken_run(runs, train_main, capsys, run):
     code, err = _call(lambda a: train_main(a, out=False), ["--resume", runs / run], capsys)
     assert_one_error_line(code, err, str(runs / run), BROKEN_RUNS[run][1])
@@ -309,6 +389,14 @@ def test_export_broken_checkpoint(runs, tmp_path, capsys, run):
     argv = [runs / run, "--out", tmp_path / "policy.npz"]
     code, err = _call(jaxnav.export.main, argv, capsys)
     assert_one_error_line(code, err, str(runs / run), BROKEN_RUNS[run][1])
+
+
+def test_export_writes_nothing_that_fails_its_check(runs, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(jaxnav.export, "verify", lambda *a, **k: (0.5, 0))
+    code, err = _call(jaxnav.export.main, [runs / "good", "--out", tmp_path / "p.npz"], capsys)
+    assert code == 1 and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert "p.npz: not written" in err
+    assert list(tmp_path.iterdir()) == []  # neither the file nor its temporary
 
 
 def test_export_unknown_format(runs, tmp_path, capsys):

@@ -1,22 +1,17 @@
-"""Robot-side conversions: sensor readings -> the simulator's observation, actions -> Twist, ROS bytes."""
+"""Robot-side conversions: sensor readings -> the simulator's observation, actions -> Twist."""
 
 import math
-import sys
-import types
 
 import jax
 import numpy as np
 import pytest
 from conftest import EXACT
-from test_robot_side import write_policy_npz
 
 import jaxnav
 from jaxnav.core.sensors import ray_depths
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout
 from jaxnav.robot_side import observation as deploy
-from jaxnav.robot_side import ros_node
 from jaxnav.robot_side.observation import Sensor
-from jaxnav.robot_side.policy import NumpyPolicy
 
 NAN, INF = float("nan"), float("inf")
 # What an exported policy of the default settings carries (test_export checks the export writes it).
@@ -45,9 +40,7 @@ def scene():
     env = jaxnav.make_env("avoid", layouts=[layout], randomize=EXACT)
     state = jax.jit(env.reset)(jax.random.PRNGKey(0))
     m = env.scene.model_for(state.info["params"])
-    depths = jax.jit(ray_depths, static_argnums=(2, 3, 4))(
-        m, state.data, env.sensor, env.robot, env.scene.robot_body
-    )
+    depths = jax.jit(lambda m, d: ray_depths(m, d, env.sensor, env.scene))(m, state.data)
     obs, depths = np.asarray(state.obs), np.asarray(depths)
     assert len(set(np.round(obs, 3))) >= 5 and obs.max() == env.sensor.range_max  # a varied scene
     cfg = env.sensor
@@ -69,7 +62,7 @@ def test_scan_reproduces_simulated_sectors(scene):
 
 def test_depth_image_reproduces_simulated_sectors(scene):
     obs, depths, angles, sensor = scene
-    row = np.where(np.isinf(depths), 0.0, depths)[::-1]  # column 0 = leftmost ray; 0 = no data
+    row = np.where(np.isinf(depths), 20.0, depths)[::-1]  # column 0 = leftmost ray
     np.testing.assert_allclose(deploy.depth_image_to_sectors(row[None], sensor), obs, atol=1e-4)
     # The floor below the horizon reads close; only the horizon row must count.
     image = np.stack([row, np.full_like(row, 0.7), np.full_like(row, 0.65)])
@@ -79,28 +72,60 @@ def test_depth_image_reproduces_simulated_sectors(scene):
     np.testing.assert_allclose(got, obs, atol=1e-4)
 
 
-def test_invalid_readings_are_ignored():
+def test_blind_zone_reads_near():
+    """The Astra's 0 (too close or no return) must never read far: a mostly blind sector is near."""
+    zeros = deploy.depth_image_to_sectors(np.zeros((480, 640), np.float32), SENSOR)
+    np.testing.assert_array_equal(zeros, np.full(8, 0.6, np.float32))
+    assert zeros.dtype == np.float32
+    image = np.full((6, 80), 5.0, np.float32)  # 10 columns per sector, sector 0 = columns 70..79
+    image[:, 75:] = 0.0  # sector 0: half its pixels unknown -> near
+    image[:3, 60:70] = np.nan  # sector 1: half unknown (NaN) -> near
+    image[:2, 50:60] = 0.0  # sector 2: a third unknown -> the minimum of the rest
+    image[5, 52] = 2.5
+    image[:, 40:50] = [[3.0], [4.0], [0.0], [-1.0], [np.inf], [3.5]]  # sector 3: 2 of 6 unknown
+    image[:, 30:40] = 0.3  # sector 4: nearer than range_min -> range_min
+    image[:, 20:30] = 9.0  # sector 5: beyond range_max -> range_max
+    image[0, 0] = np.inf  # sector 7: +inf is no return within range, not unknown
+    got = deploy.depth_image_to_sectors(image, SENSOR)
+    np.testing.assert_allclose(got, [0.6, 0.6, 2.5, 3.0, 0.6, 8.0, 5.0, 5.0])
+    # blind_fraction is the share from which a sector reads near; 1: only an all-unknown sector.
+    got = deploy.depth_image_to_sectors(image, SENSOR, blind_fraction=0.3)
+    np.testing.assert_allclose(got[:4], [0.6, 0.6, 0.6, 0.6])
+    got = deploy.depth_image_to_sectors(image, SENSOR, blind_fraction=1.0)
+    np.testing.assert_allclose(got[:4], [5.0, 5.0, 2.5, 3.0])
+    with pytest.raises(ValueError, match=r"blind_fraction: must be in \(0, 1\], got 0"):
+        deploy.depth_image_to_sectors(image, SENSOR, blind_fraction=0)
+    # Only the rows considered count: a blind floor row outside them changes nothing.
+    image[5] = 0.0
+    assert deploy.depth_image_to_sectors(image, SENSOR, rows=slice(0, 5))[6] == 5.0
+
+
+def test_reduce_sectors_rule():
+    """The rule the simulator mirrors, on readings given directly (NaN = unknown)."""
+    depth = [NAN, 2.0, 1.0, 3.0, NAN, NAN, 0.2, INF, -INF, 4.0]
+    sector = [0, 0, 1, 1, 2, 2, 3, 4, 5, 7]  # sector 6 has no reading
+    got = deploy.reduce_sectors(depth, sector, SENSOR)
+    np.testing.assert_allclose(got, [0.6, 1.0, 0.6, 0.6, 8.0, 0.6, 0.6, 4.0])
+
+
+def test_scan_reading_rules():
     # One sector per beam triple, right to left; expected sector values after the rules.
     beams = [
-        [0.0, NAN, 2.0],  # invalid ones ignored -> 2.0
-        [INF, -1.0, 3.0],  # -> 3.0
-        [0.0, NAN, INF],  # nothing valid -> range_max
+        [0.0, 7.0, 2.0],  # 0: nearer than measurable -> range_min
+        [INF, -1.0, 3.0],  # negative -> range_min
+        [NAN, NAN, INF],  # no return -> range_max
         [0.3, 5.0, 6.0],  # below range_min -> range_min
         [9.0, 12.0, INF],  # beyond range_max -> range_max
-        [-INF, 1.5, 1.0],  # -> 1.0
+        [-INF, 1.5, 1.0],  # -> range_min
         [4.0, 4.0, 4.0],
-        [7.0, 0.0, 2.5],
+        [7.0, NAN, 2.5],  # -> 2.5
     ]
-    want = [2.0, 3.0, 8.0, 0.6, 8.0, 1.0, 4.0, 2.5]
+    want = [0.6, 0.6, 8.0, 0.6, 8.0, 0.6, 4.0, 2.5]
     depth = np.array(beams, np.float64).ravel()  # [24], right to left
-    image = depth[::-1][None]  # left to right
-    np.testing.assert_allclose(deploy.depth_image_to_sectors(image, SENSOR), want, rtol=1e-6)
     angles = (np.arange(24) + 0.5) / 24 * SENSOR.fov - 0.5 * SENSOR.fov  # the simulator's rays
-    ranges = depth / np.cos(angles)
+    with np.errstate(invalid="ignore"):
+        ranges = depth / np.cos(angles)
     np.testing.assert_allclose(deploy.scan_to_sectors(ranges, angles, SENSOR), want, rtol=1e-6)
-    empty = deploy.depth_image_to_sectors(np.zeros((5, 640), np.float32), SENSOR)
-    np.testing.assert_array_equal(empty, np.full(8, 8.0, np.float32))
-    assert empty.dtype == np.float32
 
 
 def test_uneven_widths_and_geometry_helpers():
@@ -158,120 +183,3 @@ def test_controller_in_one_call():
     assert controller.scan_to_twist(ranges, angles) == pytest.approx((0.0, -0.75 * 1.1))
     with pytest.raises(ValueError, match="Controller.speed_calibration"):
         deploy.Controller(TurnAway(), speed_calibration=0.0)
-
-
-def test_image_message_conversion():
-    depth = np.array([[0.5, 1.0, NAN], [2.0, 0.0, 8.5]], np.float32)
-    padded = b"".join(r.tobytes() + b"\xff" * 4 for r in depth)  # step = 3 * 4 + 4 bytes
-    got = ros_node.image_msg_to_array("32FC1", 2, 3, padded, 16)
-    np.testing.assert_array_equal(got, depth)
-    mm = np.array([[600, 0, 65535], [1234, 8000, 1]], np.uint16)
-    got = ros_node.image_msg_to_array("16UC1", 2, 3, mm.tobytes(), 6)
-    np.testing.assert_allclose(got, mm / 1000.0, rtol=1e-6)
-    assert got.dtype == np.float32 and got[0, 1] == 0.0  # no data stays invalid
-    big = mm.astype(">u2").tobytes()
-    np.testing.assert_allclose(
-        ros_node.image_msg_to_array("16UC1", 2, 3, big, 6, is_bigendian=True), mm / 1000.0
-    )
-    with pytest.raises(ValueError, match="rgb8"):
-        ros_node.image_msg_to_array("rgb8", 2, 3, bytes(18), 9)
-    with pytest.raises(ValueError, match="too short"):
-        ros_node.image_msg_to_array("32FC1", 2, 3, bytes(20), 12)
-
-
-def test_scan_and_twist_message_conversion():
-    ranges, angles = ros_node.scan_msg_to_arrays([1.0, INF, 2.0], -0.5, 0.25)
-    np.testing.assert_allclose(angles, [-0.5, -0.25, 0.0])
-    assert ranges.dtype == np.float32 and np.isinf(ranges[1])
-
-    class Vector:
-        x = y = z = 0.0
-
-    class TwistMsg:  # the fields of geometry_msgs/Twist the node sets
-        def __init__(self):
-            self.linear, self.angular = Vector(), Vector()
-
-    msg = ros_node.twist_msg(deploy.Twist(0.5, -1.5), TwistMsg)
-    assert (msg.linear.x, msg.angular.z, msg.linear.y) == (0.5, -1.5, 0.0)
-
-
-def test_ros_node_flags():
-    # Importing ros_node without ROS (and without jax) is checked in test_robot_side.
-    args, rest = ros_node.parse_args(["--policy", "p.npz", "--scan", "--ros-args", "-p", "x:=1"])
-    assert args.policy == "p.npz" and args.scan and rest == ["--ros-args", "-p", "x:=1"]
-    assert args.speed_calibration == 1.0 and args.band_deg == 2.0
-
-
-@pytest.fixture
-def fake_ros(monkeypatch):
-    """Stand-ins for rclpy and the message packages: the node's wiring runs without ROS."""
-    published = []
-
-    class Node:
-        def __init__(self, name):
-            self.subscriptions_ = []
-
-        def declare_parameter(self, name, value):
-            return types.SimpleNamespace(value={"speed_calibration": 2.0}.get(name, value))
-
-        def create_publisher(self, msg_type, topic, depth):
-            self.cmd_topic = topic
-            return types.SimpleNamespace(publish=published.append)
-
-        def create_subscription(self, msg_type, topic, callback, qos):
-            self.subscriptions_.append((msg_type.__name__, topic))
-
-        def get_logger(self):
-            return types.SimpleNamespace(info=lambda text: None)
-
-    class Vector:
-        x = y = z = 0.0
-
-    class Twist:
-        def __init__(self):
-            self.linear, self.angular = Vector(), Vector()
-
-    fakes = {
-        "rclpy": {},
-        "rclpy.node": {"Node": Node},
-        "rclpy.qos": {"qos_profile_sensor_data": None},
-        "sensor_msgs": {},
-        "sensor_msgs.msg": {"Image": type("Image", (), {}), "LaserScan": type("LaserScan", (), {})},
-        "geometry_msgs": {},
-        "geometry_msgs.msg": {"Twist": Twist},
-    }
-    for name, attrs in fakes.items():
-        monkeypatch.setitem(sys.modules, name, types.SimpleNamespace(**attrs))
-    return published
-
-
-def test_ros_node_wiring(fake_ros, tmp_path):
-    npz = str(write_policy_npz(tmp_path / "policy.npz"))
-    args, _ = ros_node.parse_args(["--policy", npz])
-    node = ros_node._make_node(args)  # speed_calibration 2.0 comes from the (fake) ROS parameter
-    assert node.subscriptions_ == [("Image", "/camera/depth/image_raw")]
-    assert node.cmd_topic == "cmd_vel"
-    depth_mm = np.full((48, 64), 3000, np.uint16)
-    depth_mm[:, :8] = 900  # close on the left
-    msg = types.SimpleNamespace(
-        encoding="16UC1", height=48, width=64, data=depth_mm.tobytes(), step=128, is_bigendian=0
-    )
-    node.on_image(msg)
-    obs = deploy.depth_image_to_sectors(depth_mm / 1000.0, SENSOR)
-    policy = NumpyPolicy.from_npz(npz)
-    want = deploy.action_to_twist(policy(obs), policy.commands, speed_calibration=2.0)
-    assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == pytest.approx(want)
-    node.stop()
-    assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == (0.0, 0.0)
-
-    args, _ = ros_node.parse_args(["--policy", npz, "--scan", "--topic", "/scan"])
-    node = ros_node._make_node(args)
-    assert node.subscriptions_ == [("LaserScan", "/scan")]
-    scan = types.SimpleNamespace(
-        ranges=[1.0] * 60 + [5.0] * 60, angle_min=-1.0, angle_increment=1 / 60
-    )
-    node.on_scan(scan)
-    ranges, angles = ros_node.scan_msg_to_arrays(scan.ranges, -1.0, 1 / 60)
-    action = policy(deploy.scan_to_sectors(ranges, angles, SENSOR))
-    want = deploy.action_to_twist(action, policy.commands, speed_calibration=2.0)
-    assert (fake_ros[-1].linear.x, fake_ros[-1].angular.z) == pytest.approx(want)

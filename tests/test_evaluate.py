@@ -10,12 +10,23 @@ import subprocess
 import sys
 from subprocess import PIPE
 
+import jax
+import jax.numpy as jnp
 import pytest
 
 import jaxnav
 from jaxnav.core.scene import SCENES_DIR
-from jaxnav.evaluate import METRIC_KEYS, evaluate, main, strip_private
-from jaxnav.policy import forward_policy, random_policy
+from jaxnav.evaluate import (
+    METRIC_KEYS,
+    eval_randomize,
+    evaluate,
+    load_suite,
+    main,
+    make_rollout,
+    metrics,
+    strip_private,
+)
+from jaxnav.policy import Policy, forward_policy, random_policy
 from jaxnav.viz.plots import METRICS_HEADER, plot_reward_curve
 
 EPISODES, STEPS = 8, 150  # 150 steps: enough for the forward baseline to reach an obstacle
@@ -131,6 +142,7 @@ def test_cli_error_in_a_process_is_one_line(tmp_path):
         (["--policy", "forward", "--checkpoint", "."], "--checkpoint"),
         (["--checkpoint", "no_such_run"], "no_such_run"),
         (["--policy", "forward", "--layouts", "bad.json"], "bad.json"),
+        (["--policy", "forward", "--suite", "no_such_suite"], "--suite"),
     ],
 )
 def test_cli_errors_are_one_line(tmp_path, monkeypatch, capsys, args, names):
@@ -160,3 +172,48 @@ def test_evaluate_rejects_bad_arguments(room):
         evaluate(forward_policy(), room, episodes=0)
     with pytest.raises(ValueError, match="spawn"):
         evaluate(forward_policy(), room, episodes=1, spawn="nowhere")
+
+
+def test_benchmark_suite_loads():
+    suite = load_suite("benchmark")
+    assert len(suite) >= 8 and sum(len(rooms) for rooms in suite.values()) >= 30
+    for family, rooms in suite.items():
+        assert all(r.name.startswith(family) and r.robot_pos is not None for r in rooms)
+
+
+def _cautious():
+    """Deterministic: forward unless something is nearer than 0.7 m, then turn left."""
+    return Policy("cautious", lambda obs, key: jnp.where(obs.min(-1) < 0.7, 1, 0).astype(jnp.int32))
+
+
+def test_one_batch_matches_per_room_rollouts():
+    """Three rooms in one compiled batch give each room the metrics of its own env's rollout."""
+    suite = load_suite("benchmark")
+    rooms = [suite["corridor"][0], suite["clutter"][1], suite["joined"][2]]
+    episodes, steps = 3, 120
+    batch = evaluate(
+        _cautious(), rooms, episodes=episodes, steps=steps, seed=1, stochastic_env=False
+    )
+    randomize = eval_randomize("layout", stochastic_env=False)
+    for room in rooms:
+        env = jaxnav.make_env("avoid", [room], randomize=randomize, max_steps=steps)
+        track, _ = make_rollout(env, _cautious().act, episodes, steps)(jax.random.PRNGKey(5))
+        alone = metrics(track.collided, track.steps, track.distance, env.control_period)
+        got = batch["layouts"][room.name]
+        assert got["collision_free_rate"] == alone["collision_free_rate"], room.name
+        assert got["mean_speed"] == pytest.approx(alone["mean_speed"], rel=1e-3), room.name
+        assert got["mean_steps"] == alone["mean_steps"], room.name
+        assert 0.0 < got["coverage"] <= 1.0
+
+
+def test_cli_suite_writes_families_and_one_picture_each(tmp_path):
+    out = tmp_path / "suite.json"
+    args = ["--policy", "forward", "--suite", "benchmark", "--episodes", "1", "--steps", "5"]
+    assert main([*args, "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    families = load_suite("benchmark")
+    assert set(data["families"]) == set(families) and data["suite"] == "benchmark"
+    assert len(data["layouts"]) == sum(len(r) for r in families.values())
+    for m in data["families"].values():
+        assert set(m) == set(METRIC_KEYS) and 0.0 <= m["coverage"] <= 1.0
+    assert sorted(p.stem for p in tmp_path.glob("*.png")) == sorted(families)

@@ -258,6 +258,12 @@ BAD = [
     ("missing-box-size", _set("obstacles[0].size", None), "obstacles[0].size", ["missing"]),
     ("missing-radius", _set("obstacles[1].radius", None), "obstacles[1].radius", ["missing"]),
     ("missing-robot-pos", _set("robot.pos", None), "robot.pos", ["missing"]),
+    # Bounds: what the float32 simulator handles (module docstring).
+    ("tiny-room", _set("room.size", [0.1, 0.1]), "room.size", ["0.5 to 100 m"]),
+    ("huge-room", _set("room.size", [1e30, 1e30]), "room.size", ["0.5 to 100 m"]),
+    ("tall-wall", _set("room.wall_height", 20.0), "room.wall_height", ["at most 10 m"]),
+    ("thin-box", _set("obstacles[0].size", [0.001, 0.4]), "obstacles[0].size", ["0.01 to 100 m"]),
+    ("400-digit-integer", _set("room.size", [10**400, 4]), "room.size", ["finite"]),
 ]  # fmt: skip
 
 
@@ -330,8 +336,10 @@ def test_duplicate_key(tmp_path):
         ("", "invalid JSON at line 1, column 1"),
         ("[]", "empty list"),
         ('"room"', "expected a room object or a list of rooms, got a string"),
+        ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+        ('{"room": {"size": [' + "9" * 5000 + ", 4]}}", "invalid JSON: Exceeds the limit"),
     ],
-    ids=["invalid-json", "empty-file", "empty-list", "not-a-room"],
+    ids=["invalid-json", "empty-file", "empty-list", "not-a-room", "deep", "5000-digits"],
 )
 def test_bad_file(tmp_path, content, fragment):
     path = write(tmp_path, content)
@@ -360,3 +368,50 @@ def test_parse_layouts_source_and_save_errors(tmp_path):
         save_layouts(tmp_path / "x.json", [layout, layout])
     assert not any(tmp_path.iterdir())
     assert issubclass(LayoutError, ValueError)
+
+
+def test_special_and_huge_files_are_refused_at_once(tmp_path):
+    import os
+
+    fifo = tmp_path / "fifo.json"
+    os.mkfifo(fifo)  # would block forever if opened for reading
+    (tmp_path / "huge.json").write_bytes(b" " * (16 * 2**20 + 1))
+    cases = {fifo: "a FIFO", "/dev/zero": "a character device", tmp_path / "huge.json": "16 MB"}
+    for path, fragment in cases.items():
+        with pytest.raises(LayoutError, match=f"^{path}: .*{fragment}"):
+            load_layout(path)
+
+
+def test_room_without_a_free_spawn_is_refused(tmp_path):
+    """A 2 m room filled by four 1 m boxes validated before, and every episode then started in a
+    collision; the grid search over the interior finds that no spawn exists."""
+    boxes = [
+        {"type": "box", "pos": [x, y], "size": [1.0, 1.0]} for x in (-0.5, 0.5) for y in (-0.5, 0.5)
+    ]
+    full = {"name": "full", "room": {"size": [2.0, 2.0]}, "obstacles": boxes}
+    with pytest.raises(LayoutError, match=r"room 'full' \(#0\): no free spawn"):
+        load_layout(write(tmp_path, full))
+    roomy = dict(full, room={"size": [3.0, 3.0]})  # a 0.5 m ring around them: free
+    assert load_layout(write(tmp_path, roomy))[0].robot_pos is None
+
+
+def test_yaw_is_reduced_modulo_two_pi(tmp_path):
+    """A yaw of 1e9 + 0.5 was checked in float64 and simulated in float32 (where it is another
+    angle); reduced when read, both see the same box."""
+    room = copy.deepcopy(GOOD)
+    room["obstacles"][0]["yaw"] = 1_000_000_000.5
+    room["robot"]["yaw"] = -7.0
+    (layout,) = load_layout(write(tmp_path, room))
+    yaw = layout.boxes[0].yaw
+    assert -math.pi <= yaw <= math.pi and yaw == pytest.approx(
+        math.remainder(1e9 + 0.5, 2 * math.pi)
+    )
+    assert layout.robot_yaw == pytest.approx(-7.0 + 2 * math.pi)
+    f32 = clearance(layout, [0.0, 0.0])  # float32, as simulated
+    box = layout.boxes[0]
+    local = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]]) @ (
+        -np.asarray(box.pos)
+    )
+    q = np.abs(local) - 0.5 * np.asarray(box.size)
+    f64 = np.linalg.norm(np.maximum(q, 0)) + min(q.max(), 0)
+    assert f32 == pytest.approx(min(f64, 1.5), abs=1e-5)  # the box, or the cylinder at 1.27 m

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import EXACT, corridor
+from conftest import EXACT, KOBUKI, corridor
 
 import jaxnav
 from jaxnav.core.robot import TURTLEBOT2I
@@ -48,6 +48,52 @@ def test_speeds_reached_without_sideways_sliding(fast_env):
     forward, sideways = body_velocity(state)
     assert forward == pytest.approx(TURTLEBOT2I.max_linear_speed, rel=0.02)
     assert abs(sideways) < 1e-3
+
+
+def test_velocity_smoother_and_latency():
+    """From rest, speed ramps at the smoother's 0.3 m/s^2 after `latency` steps of delay, and
+    braking from 0.5 m/s takes about 1.7 s."""
+    for latency in (0, 2):
+        cfg = dataclasses.replace(KOBUKI, latency_steps=(latency, latency))
+        env = jaxnav.make_env("avoid", [BOARD], randomize=cfg, max_steps=100)
+        reset, step = jax.jit(env.reset), jax.jit(env.step)
+        state = reset(jax.random.PRNGKey(0))
+        speeds = []
+        for _ in range(6):
+            state = step(state, jnp.int32(0))
+            speeds.append(body_velocity(state)[0])
+        expected = [0.03 * max(0, k + 1 - latency) for k in range(6)]  # 0.3 m/s^2 x 0.1 s
+        np.testing.assert_allclose(speeds, expected, atol=2e-3)
+    env = jaxnav.make_env(
+        "avoid",
+        [corridor(Box(pos=(3.8, 0.0), size=(0.1, 0.1)), size=(8.0, 3.0))],
+        randomize=KOBUKI,
+        max_steps=200,
+    )
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    state = reset(jax.random.PRNGKey(0))
+    for _ in range(20):  # up to 0.5 m/s
+        state = step(state, jnp.int32(0))
+    assert body_velocity(state)[0] == pytest.approx(0.5, abs=0.01)
+    path, turns = 0.0, 0
+    while body_velocity(state)[0] > 1e-3:  # "turn" commands zero forward speed: the base brakes
+        before = np.asarray(state.data.qpos[:2])
+        state = step(state, jnp.int32(1))
+        path += float(np.linalg.norm(np.asarray(state.data.qpos[:2]) - before))
+        turns += 1
+    assert turns == pytest.approx(17, abs=1)  # 0.5 m/s / 0.3 m/s^2 = 1.7 s
+    assert path == pytest.approx(0.5**2 / (2 * 0.3), abs=0.05)  # about the whole blind zone
+
+
+def test_wheel_asymmetry_curves_a_straight_command():
+    cfg = dataclasses.replace(EXACT, wheel_asymmetry=(0.05, 0.05))
+    env = jaxnav.make_env("avoid", [BOARD], randomize=cfg)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    state = jax.jit(env.step)(state, jnp.int32(0))
+    gain = np.asarray(state.info["params"].wheel_gain)
+    assert abs(gain[1] - gain[0]) == pytest.approx(0.05, abs=1e-6)
+    yaw_rate = (gain[1] - gain[0]) * 0.5 / TURTLEBOT2I.wheelbase  # forward 0.5 m/s
+    assert float(state.data.qvel[2]) == pytest.approx(yaw_rate, rel=0.02)
 
 
 @pytest.mark.parametrize("substeps", [1, 2])

@@ -20,11 +20,16 @@ def saved_state(ckpt):
 
 
 def interrupt(out, sig):
-    """Starts a tiny run, signals it as soon as it has started, and waits for it to exit."""
+    """Starts a tiny run, signals it once its first chunk has run (training has something to
+    save), and waits for it to exit."""
     cmd = [sys.executable, "-m", "jaxnav.train", "--out", str(out), *TINY_FLAGS]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    first = proc.stdout.readline()  # printed once the signal handlers are in place
-    assert first.startswith("jaxnav: training"), first + proc.stderr.read()
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if line.startswith("jaxnav: compiled"):
+            break
+    assert seen[-1].startswith("jaxnav: compiled"), "".join(seen) + proc.stderr.read()
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=600)
     return proc.returncode, stdout, stderr
@@ -38,7 +43,8 @@ def test_signal_checkpoints_then_resume_matches_uninterrupted(tiny_run, tmp_path
     assert code == 0, stderr
     lines = [line for line in stdout.splitlines() if line.startswith("interrupted")]
     assert len(lines) == 1 and f"--resume {out}" in lines[0] and sig.name in lines[0]
-    assert [c.name for c in checkpoint.list_checkpoints(out)] == ["update_000002"]
+    # The chunk under way when the signal came finishes and is checkpointed.
+    assert checkpoint.list_checkpoints(out)[-1].name in ("update_000002", "update_000004")
     proc = run_cli("--resume", str(out), "--no-progress")
     assert proc.returncode == 0, proc.stderr
     final, expected = checkpoint.resolve(out), checkpoint.resolve(reference)
@@ -54,7 +60,7 @@ def test_signal_checkpoints_then_resume_matches_uninterrupted(tiny_run, tmp_path
 def test_resume_refuses_other_flags(tiny_run):
     out, _ = tiny_run
     proc = run_cli("--resume", str(out), "--num-envs", "32")
-    assert proc.returncode == 2 and "drop ppo.num_envs" in proc.stderr
+    assert proc.returncode == 2 and "drop --num-envs" in proc.stderr
 
 
 def tiny_config():

@@ -110,6 +110,18 @@ def test_robot_side_runs_without_jax(tmp_path):
     assert got["heavy"] == []
 
 
+def test_replay_imports_without_jax():
+    """`python -m jaxnav.replay` runs where jax cannot be imported (numpy, matplotlib, rosbags)."""
+    code = """
+        import jaxnav.replay
+        heavy = sorted(m for m in sys.modules if m.partition(".")[0] in ("jax", "flax", "rclpy"))
+        print(heavy)
+    """
+    proc = run_without_jax(code, cwd=ROOT, pythonpath=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "[]"
+
+
 def test_forward_pass_by_hand(tmp_path):
     policy = NumpyPolicy.from_npz(write_policy_npz(tmp_path / "policy.npz"))
     obs = np.random.default_rng(2).uniform(0.0, 50.0, (20, 8)).astype(np.float32)

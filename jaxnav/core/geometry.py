@@ -35,18 +35,21 @@ def wall_distance(p, room_half):
     return jnp.stack([hx - x, hx + x, hy - y, hy + y], axis=-1)
 
 
-def _vertical(z, height):
-    """[..., N] signed vertical distance from height z [...] to the span [0, height [N]] (<0 in)."""
-    z = jnp.asarray(z)[..., None]
-    return jnp.maximum(z - height, -z)
+def _vertical(z, bottom, top):
+    """[..., N] signed vertical distance from the segment z = (low, high) [...] to the spans
+    [bottom, top] [N] (<0 where they overlap)."""
+    low, high = (jnp.asarray(v)[..., None] for v in z)
+    return jnp.maximum(low - top, bottom - high)
 
 
 def signed_distance(room, p, z=None):
     """[...] distance from points to the nearest wall or active obstacle of `room` (<0 inside).
 
     `room` has the `SceneParams` room fields (room_half, box_*, cyl_*). p [..., 2] is in the floor
-    plane; with heights z [...], the distance is 3-D: boxes span [0, box_height] and cylinders are
-    upright segments of [0, cyl_height] widened by their radius (the capsules the scene collides).
+    plane; with z = (low, high) heights [...], the distance is 3-D, from the vertical segment at p
+    between those heights (low == high: a point; widen by a radius for a capsule or sphere): boxes
+    span [box_bottom, box_height] and cylinders are upright segments of [cyl_bottom, cyl_height]
+    widened by their radius (the capsules the scene collides).
     """
     walls = wall_distance(p, room.room_half).min(-1)
     box = box_distance(p, room.box_pos, room.box_yaw, room.box_half)  # [..., Sb]
@@ -54,10 +57,11 @@ def signed_distance(room, p, z=None):
     if z is None:
         cyl = cyl - room.cyl_radius
     else:
-        dz = _vertical(z, room.box_height)
+        dz = _vertical(z, room.box_bottom, room.box_height)
         corner = (box > 0) & (dz > 0)  # beyond an edge: distance to it; else the nearer face
         box = jnp.where(corner, jnp.hypot(box, dz), jnp.maximum(box, dz))
-        cyl = jnp.hypot(cyl, jnp.maximum(_vertical(z, room.cyl_height), 0.0)) - room.cyl_radius
+        dz = jnp.maximum(_vertical(z, room.cyl_bottom, room.cyl_height), 0.0)
+        cyl = jnp.hypot(cyl, dz) - room.cyl_radius
     box = jnp.where(room.box_active, box, jnp.inf).min(-1, initial=jnp.inf)
     cyl = jnp.where(room.cyl_active, cyl, jnp.inf).min(-1, initial=jnp.inf)
     return jnp.minimum(walls, jnp.minimum(box, cyl))

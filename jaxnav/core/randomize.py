@@ -28,11 +28,13 @@ class SceneParams:
     box_pos: jax.Array  # [Sb, 2] box centres, m
     box_yaw: jax.Array  # [Sb] rad
     box_half: jax.Array  # [Sb, 2] half extents along the box's own axes, m
-    box_height: jax.Array  # [Sb] m
+    box_height: jax.Array  # [Sb] m, top above the floor
+    box_bottom: jax.Array  # [Sb] m, underside above the floor (0: standing on it)
     box_active: jax.Array  # [Sb] bool; inactive slots are parked
     cyl_pos: jax.Array  # [Sc, 2] m
     cyl_radius: jax.Array  # [Sc] m
-    cyl_height: jax.Array  # [Sc] m
+    cyl_height: jax.Array  # [Sc] m, top above the floor
+    cyl_bottom: jax.Array  # [Sc] m, underside above the floor
     cyl_active: jax.Array  # [Sc] bool
     spawn: jax.Array  # [3] x, y, yaw of the robot at reset
     layout_id: jax.Array  # [] int32 index into the layouts, -1 for a sampled room
@@ -40,6 +42,12 @@ class SceneParams:
     speed_gain: jax.Array  # [] actual / commanded speed of the drive
     noise_std: jax.Array  # [] m, std of the additive depth noise per ray
     dropout: jax.Array  # [] probability that a ray returns nothing
+    noise_quad: jax.Array  # [] m per m^2: depth noise std grows with distance^2
+    dark: jax.Array  # [Sb + Sc] bool: the obstacle returns no depth (black, glossy, glass)
+    camera: jax.Array  # [3] camera mount error: height m, pitch rad (down +), yaw rad (left +)
+    accel: jax.Array  # [2] acceleration limits of the velocity smoother: m/s^2, rad/s^2
+    latency: jax.Array  # [] int32 control steps between a command and the motors
+    wheel_gain: jax.Array  # [2] actual / commanded speed of the left and right wheels
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +79,15 @@ class RandomizeConfig:
     """Radius of a sampled cylinder, m."""
     obstacle_height: tuple[float, float] = (0.4, 1.0)
     """Height of a sampled obstacle, m; the TurtleBot 2i's camera sits at 0.30 m."""
+    low_prob: float = 0.0
+    """Probability that a sampled obstacle is low (height in low_height): below the camera.
+    The ranges from here to wheel_asymmetry are off by default; `FIDELITY` has them on."""
+    low_height: tuple[float, float] = (0.05, 0.25)
+    """Height of a low obstacle, m."""
+    overhang_prob: float = 0.0
+    """Probability that a sampled obstacle hangs: underside in overhang_bottom (a table, a shelf)."""
+    overhang_bottom: tuple[float, float] = (0.3, 0.45)
+    """Underside of an overhang, m: above the Kobuki's shell, below the 2i's top deck (0.47 m)."""
     friction: tuple[float, float] = (0.5, 1.0)
     """Floor traction coefficient (rubber wheels on office floors)."""
     speed_gain: tuple[float, float] = (0.8, 1.2)
@@ -78,7 +95,26 @@ class RandomizeConfig:
     sensor_noise: tuple[float, float] = (0.0, 0.02)
     """Std of the additive per-ray depth noise, m."""
     sensor_dropout: tuple[float, float] = (0.0, 0.02)
-    """Probability that a ray returns nothing (read as the far range limit)."""
+    """Probability that a ray returns nothing (the camera reports 0 there)."""
+    sensor_noise_quadratic: tuple[float, float] = (0.0, 0.0)
+    """Depth noise std per distance^2, m/m^2 (structured light: ~4 cm at 5 m is 0.0016)."""
+    dark_prob: float = 0.0
+    """Probability that an obstacle returns no depth at all (black, glossy or glass surfaces)."""
+    camera_height_error: float = 0.0
+    """Camera height error, m: uniform in +-this."""
+    camera_pitch_error: float = 0.0
+    """Camera pitch error, rad: uniform in +-this (3 deg)."""
+    camera_yaw_error: float = 0.0
+    """Camera yaw error, rad: uniform in +-this (2 deg)."""
+    accel_limit: tuple[float, float] = (0.0, 0.0)
+    """Linear acceleration limit of the velocity smoother, m/s^2 (kobuki_velocity_smoother: 0.3;
+    0: no smoother, commanded speeds within one step)."""
+    angular_accel_limit: tuple[float, float] = (0.0, 0.0)
+    """Angular acceleration limit, rad/s^2 (Kobuki: 3.5)."""
+    latency_steps: tuple[int, int] = (0, 0)
+    """Command latency in control steps, uniform over the range (0.1 s each)."""
+    wheel_asymmetry: tuple[float, float] = (0.0, 0.0)
+    """Left/right wheel gain mismatch: gains 1 -+ a/2 with a uniform here, the sign at random."""
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -86,7 +122,13 @@ class RandomizeConfig:
             if isinstance(value, tuple) and len(value) != 2:
                 raise ValueError(f"RandomizeConfig.{f.name}: must be two numbers, got {value}")
         require_finite(self)
-        for name in ("sampled_room_prob", "random_spawn_prob"):
+        for name in (
+            "sampled_room_prob",
+            "random_spawn_prob",
+            "low_prob",
+            "overhang_prob",
+            "dark_prob",
+        ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(
                     f"RandomizeConfig.{name}: must be in [0, 1], got {getattr(self, name)}"
@@ -103,7 +145,15 @@ class RandomizeConfig:
                     raise ValueError(
                         f"RandomizeConfig.{f.name}: need 0 <= low <= high, got {value}"
                     )
-        for name in ("box_size", "cylinder_radius", "obstacle_height"):
+        for name in ("camera_height_error", "camera_pitch_error", "camera_yaw_error"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"RandomizeConfig.{name}: must be >= 0, got {getattr(self, name)}")
+        if self.low_prob + self.overhang_prob > 1:
+            raise ValueError(
+                f"RandomizeConfig.low_prob: low_prob + overhang_prob must be <= 1, got "
+                f"{self.low_prob} + {self.overhang_prob}"
+            )
+        for name in ("box_size", "cylinder_radius", "obstacle_height", "low_height"):
             if getattr(self, name)[0] <= 0:
                 raise ValueError(
                     f"RandomizeConfig.{name}: low must be > 0 m, got {getattr(self, name)}"
@@ -126,6 +176,26 @@ class RandomizeConfig:
 
 TRAINING = RandomizeConfig(sampled_room_prob=0.5, random_spawn_prob=0.5)
 """The training distribution: half sampled rooms; half of the layout episodes from a random spawn."""
+
+FIDELITY = dict(
+    low_prob=0.2,
+    overhang_prob=0.1,
+    sensor_noise=(0.0, 0.01),
+    sensor_noise_quadratic=(0.0, 0.0016),
+    dark_prob=0.05,
+    camera_height_error=0.02,
+    camera_pitch_error=0.052,
+    camera_yaw_error=0.035,
+    accel_limit=(0.25, 0.35),
+    angular_accel_limit=(3.0, 4.0),
+    latency_steps=(0, 2),
+    wheel_asymmetry=(0.0, 0.05),
+)
+"""The sim-to-real ranges around the TurtleBot 2i's figures: low obstacles and overhangs, the
+Kobuki's velocity smoother (0.3 m/s^2, 3.5 rad/s^2), 0-2 steps of command latency, wheel mismatch,
+structured-light depth noise, dark obstacles and camera mount error. `RandomizeConfig(**FIDELITY)`
+or the matching `--randomize.*` flags switch them on (off by default: each changes what a policy
+must learn; see the README)."""
 
 
 @struct.dataclass
@@ -172,10 +242,12 @@ def _layout_params(layout: RoomLayout, nb: int, nc: int) -> SceneParams:
         box_half=0.5 * pad([b.size for b in boxes], nb, 2)
         + 0.05 * ~active(len(boxes), nb)[:, None],
         box_height=pad([[b.height] for b in boxes], nb, 1)[:, 0] + 0.1 * ~active(len(boxes), nb),
+        box_bottom=pad([[b.bottom] for b in boxes], nb, 1)[:, 0],
         box_active=active(len(boxes), nb),
         cyl_pos=pad([c.pos for c in cyls], nc, 2),
         cyl_radius=pad([[c.radius] for c in cyls], nc, 1)[:, 0] + 0.05 * ~active(len(cyls), nc),
         cyl_height=pad([[c.height] for c in cyls], nc, 1)[:, 0] + 0.1 * ~active(len(cyls), nc),
+        cyl_bottom=pad([[c.bottom] for c in cyls], nc, 1)[:, 0],
         cyl_active=active(len(cyls), nc),
         spawn=np.array(spawn, f32),
         layout_id=np.int32(0),
@@ -183,6 +255,20 @@ def _layout_params(layout: RoomLayout, nb: int, nc: int) -> SceneParams:
         speed_gain=f32(1),
         noise_std=f32(0),
         dropout=f32(0),
+        **_episode_placeholders(nb, nc),
+    )
+
+
+def _episode_placeholders(nb: int, nc: int) -> dict:
+    """Zeros for the per-episode physics and sensor fields; `sample` draws them."""
+    f32 = np.float32
+    return dict(
+        noise_quad=f32(0),
+        dark=np.zeros(nb + nc, bool),
+        camera=np.zeros(3, f32),
+        accel=np.zeros(2, f32),
+        latency=np.int32(0),
+        wheel_gain=np.ones(2, f32),
     )
 
 
@@ -232,19 +318,20 @@ def sample_room(
     radius = _uniform(ks[7], cfg.cylinder_radius, (nc,))
     n_cyl = jax.random.randint(ks[8], (), cfg.num_cylinders[0], cfg.num_cylinders[1] + 1)
     cyl_pos, cyl_active = _place(ks[9], half, radius, spawn_xy, keep_out, n_cyl, nc)
-    # Heights: uniform in obstacle_height.
-    heights = _uniform(jax.random.fold_in(key, 1), cfg.obstacle_height, (nb + nc,))
+    bottom, top = _vertical_spans(jax.random.fold_in(key, 1), cfg, nb + nc)
     zero = jnp.float32(0)
     return SceneParams(
         room_half=half,
         box_pos=box_pos,
         box_yaw=box_yaw,
         box_half=box_half,
-        box_height=heights[:nb],
+        box_height=top[:nb],
+        box_bottom=bottom[:nb],
         box_active=box_active,
         cyl_pos=cyl_pos,
         cyl_radius=radius,
-        cyl_height=heights[nb:],
+        cyl_height=top[nb:],
+        cyl_bottom=bottom[nb:],
         cyl_active=cyl_active,
         spawn=spawn,
         layout_id=jnp.int32(-1),
@@ -252,7 +339,24 @@ def sample_room(
         speed_gain=zero,
         noise_std=zero,
         dropout=zero,
+        **jax.tree_util.tree_map(jnp.asarray, _episode_placeholders(nb, nc)),
     )
+
+
+def _vertical_spans(key, cfg: RandomizeConfig, n: int):
+    """[n] undersides and [n] tops of sampled obstacles: standing, low or overhanging."""
+    k_kind, k_top, k_low, k_bottom, k_thick = jax.random.split(key, 5)
+    # Kind: low with low_prob, overhang with overhang_prob, else standing.
+    u = jax.random.uniform(k_kind, (n,))
+    low, hang = u < cfg.low_prob, (u >= cfg.low_prob) & (u < cfg.low_prob + cfg.overhang_prob)
+    # Standing: top uniform in obstacle_height; low: top uniform in low_height.
+    top = jnp.where(
+        low, _uniform(k_low, cfg.low_height, (n,)), _uniform(k_top, cfg.obstacle_height, (n,))
+    )
+    # Overhang: underside uniform in overhang_bottom, 0.05-0.5 m thick.
+    bottom = jnp.where(hang, _uniform(k_bottom, cfg.overhang_bottom, (n,)), 0.0)
+    top = jnp.where(hang, bottom + _uniform(k_thick, (0.05, 0.5), (n,)), top)
+    return bottom, top
 
 
 def free_spawn(key, room: SceneParams, radius: float, clearance_margin: float, tries: int = 64):
@@ -287,11 +391,30 @@ def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float
     layout = layout.replace(spawn=spawn)
     use_sampled = jax.random.bernoulli(k_pick, cfg.sampled_room_prob)
     room = jax.tree_util.tree_map(lambda a, b: jnp.where(use_sampled, a, b), sampled, layout)
-    # Physics and sensor: each uniform in its configured range.
-    kf, kg, kn, kd = jax.random.split(k_phys, 4)
+    return _physics_and_sensing(k_phys, cfg, room)
+
+
+def _physics_and_sensing(key, cfg: RandomizeConfig, room: SceneParams) -> SceneParams:
+    """The episode's drive and sensor parameters, each uniform in its configured range."""
+    ks = jax.random.split(key, 10)
+    n = room.dark.shape[0]
+    errors = jnp.array([cfg.camera_height_error, cfg.camera_pitch_error, cfg.camera_yaw_error])
+    # Wheel mismatch: gains (1 - a/2, 1 + a/2), a uniform in wheel_asymmetry, which wheel at random.
+    a = _uniform(ks[8], cfg.wheel_asymmetry) * jnp.where(jax.random.bernoulli(ks[9]), 1.0, -1.0)
     return room.replace(
-        friction=_uniform(kf, cfg.friction),
-        speed_gain=_uniform(kg, cfg.speed_gain),
-        noise_std=_uniform(kn, cfg.sensor_noise),
-        dropout=_uniform(kd, cfg.sensor_dropout),
+        friction=_uniform(ks[0], cfg.friction),
+        speed_gain=_uniform(ks[1], cfg.speed_gain),
+        noise_std=_uniform(ks[2], cfg.sensor_noise),
+        dropout=_uniform(ks[3], cfg.sensor_dropout),
+        noise_quad=_uniform(ks[4], cfg.sensor_noise_quadratic),
+        dark=jax.random.bernoulli(ks[5], cfg.dark_prob, (n,)),
+        camera=jax.random.uniform(ks[6], (3,), minval=-1.0, maxval=1.0) * errors,
+        accel=jnp.stack(
+            [
+                _uniform(jax.random.fold_in(ks[7], 0), cfg.accel_limit),
+                _uniform(jax.random.fold_in(ks[7], 1), cfg.angular_accel_limit),
+            ]
+        ),
+        latency=jax.random.randint(ks[7], (), cfg.latency_steps[0], cfg.latency_steps[1] + 1),
+        wheel_gain=jnp.stack([1.0 - 0.5 * a, 1.0 + 0.5 * a]),
     )

@@ -30,10 +30,12 @@ class RobotSpec:
     """Top forward speed, m/s (Kobuki)."""
     max_angular_speed: float = math.pi
     """Top yaw rate, rad/s (Kobuki, 180 deg/s)."""
-    camera_forward: float = 0.12
-    """Sensor origin ahead of the base centre, m."""
-    camera_height: float = 0.30
-    """Sensor origin above the floor, m."""
+    camera_forward: float = -0.05
+    """Sensor origin ahead of the base centre, m (turtlebot2i_description: the Astra at -0.05)."""
+    camera_height: float = 0.295
+    """Sensor origin above the floor, m (0.285 above base_link, itself 0.0102 up)."""
+    camera_pitch: float = 0.0
+    """Downward tilt of the optical axis, rad."""
 
     def __post_init__(self):
         require_finite(self, lambda name: f"RobotSpec.{name}")

@@ -141,6 +141,25 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
     return spec.compile()
 
 
+def _bumper_span(m: mujoco.MjModel, bumper: int, source: str) -> tuple[tuple[float, float], float]:
+    """((low, high) heights of its axis, radius) of the collision geom `bumper`: a sphere, or a
+    capsule standing upright, on the base's axis (what geometry.signed_distance tests)."""
+    kind, pos, size = m.geom_type[bumper], m.geom_pos[bumper], m.geom_size[bumper]
+    upright = np.allclose(np.abs(m.geom_quat[bumper]), [1, 0, 0, 0], atol=1e-6)
+    if kind == mujoco.mjtGeom.mjGEOM_SPHERE:
+        half = 0.0
+    elif kind == mujoco.mjtGeom.mjGEOM_CAPSULE and upright:
+        half = float(size[1])
+    else:
+        half = None
+    if half is None or np.abs(pos[:2]).max() > 1e-9:
+        raise ValueError(
+            f"RobotSpec.mjcf: {source}: geom 'bumper' must be a sphere or an upright capsule "
+            "on the base's axis"
+        )
+    return (float(pos[2]) - half, float(pos[2]) + half), float(size[0])
+
+
 class Scene:
     """The compiled room model and the map from `SceneParams` to per-env `mjx.Model` fields."""
 
@@ -152,19 +171,16 @@ class Scene:
         self.wall_ids = np.array([name(f"wall{i}") for i in range(4)])
         self.box_ids = np.array([name(f"box{i}") for i in range(cfg.num_boxes)], dtype=int)
         self.cyl_ids = np.array([name(f"cylinder{i}") for i in range(cfg.num_cylinders)], dtype=int)
+        # [ngeom] obstacle slot of each geom (boxes, then cylinders, as in SceneParams); -1 others.
+        self.slot_of_geom = np.full(self.mj_model.ngeom, -1)
+        self.slot_of_geom[np.concatenate([self.box_ids, self.cyl_ids]).astype(int)] = np.arange(
+            cfg.num_boxes + cfg.num_cylinders
+        )
         self.robot_body = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_BODY, "base")
         self.bumper = name("bumper")
         # The bumper sphere's centre height and radius: what collision detection tests (see
         # geometry.signed_distance); the MJCF places it on the base's axis.
-        if (
-            self.mj_model.geom_type[self.bumper] != mujoco.mjtGeom.mjGEOM_SPHERE
-            or np.abs(self.mj_model.geom_pos[self.bumper, :2]).max() > 1e-9
-        ):
-            raise ValueError(
-                f"RobotSpec.mjcf: {robot.mjcf}: geom 'bumper' must be a sphere on the base's axis"
-            )
-        self.bumper_z = float(self.mj_model.geom_pos[self.bumper, 2])
-        self.bumper_radius = float(self.mj_model.geom_size[self.bumper, 0])
+        self.bumper_z, self.bumper_radius = _bumper_span(self.mj_model, self.bumper, robot.mjcf)
         self.mass = float(self.mj_model.body_mass[self.robot_body])
         self.yaw_inertia = float(self.mj_model.body_inertia[self.robot_body, 2])
 
@@ -176,14 +192,14 @@ class Scene:
         walls = -jnp.asarray(_WALL_NORMALS) * params.room_half  # [4, 2]: each wall's point
         pos = pos.at[self.wall_ids, :2].set(walls)
         if self.cfg.num_boxes:
-            half_h = 0.5 * params.box_height  # [Sb]
-            z = jnp.where(params.box_active, half_h, PARK_DEPTH)
+            half_h = 0.5 * (params.box_height - params.box_bottom)  # [Sb]
+            z = jnp.where(params.box_active, params.box_bottom + half_h, PARK_DEPTH)
             pos = pos.at[self.box_ids].set(jnp.column_stack([params.box_pos, z]))
             quat = quat.at[self.box_ids].set(yaw_quat(params.box_yaw))
             size = size.at[self.box_ids].set(jnp.column_stack([params.box_half, half_h]))
         if self.cfg.num_cylinders:
-            half_h = 0.5 * params.cyl_height  # [Sc]
-            z = jnp.where(params.cyl_active, half_h, PARK_DEPTH)
+            half_h = 0.5 * (params.cyl_height - params.cyl_bottom)  # [Sc]
+            z = jnp.where(params.cyl_active, params.cyl_bottom + half_h, PARK_DEPTH)
             pos = pos.at[self.cyl_ids].set(jnp.column_stack([params.cyl_pos, z]))
             radius = params.cyl_radius
             size = size.at[self.cyl_ids].set(

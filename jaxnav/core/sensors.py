@@ -1,10 +1,23 @@
 """The paper's observation: the 8 shortest depth-camera distances, one per slice of the field of view.
 
-A horizontal fan of rays leaves the sensor, mounted where the `RobotSpec` says. For a depth camera each
-ray's hit distance is turned into camera depth (distance along the optical axis, what a depth image
-holds); a lidar reports the range itself and may see all around. Readings are noised, dropped out,
-clipped to the sensor's range, and the minimum is taken per sector. Sectors are ordered right to left (increasing angle, as in a ROS
-LaserScan): obs[0] is the rightmost slice, obs[7] the leftmost.
+Rays leave the sensor, mounted where the `RobotSpec` says (with the episode's mount error), over the
+horizontal field of view in `rows` rows spanning `row_angles` of the vertical field of view, so
+obstacles lower than the camera (from 0.05 m) and overhangs are seen. For a depth camera each hit is
+turned into camera depth (distance along the optical axis, what a depth image holds); a lidar reports
+the range itself. Sectors are ordered right to left (increasing angle, as in a ROS LaserScan): obs[0]
+is the rightmost slice, obs[7] the leftmost.
+
+Each ray reads one of three things, as the Orbbec Astra reports them:
+- floor: the ray meets the floor before any obstacle. Not an obstacle; left out of the sector.
+- invalid (the camera reports 0): the surface is nearer than `range_min` (the blind zone), the
+  obstacle returns no depth (dark, glossy, glass), the pixel drops out, or (with `far_invalid`)
+  the surface is farther than `range_max` or absent.
+- valid: a depth in [range_min, range_max], with noise of std `noise_std + noise_quad * depth^2`.
+
+One reduction per sector, the same rule as on the robot (`jaxnav.robot_side.observation`): if at
+least `blind_fraction` of its non-floor rays are invalid (a sector of floor only included), the
+sector reads `range_min` (near: the camera cannot tell "too close" from "nothing", and near is the
+safe reading); otherwise the minimum of its valid readings, clipped to the range.
 """
 
 from __future__ import annotations
@@ -32,17 +45,28 @@ class SensorConfig:
     num_sectors: int = 8
     """Slices of the field of view, one observation each (the paper: 8)."""
     rays_per_sector: int = 3
-    """Rays cast per slice; more rays see thinner obstacles further away."""
+    """Ray columns per slice; more see thinner obstacles further away."""
     fov: float = float(np.deg2rad(60.0))
     """Horizontal field of view, rad (Astra: 60 deg)."""
+    rows: int = 1
+    """Ray rows, evenly spread over `row_angles` (1: a horizontal fan at the camera's height, the
+    default; 5 sees obstacles from 0.05 m tall and overhangs, at 5x the ray cost)."""
+    row_angles: tuple[float, float] = (-0.40, 0.17)
+    """Elevation of the lowest and highest row from the optical axis, rad (up +); the Astra's
+    vertical field of view is 49.5 deg (+-0.43 rad)."""
     range_min: float = 0.6
-    """Nearest readable depth, m; closer surfaces read this value (Astra: 0.6)."""
+    """Nearest readable depth, m; nearer surfaces are invalid (Astra: 0.6)."""
     range_max: float = 8.0
-    """Farthest readable depth, m; no return reads this value (Astra: 8)."""
+    """Farthest readable depth, m; farther surfaces are invalid (Astra: 8)."""
+    blind_fraction: float = 0.5
+    """A sector whose non-floor rays are invalid in at least this share reads range_min."""
+    far_invalid: bool = False
+    """Surfaces beyond range_max (and rays meeting nothing) are invalid, as the Astra reports them
+    (0); False (default): they read range_max, as a LaserScan's inf does."""
 
     def __post_init__(self):
         require_finite(self)
-        for name in ("num_sectors", "rays_per_sector"):
+        for name in ("num_sectors", "rays_per_sector", "rows"):
             if getattr(self, name) < 1:
                 raise ValueError(f"SensorConfig.{name}: must be >= 1, got {getattr(self, name)}")
         if self.model not in SENSOR_MODELS:
@@ -56,6 +80,11 @@ class SensorConfig:
             raise ValueError(
                 f"SensorConfig.fov: must be in {label} rad for a {self.model}, got {self.fov}"
             )
+        low, high = self.row_angles
+        if not -np.pi / 2 < low <= high < np.pi / 2:
+            raise ValueError(
+                f"SensorConfig.row_angles: need -pi/2 < low <= high < pi/2, got {self.row_angles}"
+            )
         if self.range_max <= 0:
             raise ValueError(f"SensorConfig.range_max: must be > 0 m, got {self.range_max}")
         if not 0 <= self.range_min < self.range_max:
@@ -63,47 +92,114 @@ class SensorConfig:
                 f"SensorConfig.range_min: must be in [0, range_max = {self.range_max}) m, "
                 f"got {self.range_min}"
             )
+        if not 0 <= self.blind_fraction <= 1:
+            raise ValueError(
+                f"SensorConfig.blind_fraction: must be in [0, 1], got {self.blind_fraction}"
+            )
 
     @property
     def ray_angles(self) -> np.ndarray:
-        """[num_sectors * rays_per_sector] ray angles from the optical axis, right to left, rad."""
+        """[num_sectors * rays_per_sector] column angles from the optical axis, right to left, rad."""
         n = self.num_sectors * self.rays_per_sector
         return (np.arange(n) + 0.5) / n * self.fov - 0.5 * self.fov
 
+    @property
+    def elevations(self) -> np.ndarray:
+        """[rows] row elevations from the optical axis, bottom to top, rad (one row: 0)."""
+        if self.rows == 1:
+            return np.zeros(1)
+        return np.linspace(*self.row_angles, self.rows)
 
-def camera_pose(qpos: jax.Array, robot: RobotSpec) -> tuple[jax.Array, jax.Array]:
-    """World position [3] and yaw [] of the sensor for base pose qpos = (x, y, yaw)."""
+
+def camera_pose(
+    qpos: jax.Array, robot: RobotSpec, error=None
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """World position [3], yaw [] and pitch [] (down +) of the sensor for base pose qpos = (x, y,
+    yaw), with the episode's mount `error` [3] (height m, pitch rad, yaw rad) if given."""
+    error = jnp.zeros(3) if error is None else error
     x, y, yaw = qpos[0], qpos[1], qpos[2]
     fwd = robot.camera_forward
-    pos = jnp.stack(
-        [x + fwd * jnp.cos(yaw), y + fwd * jnp.sin(yaw), jnp.asarray(robot.camera_height)]
+    z = jnp.asarray(robot.camera_height) + error[0]
+    pos = jnp.stack([x + fwd * jnp.cos(yaw), y + fwd * jnp.sin(yaw), z])
+    return pos, yaw + error[2], jnp.asarray(robot.camera_pitch) + error[1]
+
+
+def _directions(cfg: SensorConfig, yaw, pitch) -> tuple[jax.Array, jax.Array]:
+    """World unit directions [rows, C, 3] of the rays and the cosine [rows, C] between each ray and
+    the optical axis (the factor from range to camera depth)."""
+    h = jnp.asarray(cfg.ray_angles, jnp.float32)[None, :]  # [1, C]
+    v = jnp.asarray(cfg.elevations, jnp.float32)[:, None]  # [rows, 1]
+    # Camera frame (x optical axis, y left, z up), then pitched down by `pitch`, then yawed.
+    cam = jnp.stack(
+        jnp.broadcast_arrays(jnp.cos(v) * jnp.cos(h), jnp.cos(v) * jnp.sin(h), jnp.sin(v)), -1
     )
-    return pos, yaw
+    cp, sp = jnp.cos(pitch), jnp.sin(pitch)
+    fx, fz = cp * cam[..., 0] + sp * cam[..., 2], -sp * cam[..., 0] + cp * cam[..., 2]
+    cy, sy = jnp.cos(yaw), jnp.sin(yaw)
+    world = jnp.stack([cy * fx - sy * cam[..., 1], sy * fx + cy * cam[..., 1], fz], -1)
+    return world, cam[..., 0]
 
 
-def ray_depths(m: mjx.Model, d: mjx.Data, cfg: SensorConfig, robot: RobotSpec, robot_body: int):
-    """[R] noiseless reading of each ray (camera depth or lidar range), inf where it hits nothing."""
-    pos, yaw = camera_pose(d.qpos, robot)
-    angles = jnp.asarray(cfg.ray_angles, jnp.float32)
-    vecs = jnp.stack([jnp.cos(yaw + angles), jnp.sin(yaw + angles), jnp.zeros_like(angles)], -1)
+def ray_readings(m: mjx.Model, d: mjx.Data, params, cfg: SensorConfig, scene):
+    """Noiseless per-ray readings [rows, C]: (reading m, hit geom or -1, floor bool), for the
+    robot of `scene` (a `Scene`) with the mount error of `params` (None: none).
+
+    reading is camera depth (lidar: range), inf where the ray meets nothing; floor marks rays that
+    meet the floor before any obstacle. Slots index the `SceneParams` boxes then cylinders.
+    """
+    error = None if params is None else params.camera
+    pos, yaw, pitch = camera_pose(d.qpos, scene.robot, error)
+    dirs, cosine = _directions(cfg, yaw, pitch)
     groups = tuple(int(g == OBSTACLE_GROUP) for g in range(6))
-    dist, _ = jax.vmap(lambda v: mjx.ray(m, d, pos, v, geomgroup=groups, bodyexclude=robot_body))(
-        vecs
-    )
-    reading = dist * jnp.cos(angles) if cfg.model == "camera" else dist
-    return jnp.where(dist < 0, jnp.inf, reading)
+    body = scene.robot_body
+    cast = lambda v: mjx.ray(m, d, pos, v, geomgroup=groups, bodyexclude=body)  # noqa: E731
+    dist, geom = jax.vmap(jax.vmap(cast))(dirs)  # [rows, C]
+    hit = dist >= 0
+    floor_dist = jnp.where(dirs[..., 2] < 0, pos[2] / jnp.maximum(-dirs[..., 2], 1e-9), jnp.inf)
+    floor = jnp.where(hit, floor_dist < dist, jnp.isfinite(floor_dist))
+    scale = cosine if cfg.model == "camera" else jnp.ones_like(cosine)
+    reading = jnp.where(hit, dist * scale, jnp.inf)
+    return reading, geom, floor
 
 
-def sector_minima(depths: jax.Array, cfg: SensorConfig) -> jax.Array:
-    """[num_sectors] clipped minimum of each sector's ray depths [R] (inf = no return)."""
-    per_sector = depths.reshape(cfg.num_sectors, cfg.rays_per_sector)
-    return jnp.clip(per_sector.min(axis=1), cfg.range_min, cfg.range_max)
+def ray_depths(m: mjx.Model, d: mjx.Data, cfg: SensorConfig, scene):
+    """[rows * C] noiseless readings of the rays, inf where a ray meets nothing or the floor."""
+    reading, _, floor = ray_readings(m, d, None, cfg, scene)
+    return jnp.where(floor, jnp.inf, reading).reshape(-1)
 
 
-def observe(m, d, params, key, cfg: SensorConfig, robot: RobotSpec, robot_body: int) -> jax.Array:
-    """[num_sectors] float32 observation with the episode's noise std and dropout rate."""
-    depths = ray_depths(m, d, cfg, robot, robot_body)
+def reduce_sectors(reading, valid, floor, cfg: SensorConfig, xp=jnp):
+    """[num_sectors] observation from per-ray readings [R, num_sectors * k] (columns right to left):
+    `valid` [R, C] bool, `floor` [R, C] bool. The one reduction of the module docstring; `xp` is
+    the array module (jax.numpy here, numpy on the robot), so both compute it the same way."""
+    rows = reading.shape[0]
+    group = lambda x: (
+        x.reshape(rows, cfg.num_sectors, -1).transpose(1, 0, 2).reshape(cfg.num_sectors, -1)
+    )  # noqa: E731
+    reading, valid, floor = group(reading), group(valid), group(floor)
+    counted = (~floor).sum(-1)
+    invalid = (~floor & ~valid).sum(-1)
+    nearest = xp.where(valid & ~floor, reading, xp.inf).min(-1)
+    near = invalid >= cfg.blind_fraction * counted  # as the robot side: at least that share
+    out = xp.where(near, cfg.range_min, xp.where(xp.isinf(nearest), cfg.range_max, nearest))
+    return xp.clip(out, cfg.range_min, cfg.range_max)
+
+
+def observe(m, d, params, key, cfg: SensorConfig, scene) -> jax.Array:
+    """[num_sectors] float32 observation with the episode's noise, dropout, dark obstacles and
+    camera mount error (`scene`: the `Scene`, for the robot and its geoms)."""
+    reading, geom, floor = ray_readings(m, d, params, cfg, scene)
     k_noise, k_drop = jax.random.split(key)
-    depths = depths + params.noise_std * jax.random.normal(k_noise, depths.shape)
-    dropped = jax.random.bernoulli(k_drop, params.dropout, depths.shape)
-    return sector_minima(jnp.where(dropped, jnp.inf, depths), cfg).astype(jnp.float32)
+    std = params.noise_std + params.noise_quad * jnp.square(jnp.minimum(reading, cfg.range_max))
+    reading = reading + std * jax.random.normal(k_noise, reading.shape)
+    dropped = jax.random.bernoulli(k_drop, params.dropout, reading.shape)
+    dark = _dark_hit(scene.slot_of_geom, geom, params)
+    in_range = (reading <= cfg.range_max) | (not cfg.far_invalid)
+    valid = (reading >= cfg.range_min) & in_range & ~dropped & ~dark
+    return reduce_sectors(reading, valid, floor, cfg).astype(jnp.float32)
+
+
+def _dark_hit(slot_of_geom: np.ndarray, geom: jax.Array, params) -> jax.Array:
+    """[rows, C] bool: the ray hit an obstacle that returns no depth this episode."""
+    slot = jnp.asarray(slot_of_geom)[jnp.maximum(geom, 0)]  # -1 for walls
+    return (geom >= 0) & (slot >= 0) & params.dark[jnp.maximum(slot, 0)]

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
+from jaxnav.io.files import MAX_BINARY_BYTES, FileProblem, read_bytes, read_json
 from jaxnav.io.runconfig import RunConfig
 from jaxnav.policy import Policy
 
@@ -78,6 +79,13 @@ def save(run_dir: Path, ts, config: RunConfig, meta: dict, keep: int = 3) -> Pat
     return target
 
 
+def remove_stale_writes(run_dir: Path) -> None:
+    """Removes the temporary folders of checkpoint writes that never finished (killed processes);
+    call it only while holding the run's lock, when no other write can be under way."""
+    for stale in (Path(run_dir) / CKPT_DIR).glob(".tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+
+
 def _prune(root: Path, newest: Path, keep: int) -> None:
     """Removes all but the newest `keep` checkpoints, and temporary folders of crashed writes."""
     for old in list_checkpoints(root.parent)[:-keep]:
@@ -115,14 +123,14 @@ def list_checkpoints(run_dir: Path) -> list[Path]:
 def verify(ckpt: Path) -> None:
     """Raises CheckpointError naming the first file of `ckpt` that its checksums.json disowns."""
     file = ckpt / CHECKSUMS
-    try:
-        sums = json.loads(file.read_text())
-    except FileNotFoundError:
+    if not file.exists():
         raise CheckpointError(
             f"{file}: missing (an incomplete checkpoint, or written by an older jaxnav (format 1))"
-        ) from None
-    except (OSError, ValueError) as err:
-        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
+        )
+    try:
+        sums = read_json(file)
+    except FileProblem as err:
+        raise CheckpointError(str(err)) from None
     if not isinstance(sums, dict):
         raise CheckpointError(f"{file}: not a JSON object of file name -> sha256")
     for name, digest in sums.items():
@@ -172,11 +180,27 @@ def _one_line(err: BaseException) -> str:
 # ---------------------------------------------------------------- reading
 
 
-def load_config(ckpt: Path) -> RunConfig:
+def load_config(folder: Path) -> RunConfig:
+    """The RunConfig in `folder`/config.json (a run or checkpoint folder); errors name the file."""
+    file = Path(folder) / "config.json"
     try:
-        return RunConfig.from_dict(json.loads((ckpt / "config.json").read_text()))
-    except (OSError, json.JSONDecodeError, ValueError, TypeError) as err:
-        raise CheckpointError(f"{ckpt / 'config.json'}: unreadable run config ({err})") from None
+        return RunConfig.from_dict(read_json(file))
+    except FileProblem as err:
+        raise CheckpointError(f"{file}: unreadable run config ({err.detail})") from None
+    except (ValueError, TypeError) as err:
+        raise CheckpointError(f"{file}: unreadable run config ({err})") from None
+
+
+def load_meta(ckpt: Path) -> dict:
+    """meta.json of a checkpoint ({"update", "env_steps", "elapsed_s"}); errors name the file."""
+    file = Path(ckpt) / "meta.json"
+    try:
+        meta = read_json(file)
+    except FileProblem as err:
+        raise CheckpointError(str(err)) from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("update"), int):
+        raise CheckpointError(f"{file}: not a JSON object with an integer 'update'")
+    return meta
 
 
 def load_tree(file: Path, template):
@@ -263,7 +287,7 @@ def read_policy(ckpt: Path) -> SavedPolicy:
     config = load_config(ckpt)
     file = ckpt / "policy.msgpack"
     try:
-        raw = serialization.msgpack_restore(file.read_bytes())
+        raw = serialization.msgpack_restore(read_bytes(file, MAX_BINARY_BYTES))
         params = jax.tree_util.tree_map(jnp.asarray, raw["params"])
         stats = RunningStats(**{k: jnp.asarray(v) for k, v in raw["obs_stats"].items()})
         saved = SavedPolicy(ckpt, config, params, stats)

@@ -19,14 +19,27 @@ required. `box.size` is the full extent along the box's own axes. Every mistake 
 `LayoutError`, whose one-line message names the file, the room and the field in JSON path style
 (`obstacles[2].size`).
 
+Bounds (what the float32 simulator handles exactly enough; anything else is refused):
+
+- `room.size`: each side 0.5 m to 100 m (`ROOM_SIZE`); `wall_height` and obstacle `height` up to
+  10 m (`MAX_HEIGHT`).
+- Obstacles: each `size` side and `radius` at least 0.01 m (`MIN_OBSTACLE`), the whole footprint
+  inside the room (so positions are within it too).
+- Angles (`yaw`) are any finite number, reduced modulo 2 pi to [-pi, pi] when read.
+- A room with `robot` must have the robot's disc (`ROBOT_RADIUS`) clear of every wall and obstacle
+  at `robot.pos`; a room without it must have some free spawn, found at load time by a grid search
+  over the interior (`SPAWN_GRID`), else it is refused: every episode would start in a collision.
+
+Clearances are computed by `jaxnav.core.geometry` in float32, the simulator's precision. The file
+must be a regular file of at most 16 MB.
+
 The dataclasses check themselves on construction, so a `RoomLayout` built in code obeys the same
-rules as one read from a file: positive sizes, obstacles inside the room, a spawn where the robot
-fits.
+rules as one read from a file: sizes within bounds, obstacles inside the room, a spawn where the
+robot fits.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import difflib
 import functools
@@ -34,7 +47,6 @@ import json
 import math
 import numbers
 import os
-import uuid
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,8 +56,15 @@ import numpy as np
 
 from jaxnav.core import geometry
 from jaxnav.core.robot import TURTLEBOT2I
+from jaxnav.io.files import FileProblem, parse_json, read_text, write_atomic
 
 ROBOT_RADIUS = TURTLEBOT2I.radius  # m; spawns in layout files must fit the default robot
+ROOM_SIZE = (0.5, 100.0)  # m, smallest and largest side of a room's interior
+MAX_HEIGHT = 10.0  # m, tallest wall or obstacle
+MIN_OBSTACLE = 0.01  # m, thinnest box side or cylinder radius
+SPAWN_GRID = (
+    0.05  # m between points of the free-spawn search (coarser in rooms over 20 m: 400 a side)
+)
 
 _TOL = (
     1e-9  # m; obstacles may touch a wall exactly, float round-off must not turn that into an error
@@ -130,33 +149,73 @@ def _is_number(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
-def _number(value, field: str, *, positive: bool = False) -> float:
-    """`value` as a finite float (positive if asked), or a LayoutError naming `field`."""
+def _finite(value) -> float | None:
+    """`value` as a float, or None if it is not finite (an integer of 400 digits included)."""
+    try:
+        out = float(value)
+    except OverflowError:
+        return None
+    return out if math.isfinite(out) else None
+
+
+def _number(value, field: str, *, positive: bool = False, bounds=None) -> float:
+    """`value` as a finite float (positive, within [lo, hi] `bounds` if asked), or a LayoutError
+    naming `field`."""
     what = "a positive number" if positive else "a number"
     if not _is_number(value):
         raise LayoutError(field, f"must be {what}, got {_show(value)}")
-    if not math.isfinite(value):
+    out = _finite(value)
+    if out is None:
         raise LayoutError(field, f"must be a finite number, got {_show(value)}")
-    if positive and value <= 0:
+    if positive and out <= 0:
         raise LayoutError(field, f"must be {what}, got {_show(value)}")
-    return float(value)
+    if bounds is not None and not bounds[0] <= out <= bounds[1]:
+        raise LayoutError(field, f"must be {bounds[0]:g} to {bounds[1]:g} m, got {_show(value)}")
+    return out
 
 
-def _pair(value, field: str, *, positive: bool = False) -> tuple[float, float]:
-    """`value` as two finite floats (positive if asked), or a LayoutError naming `field`."""
+def _pair(value, field: str, *, positive: bool = False, bounds=None) -> tuple[float, float]:
+    """`value` as two finite floats (positive, within [lo, hi] `bounds` if asked), or a
+    LayoutError naming `field`."""
     what = "two positive numbers" if positive else "two numbers [x, y]"
     ok = isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2
     if not ok or not all(_is_number(v) for v in value):
         raise LayoutError(field, f"must be {what}, got {_show(value)}")
-    if not all(math.isfinite(v) for v in value):
+    out = [_finite(v) for v in value]
+    if None in out:
         raise LayoutError(field, f"must be two finite numbers, got {_show(value)}")
-    if positive and min(value) <= 0:
+    if positive and min(out) <= 0:
         raise LayoutError(field, f"must be {what}, got {_show(value)}")
-    return float(value[0]), float(value[1])
+    if bounds is not None and not (bounds[0] <= min(out) and max(out) <= bounds[1]):
+        raise LayoutError(
+            field, f"each must be {bounds[0]:g} to {bounds[1]:g} m, got {_show(value)}"
+        )
+    return out[0], out[1]
+
+
+def _height(value, field: str) -> float:
+    """A positive height of at most MAX_HEIGHT, m."""
+    out = _number(value, field, positive=True)
+    if out > MAX_HEIGHT:
+        raise LayoutError(field, f"must be at most {MAX_HEIGHT:g} m, got {_show(value)}")
+    return out
+
+
+def _angle(value, field: str) -> float:
+    """A finite angle, rad, reduced modulo 2 pi to [-pi, pi] (as float32 would see it)."""
+    return math.remainder(_number(value, field), 2 * math.pi)
 
 
 # ------------------------------------------------------------------------------
 # The dataclasses
+
+
+def _set_span(ob) -> None:
+    """Checks and stores the obstacle's vertical span [bottom, height]."""
+    object.__setattr__(ob, "height", _height(ob.height, "height"))
+    object.__setattr__(ob, "bottom", _number(ob.bottom, "bottom"))
+    if not 0 <= ob.bottom < ob.height:
+        raise LayoutError("bottom", f"must be in [0, height = {ob.height:g}) m, got {ob.bottom:g}")
 
 
 @dataclass(frozen=True)
@@ -168,13 +227,15 @@ class Box:
     pos: tuple[float, float]  # centre [x, y], m
     size: tuple[float, float]  # full extents along the box's own x and y, m
     yaw: float = 0.0  # rad, counter-clockwise from the room's x axis
-    height: float = 0.5  # m
+    height: float = 0.5  # m, of its top above the floor
+    bottom: float = 0.0  # m, of its underside above the floor (tables, shelves); below `height`
 
     def __post_init__(self):
         object.__setattr__(self, "pos", _pair(self.pos, "pos"))
-        object.__setattr__(self, "size", _pair(self.size, "size", positive=True))
-        object.__setattr__(self, "yaw", _number(self.yaw, "yaw"))
-        object.__setattr__(self, "height", _number(self.height, "height", positive=True))
+        size = _pair(self.size, "size", positive=True, bounds=(MIN_OBSTACLE, ROOM_SIZE[1]))
+        object.__setattr__(self, "size", size)
+        object.__setattr__(self, "yaw", _angle(self.yaw, "yaw"))
+        _set_span(self)
 
 
 @dataclass(frozen=True)
@@ -185,12 +246,14 @@ class Cylinder:
 
     pos: tuple[float, float]  # centre [x, y], m
     radius: float  # m
-    height: float = 0.5  # m
+    height: float = 0.5  # m, of its top above the floor
+    bottom: float = 0.0  # m, of its underside above the floor; below `height`
 
     def __post_init__(self):
         object.__setattr__(self, "pos", _pair(self.pos, "pos"))
-        object.__setattr__(self, "radius", _number(self.radius, "radius", positive=True))
-        object.__setattr__(self, "height", _number(self.height, "height", positive=True))
+        radius = _number(self.radius, "radius", positive=True, bounds=(MIN_OBSTACLE, ROOM_SIZE[1]))
+        object.__setattr__(self, "radius", radius)
+        _set_span(self)
 
 
 Obstacle = Box | Cylinder
@@ -221,11 +284,11 @@ class RoomLayout:
         if not isinstance(self.name, str) or not self.name:
             raise LayoutError("name", f"must be a non-empty string, got {_show(self.name)}")
         set_ = functools.partial(object.__setattr__, self)
-        set_("size", _pair(self.size, "room.size", positive=True))
-        set_("wall_height", _number(self.wall_height, "room.wall_height", positive=True))
+        set_("size", _pair(self.size, "room.size", positive=True, bounds=ROOM_SIZE))
+        set_("wall_height", _height(self.wall_height, "room.wall_height"))
         if self.robot_pos is not None:
             set_("robot_pos", _pair(self.robot_pos, "robot.pos"))
-        set_("robot_yaw", _number(self.robot_yaw, "robot.yaw"))
+        set_("robot_yaw", _angle(self.robot_yaw, "robot.yaw"))
         if self.robot_pos is None and self.robot_yaw != 0.0:
             raise LayoutError("robot.yaw", "a spawn yaw needs robot.pos (None: sampled spawn)")
         if not isinstance(self.obstacles, (list, tuple)):
@@ -322,9 +385,36 @@ def _check_inside(layout: RoomLayout) -> None:
             )
 
 
+def free_spawn(layout: RoomLayout, radius: float = ROBOT_RADIUS) -> tuple[float, float] | None:
+    """A point where a disc of `radius` touches nothing (float32 clearance), by a grid search over
+    the interior every SPAWN_GRID m (400 points a side in larger rooms); None if there is none."""
+    half = 0.5 * np.asarray(layout.size) - radius  # centres nearer a wall cannot be free
+    if min(half) <= 0:
+        return None
+    step = max(SPAWN_GRID, max(layout.size) / 400)
+    xs, ys = (np.linspace(-h, h, int(np.ceil(2 * h / step)) + 1) for h in half)
+    for start in range(0, len(ys), 64):  # blocks of rows: memory stays small in large rooms
+        grid = np.stack(np.meshgrid(xs, ys[start : start + 64]), axis=-1).astype(np.float32)
+        free = np.asarray(clearance(layout, grid)) > radius  # [rows, len(xs)]
+        if free.any():
+            row, col = np.argwhere(free)[0]
+            return float(grid[row, col, 0]), float(grid[row, col, 1])
+    return None
+
+
 def _check_spawn(layout: RoomLayout) -> None:
-    """The robot's disc at the spawn position touches no obstacle and no wall."""
-    if layout.robot_pos is None or is_free(layout, layout.robot_pos, ROBOT_RADIUS):
+    """The robot's disc at the spawn position touches no obstacle and no wall; without a spawn
+    position, there is at least one place where it would not."""
+    if layout.robot_pos is None:
+        if free_spawn(layout) is None:
+            raise LayoutError(
+                None,
+                f"no free spawn: nowhere in the {layout.size[0]:g} x {layout.size[1]:g} m room "
+                f"does the robot (radius {ROBOT_RADIUS} m) clear every wall and obstacle; "
+                "give robot.pos or make room",
+            )
+        return
+    if is_free(layout, layout.robot_pos, ROBOT_RADIUS):
         return
     dist = _distances(layout, np.asarray(layout.robot_pos))
     names = [f"the {w} wall" for w in _WALLS]
@@ -468,23 +558,9 @@ def load_layout(path: str | os.PathLike) -> list[RoomLayout]:
     """Read a layout file (one room object or a list of them) -> validated layouts."""
     source = os.fspath(path)
     try:
-        with open(path, encoding="utf-8-sig") as f:  # -sig: tolerate a byte-order mark
-            text = f.read()
-    except FileNotFoundError:
-        raise LayoutError(None, "no such file", source=source) from None
-    except IsADirectoryError:
-        raise LayoutError(
-            None, "is a directory, expected a JSON layout file", source=source
-        ) from None
-    except UnicodeDecodeError as err:
-        raise LayoutError(None, f"not UTF-8 text ({err.reason})", source=source) from None
-    except OSError as err:
-        raise LayoutError(None, f"cannot read: {err.strerror}", source=source) from None
-    try:
-        obj = json.loads(text, object_pairs_hook=_JsonObject.from_pairs)
-    except json.JSONDecodeError as err:
-        detail = f"invalid JSON at line {err.lineno}, column {err.colno}: {err.msg}"
-        raise LayoutError(None, detail, source=source) from None
+        obj = parse_json(read_text(path), path, object_pairs_hook=_JsonObject.from_pairs)
+    except FileProblem as err:
+        raise LayoutError(None, err.detail, source=source) from None
     return parse_layouts(obj, source)
 
 
@@ -525,23 +601,6 @@ def _dump_room(room: dict, indent: str = "") -> str:
     return f"{indent}{{\n" + ",\n".join(lines) + f"\n{indent}}}"
 
 
-def _write_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write text to a temporary file beside `path`, then rename it over `path`."""
-    target = os.fspath(path)
-    tmp = f"{target}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # umask applies, as for open()
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
 def save_layouts(path: str | os.PathLike, layouts: RoomLayout | Sequence[RoomLayout]) -> None:
     """Write layouts in the format `load_layout` reads, atomically.
 
@@ -561,4 +620,4 @@ def save_layouts(path: str | os.PathLike, layouts: RoomLayout | Sequence[RoomLay
         text = _dump_room(layout_to_dict(layouts))
     else:
         text = "[\n" + ",\n".join(_dump_room(layout_to_dict(r), "  ") for r in rooms) + "\n]"
-    _write_atomic(path, text + "\n")
+    write_atomic(path, text + "\n")

@@ -3,19 +3,26 @@
 One row per update. Its columns come from the task's declared metrics: `update`, `env_steps`,
 `episode_reward`, `episode_length`, then one column per task metric (e.g. `collision` for `avoid`:
 the share of finished episodes that collided), then the PPO losses and the speed.
+
+Nothing already logged is lost: on resume the file is cut back to the checkpoint's update by writing
+the kept rows to a temporary file renamed over it (never truncated in place), then rows are
+appended and flushed after every chunk.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
 from pathlib import Path
 
 import numpy as np
 
+from jaxnav.io.files import FileProblem, read_text, write_atomic
+
 LOSSES = ("total_loss", "policy_loss", "value_loss", "entropy", "approx_kl")
 _LOSS_KEYS = {"total_loss": "total"}  # metrics key of a column where the two differ
-_INTEGER = ("update", "env_steps")
+_INTEGER = ("update", "env_steps", "steps_per_second")
 
 
 def columns(metric_names) -> tuple[str, ...]:
@@ -42,27 +49,52 @@ def chunk_rows(metrics, fields, first_update, batch_size, rate, elapsed) -> list
 
 
 def read_rows(path: Path) -> list[dict]:
-    """The rows of an existing metrics.csv (numbers; empty cells nan); [] if there is none."""
-    if not path.exists():
+    """The rows of an existing metrics.csv (numbers; empty cells nan); [] if there is none.
+
+    A row that is not numbers is a FileProblem naming the file, its line and column.
+    """
+    if not Path(path).exists():
         return []
-    with open(path, newline="") as fh:
-        return [
-            {k: (int(v) if k in _INTEGER else float(v or "nan")) for k, v in row.items()}
-            for row in csv.DictReader(fh)
-        ]
+    reader = csv.DictReader(io.StringIO(read_text(path), newline=""))
+    rows = []
+    for row in reader:
+        try:
+            rows.append({k: _cell(k, v) for k, v in row.items()})
+        except (TypeError, ValueError) as err:
+            raise FileProblem(path, f"line {reader.line_num}: {err}; fix or delete it") from None
+    return rows
+
+
+def _cell(key, value):
+    if key is None or value is None:
+        raise ValueError("the row has a different number of cells than the header")
+    try:
+        return int(value) if key in _INTEGER else float(value or "nan")
+    except ValueError:
+        raise ValueError(f"column {key}: not a number: {value[:40]!r}") from None
+
+
+def _csv_text(fields, rows) -> str:
+    buffer = io.StringIO(newline="")
+    writer = csv.DictWriter(buffer, fields)
+    writer.writeheader()
+    writer.writerows(rows)
+    return buffer.getvalue()
 
 
 class MetricsLog:
-    """metrics.csv (rewritten from `rows`, then appended) and TensorBoard events in out/tb."""
+    """metrics.csv (`rows` kept, then appended) and TensorBoard events in out/tb."""
 
     def __init__(self, out: Path, fields: tuple[str, ...], rows: list[dict]):
         self.out, self.fields, self.rows = out, fields, list(rows)
 
     def __enter__(self):
-        self.fh = open(self.out / "metrics.csv", "w", newline="")
+        file = self.out / "metrics.csv"
+        text = _csv_text(self.fields, self.rows)
+        if not file.exists() or read_text(file) != text:  # atomically: the old rows stay on
+            write_atomic(file, text)  # disk until the kept ones replace them
+        self.fh = open(file, "a", newline="")
         self.writer = csv.DictWriter(self.fh, self.fields)
-        self.writer.writeheader()
-        self.writer.writerows(self.rows)
         self.tb = _tensorboard(self.out / "tb")
         return self
 

@@ -1,6 +1,8 @@
 """What runs on the robot: numpy only, importable without jax (and copied as `jaxnav_robot/` by
 `python -m jaxnav.export RUN --bundle DIR`): the policy's forward pass (`policy`), sensor reading ->
-observation -> velocity command (`observation`) and the ROS 2 node (`ros_node`, rclpy imported lazily).
+observation -> velocity command (`observation`) and the ROS 2 node (`ros_node`: its logic,
+`ControlLoop`, is plain numpy; rclpy is imported lazily; not imported here, so that
+`python -m jaxnav.robot_side.ros_node` runs it only once).
 """
 
 from .observation import Controller, Sensor, Twist

@@ -2,17 +2,14 @@
 
 numpy only (no jax). The sensor's settings and the action table are the ones the policy was trained
 with; they come from the exported .npz (`NumpyPolicy.sensor`, `NumpyPolicy.commands`), never from
-constants here. The conversions reproduce `jaxnav.core.sensors` exactly:
+constants here. Sectors are ordered right to left (obs[0] is the rightmost slice), and every reading
+is camera depth (distance along the optical axis: range * cos(angle), what a depth image holds).
 
-- The simulator casts a horizontal fan of rays, turns each hit distance into camera depth (distance along
-  the optical axis: range * cos(angle), what a depth image holds), clips it to [range_min, range_max]
-  and takes the minimum per sector. Sectors are ordered right to left: obs[0] is the rightmost slice.
-- A ray with no return reads range_max. Here, invalid readings as the Orbbec Astra and ROS drivers
-  report them (0, NaN, +-inf, negative) are ignored; a sector with no valid reading reads range_max,
-  and valid readings below range_min read range_min.
-
-Caveat: the Astra cannot see closer than ~0.6 m and reports 0 there, which reads as "nothing" here,
-whereas the simulator reports range_min for such close surfaces.
+Both paths end in `reduce_sectors`, the one sector reduction, whose docstring states the rule the
+simulator mirrors. Its point is the Orbbec Astra's blind zone: the camera reports 0 both for
+surfaces nearer than its ~0.6 m minimum and for no return, so a sector the camera cannot read is
+taken as near (range_min, the reading that makes the policy turn), never as far (range_max, the
+reading the reward pays most for driving into).
 """
 
 from __future__ import annotations
@@ -33,9 +30,9 @@ class Sensor:
     num_sectors: int
     """Length of the observation: one minimum distance per sector."""
     range_min: float
-    """m; valid readings nearer than this read range_min."""
+    """m; nearer readings, and sectors the camera cannot read, read range_min (`reduce_sectors`)."""
     range_max: float
-    """m; farther readings, and sectors without a valid reading, read range_max."""
+    """m; farther readings, and no return within range, read range_max."""
 
     def __post_init__(self):
         if not 0 < self.fov < 2 * math.pi:
@@ -56,59 +53,97 @@ class Twist(NamedTuple):
     angular: float
 
 
-def _valid(x: np.ndarray) -> np.ndarray:
-    """Readings that are real distances: finite and positive (0 is the Astra's "no data")."""
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(x) & (x > 0)
+BLIND_FRACTION = 0.5
+"""Default share of unknown readings from which a sector reads near (see `reduce_sectors`).
+
+Why one half: a surface inside the blind zone (nearer than range_min = 0.6 m) spanning at least one
+sector's angle (7.5 deg: 8 cm at 0.6 m, 4 cm at 0.3 m) covers at least half of some sector however
+it is aligned, so that sector reads near. A lower share would also catch thinner close objects but
+would turn a sector near whenever part of it looks at a black, shiny or sunlit surface that returns
+nothing; a higher one would need a close object about two sectors wide before anything reads near.
+"""
 
 
-def _finish(minima: np.ndarray, sensor: Sensor) -> np.ndarray:
-    """Sector minima [n] (inf = no valid reading) -> float32 observation clipped to the range."""
-    full = np.where(np.isinf(minima), sensor.range_max, minima)
-    return np.clip(full, sensor.range_min, sensor.range_max).astype(np.float32)
+def reduce_sectors(depth, sector, sensor: Sensor, blind_fraction=BLIND_FRACTION) -> np.ndarray:
+    """[num_sectors] float32 observation from readings depth [N] (m) lying in sectors sector [N].
+
+    The one reduction from readings to the observation, for depth images and scans alike; the
+    simulator applies the same rule to its rays. A reading is a camera depth in metres, or NaN for
+    "unknown" (the camera returned nothing: too close or no return, it cannot tell which).
+    For each sector s (0 = rightmost), with n(s) readings of which u(s) are unknown:
+
+    1. Blind: if u(s) >= blind_fraction * n(s) (so also when n(s) = 0) it reads range_min (near).
+    2. Otherwise it reads the minimum of its known readings clipped to [range_min, range_max]: a
+       reading below range_min (0 and -inf included) reads range_min, one above range_max (+inf: no
+       hit within range) reads range_max.
+
+    The simulator (`jaxnav.core.sensors`) applies the same rule to its rays, with the camera's
+    unknowns: rays nearer than range_min, rays at dark obstacles, dropped rays and (with
+    `far_invalid`) rays beyond range_max; rays that meet the floor are left out on both sides
+    (`tests/test_fidelity.py` checks the two agree). blind_fraction must be in (0, 1]; 1 means only
+    a sector whose readings are all unknown reads near.
+    """
+    if not 0 < blind_fraction <= 1:
+        raise ValueError(f"blind_fraction: must be in (0, 1], got {blind_fraction}")
+    depth = np.asarray(depth, np.float64).ravel()
+    sector = np.asarray(sector, np.int64).ravel()
+    n = sensor.num_sectors
+    unknown = np.isnan(depth)
+    count = np.bincount(sector, minlength=n)
+    blind = np.bincount(sector[unknown], minlength=n) >= blind_fraction * count
+    minima = np.full(n, np.inf)
+    np.minimum.at(minima, sector[~unknown], depth[~unknown])
+    near = np.clip(minima, sensor.range_min, sensor.range_max)
+    return np.where(blind, sensor.range_min, near).astype(np.float32)
 
 
-def _bin_by_angle(depth, angles, sensor: Sensor) -> np.ndarray:
-    """[num_sectors] minimum depth per angle bin of width fov/num_sectors from -fov/2 (inf if none)."""
+def _angle_sectors(angles, sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
+    """(keep [N] bool: within +-fov/2, sector [K] of each kept angle), bins of fov/num_sectors."""
     half, n = 0.5 * sensor.fov, sensor.num_sectors
     keep = np.abs(angles) <= half
     # The simulator's bins: ray i of R lies at (i + 0.5) / R * fov - fov/2, sector i // (R / n).
     idx = np.floor((angles[keep] + half) / (sensor.fov / n)).astype(np.int64)
-    idx = np.clip(idx, 0, n - 1)  # a beam exactly at +fov/2 belongs to the last sector
-    out = np.full(n, np.inf)
-    np.minimum.at(out, idx, depth[keep])
-    return out
+    return keep, np.clip(idx, 0, n - 1)  # a beam exactly at +fov/2 belongs to the last sector
 
 
 def scan_to_sectors(ranges, angles, sensor: Sensor) -> np.ndarray:
     """[num_sectors] float32 observation from a laser scan, as the simulator computes it.
 
     ranges [N] m and angles [N] rad as in a ROS LaserScan (0 ahead, positive to the left). Beams
-    within +-fov/2 are kept, turned into camera depth (range * cos(angle)) and binned by angle into
-    sectors of width fov/num_sectors from -fov/2 (right to left); invalid ranges are ignored.
+    within +-fov/2 are kept and turned into camera depth (range * cos(angle)). A range of 0 or below
+    (-inf included: nearer than the scanner measures) reads range_min; +inf and NaN (no return) read
+    range_max. Then `reduce_sectors` (a scan has no unknown readings: its minimum, clipped).
     """
     ranges = np.asarray(ranges, np.float64).ravel()
     angles = np.asarray(angles, np.float64).ravel()
     if ranges.shape != angles.shape:
         raise ValueError(f"ranges {ranges.shape} and angles {angles.shape} differ in length")
-    ok = _valid(ranges)
-    depth = ranges[ok] * np.cos(angles[ok])
-    return _finish(_bin_by_angle(depth, angles[ok], sensor), sensor)
+    keep, sector = _angle_sectors(angles, sensor)
+    r = ranges[keep]
+    with np.errstate(invalid="ignore"):
+        depth = np.where(r > 0, r * np.cos(angles[keep]), 0.0)  # 0: reads range_min
+    depth[np.isnan(r) | np.isposinf(r)] = np.inf  # no return: reads range_max
+    return reduce_sectors(depth, sector, sensor)
 
 
-def depth_image_to_sectors(depth, sensor: Sensor, rows=None, column_angles=None) -> np.ndarray:
+def depth_image_to_sectors(
+    depth, sensor: Sensor, rows=None, column_angles=None, blind_fraction=BLIND_FRACTION
+) -> np.ndarray:
     """[num_sectors] float32 observation from a depth image [H, W] in metres (camera depth, z).
 
     Column 0 is the LEFT of the image of a forward-looking camera, so sector 0 holds the rightmost
     columns: the columns are split into num_sectors equal slices right to left (the image is taken
-    to span exactly `sensor.fov`), and each sector reads its minimum valid depth over `rows`.
+    to span exactly `sensor.fov`). The pixels of a sector's columns in `rows` go to
+    `reduce_sectors`: 0, NaN and negative pixels are unknown (the Astra's 0 means too close or no
+    return), +inf reads range_max; so a sector at least `blind_fraction` unknown reads range_min.
 
     rows: row indices or a slice; None = all rows. On the robot pass the rows around the horizon
         (`horizon_rows`): the simulator sees a horizontal fan only, and lower rows see the floor,
-        which would read as an obstacle ~0.65 m ahead.
+        which is no obstacle but would read as one ~0.65 m ahead.
     column_angles: [W] angle of each column (rad, positive = left, e.g. `pinhole_column_angles`);
-        when given, columns are binned by angle like `scan_to_sectors` instead of equal slices.
-        Equal slices of a pinhole image are up to ~1.5 deg off the simulator's equal-angle bins.
+        when given, columns are binned by angle like `scan_to_sectors` instead of equal slices
+        (columns beyond +-fov/2 are dropped). Equal slices of a pinhole image are up to ~1.5 deg
+        off the simulator's equal-angle bins.
     """
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
@@ -116,15 +151,19 @@ def depth_image_to_sectors(depth, sensor: Sensor, rows=None, column_angles=None)
     band = depth if rows is None else depth[rows]
     if band.ndim != 2 or band.shape[0] == 0:
         raise ValueError(f"rows {rows!r} select no image rows")
-    column_min = np.where(_valid(band), band, np.inf).min(axis=0)  # [W], left to right
+    width, n = band.shape[1], sensor.num_sectors
     if column_angles is not None:
-        angles = np.asarray(column_angles, np.float64)
-        return _finish(_bin_by_angle(column_min.astype(np.float64), angles, sensor), sensor)
-    width, n = column_min.size, sensor.num_sectors
-    if width < n:
+        keep, sector = _angle_sectors(np.asarray(column_angles, np.float64), sensor)
+        band = band[:, keep]
+    elif width < n:
         raise ValueError(f"depth image has {width} columns, fewer than {n} sectors")
-    starts = np.arange(n) * width // n  # slices differ by at most one column
-    return _finish(np.minimum.reduceat(column_min[::-1], starts), sensor)
+    else:  # equal slices, right to left, differing by at most one column
+        starts = np.arange(n) * width // n
+        sector = np.searchsorted(starts, np.arange(width)[::-1], side="right") - 1
+    with np.errstate(invalid="ignore"):
+        readings = np.where(band > 0, band, np.nan)  # 0, NaN, negative: unknown
+    sector = np.broadcast_to(sector, readings.shape)
+    return reduce_sectors(readings, sector, sensor, blind_fraction)
 
 
 def pinhole_column_angles(width: int, hfov: float) -> np.ndarray:
@@ -172,21 +211,36 @@ class Controller:
     """A `NumpyPolicy`: callable obs [num_sectors] -> action int, with `.sensor` and `.commands`."""
     speed_calibration: float = 1.0
     """Multiplies both speeds of every command (see `action_to_twist`)."""
+    blind_fraction: float = BLIND_FRACTION
+    """A depth-image sector at least this share unknown (0/NaN) reads near (`reduce_sectors`)."""
 
     def __post_init__(self):
         if not self.speed_calibration > 0:
             raise ValueError(
                 f"Controller.speed_calibration: must be > 0, got {self.speed_calibration}"
             )
+        if not 0 < self.blind_fraction <= 1:
+            raise ValueError(
+                f"Controller.blind_fraction: must be in (0, 1], got {self.blind_fraction}"
+            )
 
     def act(self, obs) -> Twist:
         """The command for an observation [num_sectors] (metres, right to left)."""
         return action_to_twist(self.policy(obs), self.policy.commands, self.speed_calibration)
 
+    def image_obs(self, depth, rows=None, column_angles=None) -> np.ndarray:
+        """The observation of a depth image [H, W] in metres (see `depth_image_to_sectors`)."""
+        sensor = self.policy.sensor
+        return depth_image_to_sectors(depth, sensor, rows, column_angles, self.blind_fraction)
+
+    def scan_obs(self, ranges, angles) -> np.ndarray:
+        """The observation of a laser scan: ranges [N] m at angles [N] rad (0 ahead, + left)."""
+        return scan_to_sectors(ranges, angles, self.policy.sensor)
+
     def image_to_twist(self, depth, rows=None, column_angles=None) -> Twist:
         """The command for a depth image [H, W] in metres (see `depth_image_to_sectors`)."""
-        return self.act(depth_image_to_sectors(depth, self.policy.sensor, rows, column_angles))
+        return self.act(self.image_obs(depth, rows, column_angles))
 
     def scan_to_twist(self, ranges, angles) -> Twist:
         """The command for a laser scan: ranges [N] m at angles [N] rad (0 ahead, positive left)."""
-        return self.act(scan_to_sectors(ranges, angles, self.policy.sensor))
+        return self.act(self.scan_obs(ranges, angles))

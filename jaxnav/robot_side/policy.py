@@ -12,6 +12,7 @@ obs_mean, obs_var (the training normaliser's, float32 [D]), obs_std = sqrt(obs_v
 applied; with obs_mean zeros/ones when training did not normalise), clip (inf when it did not),
 leaky_slope, action_names [A] str, commands float32 [A, 2] (forward m/s, yaw rad/s per action), the
 sensor's fov (rad), range_min and range_max (m) and num_sectors (= D), and format_version.
+Optional: control_period (s per action in training; the ROS node's timer runs at its inverse).
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ class NumpyPolicy:
     """[A] name of each action."""
     commands: np.ndarray
     """[A, 2] float32 (forward m/s, yaw rad/s, positive = left) each action commands."""
+    control_period: float | None = None
+    """s each action was held in training; None where the file does not say."""
 
     @classmethod
     def from_arrays(cls, arrays: dict, source: str = "policy") -> NumpyPolicy:
@@ -76,6 +79,7 @@ class NumpyPolicy:
             ),
             action_names=tuple(str(a) for a in arrays["action_names"]),
             commands=np.asarray(arrays["commands"], np.float32),
+            control_period=float(arrays["control_period"]) if "control_period" in arrays else None,
         )
         policy.check(source)
         return policy
@@ -97,6 +101,8 @@ class NumpyPolicy:
         want = [((i, o), (o,)) for i, o in zip(widths[:-1], widths[1:], strict=True)]
         if shapes != want:
             raise ValueError(f"{source}: layer shapes {shapes} do not chain from num_sectors")
+        if self.control_period is not None and not self.control_period > 0:
+            raise ValueError(f"{source}: control_period must be > 0 s, got {self.control_period}")
         a = widths[-1]
         if len(self.action_names) != a or self.commands.shape != (a, 2):
             raise ValueError(

@@ -1,33 +1,59 @@
-"""ROS 2 node: depth image (or LaserScan) -> exported policy -> geometry_msgs/Twist, one per message.
+"""ROS 2 node: depth image (or LaserScan) -> exported policy -> geometry_msgs/Twist at a fixed rate.
 
 On the robot, in the folder `python -m jaxnav.export RUN --bundle DIR` wrote (numpy and rclpy only):
 
-    python3 -m jaxnav_robot.ros_node --policy policy.npz                        # /camera/depth/image_raw
-    python3 -m jaxnav_robot.ros_node --policy policy.npz --scan --topic /scan   # a LaserScan instead
     python3 -m jaxnav_robot.ros_node --policy policy.npz --ros-args -r cmd_vel:=commands/velocity
+    python3 -m jaxnav_robot.ros_node --policy policy.npz --scan --topic /scan \\
+        --ros-args -r cmd_vel:=commands/velocity
 
 (`python -m jaxnav.robot_side.ros_node` works too where jaxnav is installed.) The flags set the
-defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, speed_calibration,
-vfov_deg, band_deg, tilt_deg), which `--ros-args -p` overrides. Depth images may be 32FC1 (metres) or
-16UC1 (millimetres); only rows within +-band_deg of the horizon are read (see
-`observation.horizon_rows`), as the simulator's sensor is a horizontal fan. On shutdown (Ctrl-C) a zero
-Twist is sent.
+defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, rate_hz, max_age,
+speed_calibration, blind_fraction, vfov_deg, band_deg, tilt_deg), which `--ros-args -p` overrides.
 
-rclpy and the message packages are imported inside `main` only: the conversion functions below are
-plain functions of message fields, testable without ROS.
+What it does (the logic is `ControlLoop` below, which has no ROS in it and is tested alone;
+`python -m jaxnav.replay` drives the same loop from a recorded bag):
+
+- A timer at `rate_hz` (default: 1 / the control period the policy file stores, else 10 Hz) sends
+  the policy's command for the NEWEST sensor message; messages in between are dropped, not queued.
+- It sends zero velocity when that message is older than `max_age` (default 0.25 s), before the
+  first message, and when a message cannot be converted or the policy fails (logged; it carries on).
+- Ctrl-C (SIGINT) or SIGTERM sends zero velocity, then shuts down. rclpy's own SIGINT handler
+  (Humble and later) would shut the ROS context down before any code of ours ran, so rclpy is
+  started without it and this node installs its own handlers. Python runs them between callbacks,
+  so within one timer period.
+
+Output: `cmd_vel` by default. The Kobuki driver (kobuki_ros) listens on `commands/velocity`: remap
+(`--ros-args -r cmd_vel:=commands/velocity`), or feed a velocity mux. The driver stops the base by
+itself when no command has come for `cmd_vel_timeout_sec` (0.6 s by default), a second line behind
+this node's watchdog. Run `kobuki_safety_controller` beside it (enable it by publishing on its
+`enable` topic): on a bumper, cliff or wheel-drop event it commands backing off (0.1 m/s) or a stop
+on its own `cmd_vel`, which a mux must rank above this node. The camera's blind zone (nearer than
+~0.6 m) reads near (see `observation.reduce_sectors`), but the bumper is the last resort.
+
+Depth images may be 32FC1 (metres) or 16UC1 (millimetres); only rows within +-band_deg of the
+horizon are read, as the simulator's sensor is a horizontal fan. rclpy and the message packages are
+imported inside `main` only: everything else here is numpy, and reads messages by their fields
+(`MessageReader`), so rclpy's messages and those the `rosbags` library deserialises both work.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
+import signal
 import sys
+from collections.abc import Callable
 
 import numpy as np
 
-from .observation import Controller, Twist, horizon_rows
+from .observation import BLIND_FRACTION, Controller, Twist, horizon_rows
 from .policy import NumpyPolicy
 
+STOP = Twist(0.0, 0.0)
+DEFAULT_RATE_HZ = 10.0  # the paper's ~10 Hz, where the policy file does not give its control period
+# s; a 30 Hz camera has missed ~7 frames by then; the Kobuki driver's own timeout is 0.6 s
+DEFAULT_MAX_AGE = 0.25
 ASTRA_VFOV_DEG = 49.5  # Orbbec Astra vertical field of view (the simulator has no vertical extent)
 
 # sensor_msgs/Image encodings of depth: (numpy dtype, metres per unit)
@@ -44,7 +70,7 @@ def image_msg_to_array(
     """[height, width] float32 depth in metres from sensor_msgs/Image fields.
 
     `step` is the row length in bytes, which may exceed width * pixel size (padding). 16-bit depth is
-    in millimetres; its 0 (no data) stays 0, which the observation ignores as invalid.
+    in millimetres; its 0 (no data) stays 0, which the observation counts as unknown.
     """
     if encoding not in DEPTH_ENCODINGS:
         raise ValueError(f"image encoding '{encoding}' is not depth; use {sorted(DEPTH_ENCODINGS)}")
@@ -67,11 +93,137 @@ def scan_msg_to_arrays(ranges, angle_min: float, angle_increment: float):
     return ranges, angle_min + angle_increment * np.arange(ranges.size)
 
 
+@dataclasses.dataclass(frozen=True)
+class MessageReader:
+    """A sensor_msgs/Image (depth) or sensor_msgs/LaserScan message -> the policy's observation."""
+
+    scan: bool = False
+    """The messages are LaserScans; otherwise depth images (32FC1 metres or 16UC1 millimetres)."""
+    vfov_deg: float = ASTRA_VFOV_DEG
+    """Depth camera's vertical field of view, deg (finds the horizon rows)."""
+    band_deg: float = 2.0
+    """Only image rows within +-band_deg of the horizon are read (`horizon_rows`); 0: all rows."""
+    tilt_deg: float = 0.0
+    """Camera pitch, deg, positive = looking down."""
+
+    def __post_init__(self):
+        if not 0 < self.vfov_deg < 180:
+            raise ValueError(f"vfov_deg: must be in (0, 180), got {self.vfov_deg}")
+        if not self.band_deg >= 0:
+            raise ValueError(f"band_deg: must be >= 0, got {self.band_deg}")
+
+    def __call__(self, msg, controller: Controller) -> np.ndarray:
+        """[num_sectors] float32 observation of `msg` for `controller`'s policy and settings."""
+        if self.scan:
+            ranges, angles = scan_msg_to_arrays(msg.ranges, msg.angle_min, msg.angle_increment)
+            return controller.scan_obs(ranges, angles)
+        depth = image_msg_to_array(
+            msg.encoding, msg.height, msg.width, msg.data, msg.step, bool(msg.is_bigendian)
+        )
+        rows = None
+        if self.band_deg > 0:
+            vfov, tilt = math.radians(self.vfov_deg), math.radians(self.tilt_deg)
+            rows = horizon_rows(msg.height, vfov, self.band_deg, tilt)
+        return controller.image_obs(depth, rows)
+
+
+def control_rate(policy, rate_hz: float | None = None) -> float:
+    """Ticks per second: `rate_hz` if given, else 1 / the policy's control period, else 10."""
+    if rate_hz is None:
+        period = getattr(policy, "control_period", None)
+        rate_hz = DEFAULT_RATE_HZ if period is None else 1.0 / period
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz: must be > 0, got {rate_hz}")
+    return float(rate_hz)
+
+
+def _stderr(text: str) -> None:
+    print(text, file=sys.stderr)
+
+
+class ControlLoop:
+    """Keeps the newest sensor message; each `tick` sends the policy's command for it, or STOP.
+
+    STOP (zero velocity) is sent when the loop is shut down, before the first message, when the
+    newest message was received more than `max_age` s before the tick (the camera or its driver
+    stalled), and when the message cannot be read or the policy fails on it (the error is logged and
+    the loop carries on with the next message). A message is read and acted on once, at the first
+    tick that uses it; later ticks repeat its command while it is fresh. Each change of state is
+    logged once. Times are seconds on any one clock (the node's, or a bag's receipt times).
+
+    After each tick, `obs` is the observation acted on (None when it sent STOP) and `state` says why:
+    "policy" or the reason for stopping.
+    """
+
+    def __init__(
+        self,
+        controller: Controller,
+        reader: Callable[[object, Controller], np.ndarray],
+        max_age: float = DEFAULT_MAX_AGE,
+        log: Callable[[str], None] = _stderr,
+    ):
+        if not max_age > 0:
+            raise ValueError(f"max_age: must be > 0 s, got {max_age}")
+        self.controller, self.reader, self.max_age, self.log = controller, reader, max_age, log
+        self.obs: np.ndarray | None = None
+        self.state = "no sensor message yet"
+        self._msg, self._stamp, self._result = None, -math.inf, None
+        self._down = False
+
+    def on_observation(self, msg, stamp: float) -> None:
+        """Keeps `msg`, received at `stamp` (s), as the newest reading, replacing the previous one."""
+        self._msg, self._stamp, self._result = msg, stamp, None
+
+    def tick(self, now: float) -> Twist:
+        """The command to send at time `now` (s)."""
+        obs, twist, state = self._decide(now)
+        if state != self.state:
+            self.log(f"{state}: {'driving' if obs is not None else 'sending zero velocity'}")
+        self.obs, self.state = obs, state
+        return twist
+
+    def shutdown(self) -> Twist:
+        """Stops for good: returns STOP, and every later tick sends STOP too."""
+        self._down = True
+        return self.tick(math.inf)  # the time does not matter once down
+
+    def _decide(self, now: float):
+        if self._down:
+            return None, STOP, "shut down"
+        if self._msg is None:
+            return None, STOP, "no sensor message yet"
+        if now - self._stamp > self.max_age:
+            return None, STOP, f"no sensor message for over {self.max_age:g} s"
+        if self._result is None:
+            self._result = self._act(self._msg)
+        return self._result
+
+    def _act(self, msg):
+        try:
+            obs = np.asarray(self.reader(msg, self.controller), np.float32)
+            return obs, self.controller.act(obs), "policy"
+        except Exception as err:  # noqa: BLE001 - any failure must stop the robot, not the node
+            return None, STOP, f"error: {type(err).__name__}: {err}"
+
+
 def twist_msg(twist: Twist, msg_cls):
     """A geometry_msgs/Twist (`msg_cls`) holding the command."""
     msg = msg_cls()
     msg.linear.x, msg.angular.z = float(twist.linear), float(twist.angular)
     return msg
+
+
+def add_loop_flags(p: argparse.ArgumentParser) -> None:
+    """The flags of `make_loop`'s settings (shared with `python -m jaxnav.replay`)."""
+    p.add_argument("--rate-hz", type=float, help="commands per second (default: policy's, or 10)")
+    p.add_argument("--max-age", type=float, default=DEFAULT_MAX_AGE, help="s; older data: stop")
+    p.add_argument("--speed-calibration", type=float, default=1.0, help="multiplies both speeds")
+    p.add_argument(
+        "--blind-fraction", type=float, default=BLIND_FRACTION, help="unknown share: near"
+    )
+    p.add_argument("--vfov-deg", type=float, default=ASTRA_VFOV_DEG, help="camera")
+    p.add_argument("--band-deg", type=float, default=2.0, help="rows within +-this of horizon")
+    p.add_argument("--tilt-deg", type=float, default=0.0, help="camera pitch, positive = down")
 
 
 def parse_args(argv=None):
@@ -81,11 +233,18 @@ def parse_args(argv=None):
     p.add_argument("--topic", default="/camera/depth/image_raw", help="depth image or scan topic")
     p.add_argument("--scan", action="store_true", help="the topic is a sensor_msgs/LaserScan")
     p.add_argument("--cmd-vel", default="cmd_vel", help="geometry_msgs/Twist output topic")
-    p.add_argument("--speed-calibration", type=float, default=1.0, help="multiplies both speeds")
-    p.add_argument("--vfov-deg", type=float, default=ASTRA_VFOV_DEG, help="camera")
-    p.add_argument("--band-deg", type=float, default=2.0, help="rows within +-this of horizon")
-    p.add_argument("--tilt-deg", type=float, default=0.0, help="camera pitch, positive = down")
+    add_loop_flags(p)
     return p.parse_known_args(argv)
+
+
+def make_loop(get: dict, log) -> tuple[ControlLoop, float]:
+    """(the node's ControlLoop, its rate in Hz) from the values `get` of the node's parameters:
+    policy, scan and those of `add_loop_flags` (rate_hz None: the policy's rate)."""
+    policy = NumpyPolicy.from_npz(get["policy"])
+    controller = Controller(policy, get["speed_calibration"], get["blind_fraction"])
+    reader = MessageReader(get["scan"], get["vfov_deg"], get["band_deg"], get["tilt_deg"])
+    loop = ControlLoop(controller, reader, get["max_age"], log)
+    return loop, control_rate(policy, get["rate_hz"])
 
 
 def _make_node(args):
@@ -98,55 +257,73 @@ def _make_node(args):
     class PolicyNode(Node):
         def __init__(self):
             super().__init__("jaxnav_policy")
-            get = {k: self.declare_parameter(k, v).value for k, v in vars(args).items()}
-            policy = NumpyPolicy.from_npz(get["policy"])
-            self.controller = Controller(policy, speed_calibration=get["speed_calibration"])
-            self.band = (
-                math.radians(get["vfov_deg"]),
-                get["band_deg"],
-                math.radians(get["tilt_deg"]),
-            )
+            flags = {k: v for k, v in vars(args).items() if v is not None}  # rate_hz may be None
+            get = {k: self.declare_parameter(k, v).value for k, v in flags.items()}
+            if args.rate_hz is None:  # a float parameter; 0 = the policy's rate
+                get["rate_hz"] = self.declare_parameter("rate_hz", 0.0).value or None
+            logger = self.get_logger()
+            self.loop, rate = make_loop(get, getattr(logger, "warning", None) or logger.warn)
             self.pub = self.create_publisher(TwistMsg, get["cmd_vel"], 10)
-            msg_type, callback = (
-                (LaserScan, self.on_scan) if get["scan"] else (Image, self.on_image)
+            msg_type = LaserScan if get["scan"] else Image
+            self.create_subscription(
+                msg_type, get["topic"], self.on_message, qos_profile_sensor_data
             )
-            self.create_subscription(msg_type, get["topic"], callback, qos_profile_sensor_data)
-            self.get_logger().info(f"{get['policy']}: {get['topic']} -> {get['cmd_vel']}")
+            self.timer = self.create_timer(1.0 / rate, self.on_timer)
+            logger.info(f"{get['policy']}: {get['topic']} -> {get['cmd_vel']} at {rate:g} Hz")
 
-        def on_image(self, msg):
-            depth = image_msg_to_array(
-                msg.encoding, msg.height, msg.width, msg.data, msg.step, bool(msg.is_bigendian)
-            )
-            vfov, band, tilt = self.band
-            rows = horizon_rows(msg.height, vfov, band, tilt) if band > 0 else None
-            self.pub.publish(twist_msg(self.controller.image_to_twist(depth, rows), TwistMsg))
+        def now(self) -> float:
+            return self.get_clock().now().nanoseconds * 1e-9
 
-        def on_scan(self, msg):
-            ranges, angles = scan_msg_to_arrays(msg.ranges, msg.angle_min, msg.angle_increment)
-            self.pub.publish(twist_msg(self.controller.scan_to_twist(ranges, angles), TwistMsg))
+        def on_message(self, msg):
+            self.loop.on_observation(msg, self.now())
+
+        def on_timer(self):
+            self.pub.publish(twist_msg(self.loop.tick(self.now()), TwistMsg))
 
         def stop(self):
-            try:  # best effort: the context may be gone if rclpy handled the signal itself
-                self.pub.publish(twist_msg(Twist(0.0, 0.0), TwistMsg))
+            try:  # best effort: the context may be gone if something else shut it down
+                self.pub.publish(twist_msg(self.loop.shutdown(), TwistMsg))
             except Exception as err:  # noqa: BLE001
                 print(f"could not send the stop command: {err}", file=sys.stderr)
 
     return PolicyNode()
 
 
+def _init_rclpy(rclpy, args: list[str]) -> None:
+    """rclpy.init without rclpy's signal handlers where it has the option (Humble and later)."""
+    try:
+        from rclpy.signals import SignalHandlerOptions
+    except ImportError:  # Foxy, Galactic: our handlers, installed after init, replace rclpy's
+        rclpy.init(args=args)
+        return
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+
+
+def _stop_on_signals(node) -> dict:
+    """SIGINT and SIGTERM send zero velocity at once, then leave spin; returns the old handlers."""
+    caught = []
+
+    def handler(signum, frame):
+        node.stop()  # now, while the ROS context is still up
+        if not caught:  # a second signal during the shutdown only repeats the stop
+            caught.append(signum)
+            raise KeyboardInterrupt
+
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
 def main(argv=None) -> int:
     args, ros_args = parse_args(argv)
     import rclpy
 
-    argv = [sys.argv[0], *ros_args]
-    try:  # Humble and later: rclpy's own SIGINT handler would shut the context down before the
-        # stop command below could be sent; Python's default one raises KeyboardInterrupt instead.
-        from rclpy.signals import SignalHandlerOptions
-
-        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    except ImportError:
-        rclpy.init(args=argv)
-    node = _make_node(args)
+    _init_rclpy(rclpy, [sys.argv[0], *ros_args])
+    try:
+        node = _make_node(args)
+    except ValueError as err:  # a bad policy file or parameter
+        print(f"error: {err}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    previous = _stop_on_signals(node)
     try:
         rclpy.spin(node)
     except KeyboardInterrupt:
@@ -155,6 +332,8 @@ def main(argv=None) -> int:
         node.stop()  # the robot must not keep driving on the last command
         node.destroy_node()
         rclpy.try_shutdown()
+        for sig, old in previous.items():
+            signal.signal(sig, old)
     return 0
 
 

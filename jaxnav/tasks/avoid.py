@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxnav.core.checks import require_finite
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import DiscreteActions, EnvState
-from jaxnav.tasks.base import NavTask
+from jaxnav.tasks.base import Actuator, NavTask
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,13 +96,14 @@ class AvoidEnv(NavTask):
             done=b0,
             truncated=b0,
             metrics={"collision": f0},
-            info={"params": params, "steps": jnp.int32(0), "key": key},
+            info={"params": params, "steps": jnp.int32(0), "key": key, "actuator": Actuator.zero()},
         )
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; reward per Table I; end on collision or time."""
         params = state.info["params"]
-        data, hit = self.drive(params, state.data, self._commands[action])
+        command, actuator = self.actuate(params, state.info["actuator"], self._commands[action])
+        data, hit = self.drive(params, state.data, command)
         steps = state.info["steps"] + 1
         truncated = (steps >= self.task.max_steps) & ~hit
         key, k_obs = jax.random.split(state.info["key"])
@@ -113,7 +114,7 @@ class AvoidEnv(NavTask):
             done=hit | truncated,
             truncated=truncated,
             metrics={"collision": hit.astype(jnp.float32)},
-            info={"params": params, "steps": steps, "key": key},
+            info={"params": params, "steps": steps, "key": key, "actuator": actuator},
         )
 
     def _reward(self, obs: jax.Array, action: jax.Array, hit: jax.Array) -> jax.Array:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from flax import struct
 from mujoco import mjx
 
 from jaxnav.core.geometry import signed_distance
@@ -19,6 +20,19 @@ from jaxnav.core.scene import Scene, SceneConfig
 from jaxnav.core.sensors import SensorConfig, observe
 
 GRAVITY = 9.81  # m/s^2, for the wheels' traction limit
+MAX_LATENCY = 4  # control steps of command history kept for the episode's latency
+
+
+@struct.dataclass
+class Actuator:
+    """The drive's command pipeline between the policy and the motors."""
+
+    queue: jax.Array  # [MAX_LATENCY + 1, 2] the newest commands (m/s, rad/s), newest first
+    velocity: jax.Array  # [2] the command the velocity smoother passed last (m/s, rad/s)
+
+    @classmethod
+    def zero(cls) -> Actuator:
+        return cls(jnp.zeros((MAX_LATENCY + 1, 2)), jnp.zeros(2))
 
 
 class NavTask:
@@ -55,15 +69,34 @@ class NavTask:
     def sense(self, params: SceneParams, data: mjx.Data, key: jax.Array) -> jax.Array:
         """[num_sectors] float32 sector minima of the depth sensor, with the episode's noise."""
         m = self.scene.model_for(params)
-        return observe(m, data, params, key, self.sensor, self.robot, self.scene.robot_body)
+        return observe(m, data, params, key, self.sensor, self.scene)
 
     def touching(self, params: SceneParams, data: mjx.Data) -> jax.Array:
-        """[] bool: the bumper sphere touches a wall or an obstacle."""
-        z = jnp.float32(self.scene.bumper_z)
+        """[] bool: the robot's collision volume touches a wall or an obstacle."""
+        z = tuple(jnp.float32(v) for v in self.scene.bumper_z)
         return signed_distance(params, data.qpos[:2], z) < self.scene.bumper_radius
 
+    def actuate(self, params: SceneParams, act: Actuator, target: jax.Array):
+        """What reaches the motors this step for the policy's command `target` [2] (m/s, rad/s):
+        delayed by the episode's latency, rate-limited by its acceleration limits (the Kobuki's
+        velocity smoother; a limit <= 0 is none), split over the wheels with their gains and scaled
+        by the speed gain. Returns ([2] command, the new Actuator)."""
+        queue = jnp.concatenate([target[None], act.queue[:-1]])
+        delayed = queue[jnp.clip(params.latency, 0, MAX_LATENCY)]
+        step = params.accel * self.control_period
+        change = jnp.where(
+            step > 0, jnp.clip(delayed - act.velocity, -step, step), delayed - act.velocity
+        )
+        velocity = act.velocity + change
+        half_track = 0.5 * self.robot.wheelbase
+        left, right = params.wheel_gain * (
+            velocity[0] + jnp.array([-1.0, 1.0]) * velocity[1] * half_track
+        )
+        command = jnp.stack([0.5 * (left + right), (right - left) / (2 * half_track)])
+        return command * params.speed_gain, Actuator(queue, velocity)
+
     def drive(self, params: SceneParams, data: mjx.Data, command: jax.Array):
-        """Holds `command` [2] (forward m/s, yaw rad/s) for one control period.
+        """Holds `command` [2] (forward m/s, yaw rad/s, as `actuate` passes it) for one period.
 
         Each physics step, the motors push the base towards the commanded forward speed along its
         heading (zero sideways) and the commanded yaw rate, with forces bounded by the floor's
@@ -74,7 +107,6 @@ class NavTask:
         mass, inertia = self.scene.mass, self.scene.yaw_inertia
         force_max = params.friction * mass * GRAVITY
         torque_max = force_max * 0.5 * self.robot.wheelbase
-        command = command * params.speed_gain
 
         def substep(carry, _):
             d, hit = carry

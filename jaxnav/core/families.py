@@ -1,0 +1,457 @@
+"""Room families: pure, vmappable samplers `family(key, nb, nc, radius) -> SceneParams`.
+
+Each family draws one room of a kind (open, clutter, pillar grid, corridor, L/T/U, joined rooms,
+furniture, low obstacles and overhangs) into `nb` box and `nc` cylinder slots. All draws are traced
+data: `sample_family(key, index, ...)` picks a family by a traced index, so mixing families never
+recompiles. Interior walls are boxes. Every room leaves the robot's spawn free by `SPAWN_CLEARANCE`
+(obstacles that would come nearer are deactivated), keeps every obstacle inside the walls and leaves
+doorways and corridors at least `MIN_DOOR` / `MIN_CORRIDOR` wide.
+
+The free-space tools at the end (`free_cells`, `reachable`, `coverage`) work on `RoomLayout`s in
+numpy: a 0.1 m occupancy grid inflated by the robot radius, flood-filled from the spawn.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxnav.core.geometry import box_distance
+from jaxnav.core.randomize import RandomizeConfig, SceneParams, sample_room
+from jaxnav.io import layouts as lay
+
+SPAWN_CLEARANCE = 0.3  # m between the robot's edge and anything at the spawn (RandomizeConfig's)
+WALL = 0.1  # m, thickness of interior walls
+MIN_DOOR = 0.8  # m, narrowest doorway between joined rooms
+MIN_CORRIDOR = 1.2  # m, narrowest corridor, arm of an L/T/U room or U-turn
+FAMILY_BOXES = 16  # box slots the families need (pillar grid 4 x 4, furniture 3 x 5)
+FAMILY_CYLINDERS = 4  # cylinder slots the families use at most
+CELL = 0.1  # m, occupancy grid cell of `free_cells`
+_BLOCK = 4096  # grid points per clearance call in `free_cells`
+COVER_REACH = 1.0  # m, the robot "covers" free space within this distance of its path
+
+
+@struct.dataclass
+class Boxes:
+    """Box obstacles of one room before they are padded into slots. N = boxes."""
+
+    pos: jax.Array  # [N, 2] centres, m
+    half: jax.Array  # [N, 2] half extents along the box's own axes, m
+    yaw: jax.Array  # [N] rad
+    height: jax.Array  # [N] top above the floor, m
+    bottom: jax.Array  # [N] underside above the floor, m
+    active: jax.Array  # [N] bool
+
+
+def _uniform(key, lo, hi, shape=()):
+    return jax.random.uniform(key, shape, minval=lo, maxval=hi)
+
+
+def _walls(pos, half, key, active=True) -> Boxes:
+    """Axis-aligned standing wall boxes [N]; top uniform in [0.5, 1.0] m."""
+    n = pos.shape[0]
+    return Boxes(
+        pos=pos,
+        half=half,
+        yaw=jnp.zeros(n),
+        height=_uniform(key, 0.5, 1.0, (n,)),
+        bottom=jnp.zeros(n),
+        active=jnp.broadcast_to(jnp.asarray(active), (n,)),
+    )
+
+
+def _join(*groups: Boxes) -> Boxes:
+    return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *groups)
+
+
+def _blank(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A room with every slot inactive (sample_room fills the per-episode placeholders)."""
+    empty = RandomizeConfig(num_boxes=(0, 0), num_cylinders=(0, 0))
+    return sample_room(key, empty, nb, nc, radius)
+
+
+def _assemble(key, half, spawn_xy, boxes: Boxes, nb: int, nc: int, radius: float) -> SceneParams:
+    """A room of interior `half` [2] with `boxes` in the first slots and a spawn at `spawn_xy` [2]."""
+    n = boxes.pos.shape[0]
+    if n > nb:
+        raise ValueError(f"room families: need {n} box slots, got num_boxes={nb}")
+    k_blank, k_yaw = jax.random.split(key)
+    room = _blank(k_blank, nb, nc, radius)
+    pad = lambda x, fill: jnp.concatenate([x, jnp.full((nb - n, *x.shape[1:]), fill, x.dtype)])  # noqa: E731
+    # Heading at the spawn: uniform in [-pi, pi).
+    spawn = jnp.append(spawn_xy, _uniform(k_yaw, -jnp.pi, jnp.pi))
+    room = room.replace(
+        room_half=half,
+        box_pos=pad(boxes.pos, 0.0),
+        box_half=pad(boxes.half, 0.05),
+        box_yaw=pad(boxes.yaw, 0.0),
+        box_height=pad(boxes.height, 0.1),
+        box_bottom=pad(boxes.bottom, 0.0),
+        box_active=pad(boxes.active, False),
+        spawn=spawn,
+    )
+    return clear_around(room, spawn_xy[None], jnp.array([radius + SPAWN_CLEARANCE]))
+
+
+def clear_around(room: SceneParams, points, keep, first_box: int = 0) -> SceneParams:
+    """Deactivates every obstacle nearer than `keep` [P] m to one of `points` [P, 2] (of the
+    boxes, only slots from `first_box` on: the ones before are walls placed clear by design)."""
+    box = box_distance(points, room.box_pos, room.box_yaw, room.box_half)  # [P, Sb]
+    cyl = jnp.linalg.norm(points[:, None] - room.cyl_pos, axis=-1) - room.cyl_radius  # [P, Sc]
+    spare = jnp.arange(box.shape[1]) < first_box
+    return room.replace(
+        box_active=room.box_active & ((box >= keep[:, None]).all(0) | spare),
+        cyl_active=room.cyl_active & (cyl >= keep[:, None]).all(0),
+    )
+
+
+def _mirror(key, room: SceneParams) -> SceneParams:
+    """The room flipped in x and in y (each with probability 1/2) and transposed (probability 1/2)."""
+    k_flip, k_swap = jax.random.split(key)
+    sign = jnp.where(jax.random.bernoulli(k_flip, 0.5, (2,)), -1.0, 1.0)  # [2]
+    yaw_sign = sign[0] * sign[1]  # a box is symmetric under a half turn: a flip negates its yaw
+    swap = jax.random.bernoulli(k_swap)
+    perm = lambda xy: jnp.where(swap, xy[..., ::-1], xy)  # noqa: E731
+    yaw = lambda a: jnp.where(swap, 0.5 * jnp.pi - yaw_sign * a, yaw_sign * a)  # noqa: E731
+    return room.replace(
+        room_half=perm(room.room_half),
+        box_pos=perm(room.box_pos * sign),
+        box_yaw=yaw(room.box_yaw),
+        cyl_pos=perm(room.cyl_pos * sign),
+        spawn=jnp.append(perm(room.spawn[:2] * sign), room.spawn[2]),
+    )
+
+
+def _room_half(key, lo, hi):
+    """[2] half interior extents, full extents uniform per axis in [lo, hi] m."""
+    return 0.5 * _uniform(key, lo, hi, (2,))
+
+
+# ------------------------------------------------------------------------------
+# The families
+
+
+def open_room(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A nearly empty room: 3-9 m a side, 0-2 boxes, 0-1 cylinder."""
+    cfg = RandomizeConfig(
+        room_size_min=(3.0, 3.0),
+        room_size_max=(9.0, 9.0),
+        num_boxes=(0, min(2, nb)),
+        num_cylinders=(0, min(1, nc)),
+    )
+    return sample_room(key, cfg, nb, nc, radius)
+
+
+def clutter(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A 4-8 m room with nb/2-nb boxes and nc/2-nc cylinders (sample_room's distributions)."""
+    cfg = RandomizeConfig(num_boxes=(nb // 2, nb), num_cylinders=(nc // 2, nc))
+    return sample_room(key, cfg, nb, nc, radius)
+
+
+def low_and_overhang(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A 4-8 m room of 4-10 obstacles, 40 % low (below the camera), 40 % overhangs (tables)."""
+    cfg = RandomizeConfig(
+        num_boxes=(min(4, nb), min(10, nb)),
+        num_cylinders=(0, nc),
+        low_prob=0.4,
+        overhang_prob=0.4,
+    )
+    return sample_room(key, cfg, nb, nc, radius)
+
+
+def pillars(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A grid of square pillars (a car park, a hall): up to 4 x 4, the spawn between four."""
+    ks = jax.random.split(key, 6)
+    g = min(4, int(np.sqrt(nb)))
+    # Interior: uniform 5-9 m per axis. Spacing: uniform 1.2-2.0 m. Pillar side: uniform 0.2-0.4 m.
+    half = _room_half(ks[0], 5.0, 9.0)
+    spacing = _uniform(ks[1], 1.2, 2.0)
+    side = _uniform(ks[2], 0.2, 0.4)
+    # Grid offset: uniform in +-spacing/2 per axis; the spawn is the midpoint of the central four.
+    offset = _uniform(ks[3], -0.5, 0.5, (2,)) * spacing
+    idx = jnp.arange(g) - 0.5 * (g - 1)
+    grid = jnp.stack(jnp.meshgrid(idx, idx), -1).reshape(-1, 2) * spacing + offset  # [g*g, 2]
+    # A pillar stays only if a robot still passes between it and the walls (0.4 m).
+    inside = (jnp.abs(grid) + 0.5 * side + 0.4 <= half).all(-1)
+    boxes = _walls(grid, jnp.full((g * g, 2), 0.5) * side, ks[4], inside)
+    room = _assemble(ks[5], half, offset, boxes, nb, nc, radius)
+    return _mirror(jax.random.fold_in(key, 1), room)
+
+
+def corridor(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A serpentine corridor: 2-4 lanes 1.2-2.5 m wide, joined by U-turns at alternate ends."""
+    ks = jax.random.split(key, 6)
+    # Lanes: uniform in {2, 3, 4}; width uniform 1.2-2.5 m; length uniform 5-9 m;
+    # U-turn opening uniform 1.2-2.0 m.
+    lanes = jax.random.randint(ks[0], (), 2, 5)
+    width = _uniform(ks[1], MIN_CORRIDOR, 2.5)
+    hx = 0.5 * _uniform(ks[2], 5.0, 9.0)
+    gap = _uniform(ks[3], MIN_CORRIDOR, 2.0)
+    hy = 0.5 * (lanes * width + (lanes - 1) * WALL)
+    k = jnp.arange(3)  # interior wall k separates lanes k and k + 1
+    side = jnp.where(k % 2 == 0, -1.0, 1.0)  # even walls start at the west wall, odd at the east
+    pos = jnp.stack([-side * 0.5 * gap, -hy + (k + 1) * width + (k + 0.5) * WALL], -1)
+    wall_half = jnp.stack([jnp.full(3, hx - 0.5 * gap), jnp.full(3, 0.5 * WALL)], -1)
+    boxes = _walls(pos, wall_half, ks[4], k < lanes - 1)
+    # Spawn: the middle of the first lane, uniform along it.
+    x = _uniform(ks[5], -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
+    spawn = jnp.stack([x, -hy + 0.5 * width])
+    room = _assemble(jax.random.fold_in(key, 2), jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
+    return _mirror(jax.random.fold_in(key, 1), room)
+
+
+def ltu_room(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """An L, T (upside down) or U room: a 5-9 m rectangle with solid blocks along one wall."""
+    ks = jax.random.split(key, 7)
+    # Shape: L, T or U uniformly; interior uniform 5-9 m per axis; the open strip along the south
+    # wall and the arms uniform 1.2-2.0 m wide.
+    shape = jax.random.randint(ks[0], (), 0, 3)
+    hx, hy = _room_half(ks[1], 5.0, 9.0)
+    strip = _uniform(ks[2], MIN_CORRIDOR, 2.0)
+    arm = _uniform(ks[3], MIN_CORRIDOR, 2.0)
+    block_hy = 0.5 * (2 * hy - strip)
+    y = hy - block_hy
+    # [2] blocks as west and east edges: L blocks the east, T both sides of a stem, U the middle.
+    zero = jnp.zeros(())
+    west = jnp.where(shape == 1, jnp.stack([-hx, 0.5 * arm]), jnp.stack([-hx + arm, zero]))
+    east_l_u = jnp.stack([jnp.where(shape == 0, hx, hx - arm), zero])
+    east = jnp.where(shape == 1, jnp.stack([-0.5 * arm, hx]), east_l_u)  # [2]
+    centre = jnp.stack([0.5 * (west + east), jnp.full(2, y)], -1)  # [2, 2]
+    half = jnp.stack([0.5 * (east - west), jnp.full(2, block_hy)], -1)  # [2, 2]
+    active = jnp.array([True, False]) | (shape == 1)
+    boxes = _walls(centre, jnp.maximum(half, 0.05), ks[4], active)
+    # Spawn: the middle of the south strip, uniform along it.
+    x = _uniform(ks[5], -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
+    spawn = jnp.stack([x, -hy + 0.5 * strip])
+    room = _assemble(ks[6], jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
+    return _mirror(jax.random.fold_in(key, 1), room)
+
+
+def _scatter(key, half, bound, n: int):
+    """[n, 2] uniform centres whose bounding circles (radius `bound` [n]) lie inside the room."""
+    limit = jnp.maximum(half - bound[:, None], 0.0)  # [n, 2]
+    return jax.random.uniform(key, (n, 2), minval=-1.0, maxval=1.0) * limit
+
+
+def _furniture_boxes(key, half, n: int) -> Boxes:
+    """[n] standing boxes: full extents uniform 0.3-1.0 m, yaw uniform, top uniform 0.4-1.0 m."""
+    ks = jax.random.split(key, 4)
+    box_half = 0.5 * _uniform(ks[0], 0.3, 1.0, (n, 2))
+    pos = _scatter(ks[1], half, jnp.linalg.norm(box_half, axis=-1), n)
+    return Boxes(
+        pos=pos,
+        half=box_half,
+        yaw=_uniform(ks[2], -jnp.pi, jnp.pi, (n,)),
+        height=_uniform(ks[3], 0.4, 1.0, (n,)),
+        bottom=jnp.zeros(n),
+        active=jnp.ones(n, bool),
+    )
+
+
+def joined_rooms(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """Two or three rooms side by side, each pair joined by a doorway 0.8-1.2 m wide, with up
+    to 6 pieces of furniture kept out of the doorways."""
+    ks = jax.random.split(key, 9)
+    # Rooms: 2 or 3 uniformly; interior 7-10 m along x, 3.5-6 m along y.
+    rooms = jax.random.randint(ks[0], (), 2, 4)
+    hx = 0.5 * _uniform(ks[1], 7.0, 10.0)
+    hy = 0.5 * _uniform(ks[2], 3.5, 6.0)
+    # Dividers: evenly spaced, each moved uniformly by +-0.3 m; doors uniform 0.8-1.2 m wide,
+    # centred uniformly with 0.3 m of wall kept on either side.
+    k = jnp.arange(2)
+    x = -hx + (k + 1) * 2 * hx / rooms + _uniform(ks[3], -0.3, 0.3, (2,))  # [2]
+    door = _uniform(ks[4], MIN_DOOR, 1.2, (2,))
+    door_y = _uniform(ks[5], -1.0, 1.0, (2,)) * (hy - 0.5 * door - 0.3)
+    south, north = door_y - 0.5 * door + hy, hy - door_y - 0.5 * door  # [2] wall lengths
+    pos = jnp.concatenate(
+        [jnp.stack([x, -hy + 0.5 * south], -1), jnp.stack([x, hy - 0.5 * north], -1)]
+    )
+    wall_half = jnp.stack([jnp.full(4, 0.5 * WALL), 0.5 * jnp.concatenate([south, north])], -1)
+    used = jnp.tile(k < rooms - 1, 2)
+    walls = _walls(pos, wall_half, ks[6], used)
+    n_furniture = min(6, nb - 4)
+    # Furniture: 0-6 pieces (count uniform), none within a robot's width of a doorway.
+    furniture = _furniture_boxes(ks[7], jnp.stack([hx, hy]), n_furniture)
+    count = jax.random.randint(ks[8], (), 0, n_furniture + 1)
+    furniture = furniture.replace(active=jnp.arange(n_furniture) < count)
+    # Spawn: the middle of the west room.
+    spawn = jnp.stack([0.5 * (-hx + x[0]), 0.0])
+    half = jnp.stack([hx, hy])
+    room = _assemble(
+        jax.random.fold_in(key, 2), half, spawn, _join(walls, furniture), nb, nc, radius
+    )
+    doors = jnp.stack([x, door_y], -1)  # [2, 2]
+    room = clear_around(room, doors, 0.5 * door + 2 * radius + 0.1, first_box=4)
+    return _mirror(jax.random.fold_in(key, 1), room)
+
+
+def furniture(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """1-3 tables in a 5-9 m room, each with up to 4 chairs around it."""
+    ks = jax.random.split(key, 9)
+    c = min(3, nb // 5)
+    # Interior uniform 5-9 m per axis; clusters: 1-c uniformly; table extents uniform
+    # 0.8-1.6 m x 0.6-1.0 m, yaw uniform; chair 0.4 x 0.4 m; each chair there with probability 0.7.
+    half = _room_half(ks[0], 5.0, 9.0)
+    count = jax.random.randint(ks[1], (), 1, c + 1)
+    table = 0.5 * jnp.stack([_uniform(ks[2], 0.8, 1.6, (c,)), _uniform(ks[3], 0.6, 1.0, (c,))], -1)
+    yaw = _uniform(ks[4], -jnp.pi, jnp.pi, (c,))
+    reach = jnp.linalg.norm(table + 0.55, axis=-1)  # [c] bounding circle of table and chairs
+    centre = _scatter(ks[5], half, reach, c)  # [c, 2]
+    # Chairs 0.15 m beyond each side of the table, in the table's frame: +x, -x, +y, -y.
+    unit = jnp.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])  # [4, 2]
+    local = unit[None] * (table[:, None] + 0.35)  # [c, 4, 2]
+    rot = jnp.stack([jnp.cos(yaw), -jnp.sin(yaw), jnp.sin(yaw), jnp.cos(yaw)], -1).reshape(c, 2, 2)
+    chairs = centre[:, None] + jnp.einsum("cij,ckj->cki", rot, local)  # [c, 4, 2]
+    chair_on = jax.random.bernoulli(ks[6], 0.7, (c, 4))
+    used = jnp.arange(c) < count  # [c]
+    boxes = Boxes(
+        pos=jnp.concatenate([centre, chairs.reshape(-1, 2)]),
+        half=jnp.concatenate([table, jnp.full((4 * c, 2), 0.2)]),
+        yaw=jnp.concatenate([yaw, jnp.repeat(yaw, 4)]),
+        # Tops: tables 0.7-0.8 m, chairs 0.45-0.9 m (seat or back), uniform.
+        height=jnp.concatenate(
+            [_uniform(ks[7], 0.7, 0.8, (c,)), _uniform(ks[8], 0.45, 0.9, (4 * c,))]
+        ),
+        bottom=jnp.zeros(5 * c),
+        active=jnp.concatenate([used, (chair_on & used[:, None]).reshape(-1)]),
+    )
+    # Spawn: uniform over the room, away from the walls.
+    spawn = _uniform(jax.random.fold_in(key, 3), -1.0, 1.0, (2,)) * (
+        half - radius - SPAWN_CLEARANCE
+    )
+    return _assemble(jax.random.fold_in(key, 2), half, spawn, boxes, nb, nc, radius)
+
+
+FAMILIES = {
+    "open": open_room,
+    "clutter": clutter,
+    "pillars": pillars,
+    "corridor": corridor,
+    "ltu": ltu_room,
+    "joined": joined_rooms,
+    "furniture": furniture,
+    "low_overhang": low_and_overhang,
+}
+"""Name -> sampler `(key, nb, nc, radius) -> SceneParams`; `sample_family` indexes them in order."""
+
+
+def sample_family(key, index, nb: int, nc: int, radius: float) -> SceneParams:
+    """A room of family `index` (traced int32: families mix without recompiling)."""
+    branches = [lambda k, f=f: f(k, nb, nc, radius) for f in FAMILIES.values()]
+    return jax.lax.switch(index, branches, key)
+
+
+def mixture(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A room of a family drawn uniformly from `FAMILIES`."""
+    k_pick, k_room = jax.random.split(key)
+    # Family: uniform over FAMILIES.
+    return sample_family(k_room, jax.random.randint(k_pick, (), 0, len(FAMILIES)), nb, nc, radius)
+
+
+# ------------------------------------------------------------------------------
+# Rooms as layouts, and their free space
+
+
+def to_layout(room: SceneParams, name: str) -> lay.RoomLayout:
+    """One room (no batch axis) as a `RoomLayout` with its spawn, active obstacles only.
+
+    Positions are rounded to the millimetre, obstacle sizes down to it less 2 mm and the interior
+    up to it, so a box that touches a wall in float32 stays inside it in the file.
+    """
+    r = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), room)
+    mm = lambda v: [round(float(x), 3) for x in np.atleast_1d(v)]  # noqa: E731
+    shrink = lambda v: [float(np.floor(x * 1000) / 1000 - 0.002) for x in np.atleast_1d(v)]  # noqa: E731
+    obstacles = [
+        lay.Box(
+            pos=mm(r.box_pos[i]),
+            size=shrink(2 * r.box_half[i]),
+            yaw=round(float(r.box_yaw[i]), 4),
+            height=round(float(r.box_height[i]), 3),
+            bottom=round(float(r.box_bottom[i]), 3),
+        )
+        for i in np.flatnonzero(np.asarray(room.box_active))
+    ]
+    obstacles += [
+        lay.Cylinder(
+            pos=mm(r.cyl_pos[i]),
+            radius=shrink(r.cyl_radius[i])[0],
+            height=round(float(r.cyl_height[i]), 3),
+            bottom=round(float(r.cyl_bottom[i]), 3),
+        )
+        for i in np.flatnonzero(np.asarray(room.cyl_active))
+    ]
+    return lay.RoomLayout(
+        name=name,
+        size=mm(np.ceil(2000 * r.room_half) / 1000),
+        robot_pos=mm(r.spawn[:2]),
+        robot_yaw=round(float(r.spawn[2]), 4),
+        obstacles=tuple(obstacles),
+    )
+
+
+def free_cells(room: lay.RoomLayout, radius: float = lay.ROBOT_RADIUS, cell: float = CELL):
+    """The occupancy grid of `room`: ([H, W] bool free, [H, W, 2] cell centres m).
+
+    Cells of `cell` m cover the interior; a cell is free where a robot disc of `radius` centred
+    on it touches nothing (obstacles inflated by the robot radius; walls count, overhangs too).
+    """
+    half = 0.5 * np.asarray(room.size)
+    n = np.maximum(np.round(2 * half / cell).astype(int), 1)  # [2] cells along x, y
+    xs, ys = ((np.arange(k) + 0.5) * (2 * h / k) - h for k, h in zip(n, half, strict=True))
+    centres = np.stack(np.meshgrid(xs, ys), -1)  # [H, W, 2]
+    # Blocks of a fixed size: the clearance's jnp ops compile once per obstacle count, not per
+    # room size.
+    flat = np.concatenate([centres.reshape(-1, 2), np.zeros((_BLOCK, 2))])
+    gap = [lay.clearance(room, flat[i : i + _BLOCK]) for i in range(0, len(flat) - _BLOCK, _BLOCK)]
+    gap = np.concatenate(gap)[: centres[..., 0].size].reshape(centres.shape[:2])
+    return gap > radius, centres
+
+
+def reachable(room: lay.RoomLayout, radius: float = lay.ROBOT_RADIUS, cell: float = CELL):
+    """([H, W] bool, [H, W, 2] centres): the free cells 4-connected to the spawn's cell (the
+    one nearest `room.robot_pos`, or the first free cell when the room has no spawn)."""
+    free, centres = free_cells(room, radius, cell)
+    start = room.robot_pos if room.robot_pos is not None else lay.free_spawn(room, radius)
+    seed = np.zeros_like(free)
+    if start is not None:
+        dist = np.linalg.norm(centres - np.asarray(start), axis=-1)
+        seed.flat[np.argmin(np.where(free, dist, np.inf))] = True
+    seed &= free
+    while True:  # flood fill: grow by one cell in each direction until nothing changes
+        grown = seed.copy()
+        grown[1:] |= seed[:-1]
+        grown[:-1] |= seed[1:]
+        grown[:, 1:] |= seed[:, :-1]
+        grown[:, :-1] |= seed[:, 1:]
+        grown &= free
+        if (grown == seed).all():
+            return seed, centres
+        seed = grown
+
+
+def coverage(room: lay.RoomLayout, paths, reach: float = COVER_REACH, cell: float = CELL):
+    """[E] share of the room's reachable free area (`reachable`) within `reach` m of each path.
+
+    `paths` is [E, T, 2] positions (m), or a list of [T_i, 2]. A cell counts as covered when its
+    centre is within `reach` of the centre of a cell the path visited, so the result is exact to
+    one cell (0.1 m). 0 where nothing is reachable.
+    """
+    mask, _ = reachable(room, cell=cell)
+    h, w = mask.shape
+    r = int(np.floor(reach / cell))
+    dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = (np.hypot(dx, dy) * cell <= reach + 1e-9).astype(np.float64)  # [2r+1, 2r+1]
+    shape = (h + 2 * r, w + 2 * r)  # zero-padded: no wrap-around in the FFT convolution
+    kernel = np.fft.rfft2(disc, shape)
+    half = 0.5 * np.asarray(room.size)
+    out = []
+    for path in paths:
+        ij = np.floor((np.asarray(path)[:, ::-1] + half[::-1]) / (2 * half[::-1]) * [h, w])
+        ij = np.clip(ij.astype(int), 0, [h - 1, w - 1])
+        visited = np.zeros((h, w))
+        visited[ij[:, 0], ij[:, 1]] = 1.0
+        near = np.fft.irfft2(np.fft.rfft2(visited, shape) * kernel, shape)[r : r + h, r : r + w]
+        out.append((near > 0.5)[mask].sum() / max(mask.sum(), 1))
+    return np.asarray(out, np.float64)

@@ -1,0 +1,111 @@
+"""Sim-to-real fidelity: a camera with rows sees low obstacles and overhangs, the floor is not an
+obstacle, the blind zone reads near exactly as on the robot, and the 2i's body collides up to its
+top deck."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import EXACT, corridor
+
+import jaxnav
+from jaxnav.core.randomize import FIDELITY, RandomizeConfig
+from jaxnav.core.sensors import SensorConfig, ray_readings
+from jaxnav.io.layouts import Box, Cylinder
+from jaxnav.robot_side.observation import Sensor, reduce_sectors
+
+CAMERA = SensorConfig(rows=5, far_invalid=True)
+
+
+def first_obs(obstacle, sensor=CAMERA, size=(8.0, 3.0)):
+    env = jaxnav.make_env("avoid", [corridor(obstacle, size)], randomize=EXACT, sensor=sensor)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    return env, state, np.asarray(state.obs)
+
+
+@pytest.mark.parametrize("height", [0.05, 0.12, 0.25])
+def test_low_obstacles_are_seen_only_with_rows(height):
+    box = Box(pos=(1.0, 0.0), size=(0.3, 1.2), height=height)  # face 0.85 m ahead of the centre
+    _, _, fan = first_obs(box, SensorConfig())
+    _, _, camera = first_obs(box)
+    assert fan[3:5].min() > 2.0  # the horizontal fan at 0.295 m looks over it
+    assert camera[3:5].min() == pytest.approx(0.85 + 0.05, abs=0.12)  # camera 0.05 m behind
+
+
+def test_overhang_is_seen_and_collides():
+    shelf = Box(pos=(1.5, 0.0), size=(0.4, 1.2), bottom=0.4, height=0.6)
+    env, state, obs = first_obs(shelf)
+    assert obs[3:5].min() < 2.0  # the upper rows see the shelf's underside and face
+    step = jax.jit(env.step)
+    for _ in range(30):
+        state = step(state, jnp.int32(0))
+        if bool(state.done):
+            break
+    assert bool(state.metrics["collision"])  # the top deck (0.47 m) hits a 0.4 m underside
+    assert float(state.data.qpos[0]) < 1.3 - 0.177 + 0.08
+    high = Box(pos=(1.5, 0.0), size=(0.4, 1.2), bottom=0.5, height=0.6)
+    env, state, _ = first_obs(high)
+    step = jax.jit(env.step)
+    for _ in range(45):  # 2.25 m at 0.5 m/s: through under the shelf
+        state = step(state, jnp.int32(0))
+    assert not bool(state.metrics["collision"]) and float(state.data.qpos[0]) > 2.0  # under it
+
+
+def test_floor_is_not_an_obstacle():
+    _, _, obs = first_obs(Cylinder(pos=(3.5, 1.2), radius=0.05), size=(8.0, 3.0))
+    assert obs.min() > 1.0  # the lowest row meets the floor 0.7 m out: not an obstacle
+
+
+def test_blind_zone_reads_near():
+    wall = Box(pos=(0.55, 0.0), size=(0.2, 2.8))  # face 0.45 m ahead: inside the 0.6 m blind zone
+    _, _, obs = first_obs(wall)
+    np.testing.assert_allclose(obs[2:6], 0.6)
+
+
+def test_simulator_and_robot_reduce_alike():
+    """The robot side's reduction over the simulator's own rays (unknown -> NaN, floor rays left
+    out) gives the simulator's observation, in rooms with low, near and dark obstacles."""
+    sensor = dataclasses.replace(CAMERA, rays_per_sector=4)
+    cfg = RandomizeConfig(sampled_room_prob=1.0, **{**FIDELITY, "sensor_noise": (0.0, 0.0)})
+    cfg = dataclasses.replace(cfg, sensor_noise_quadratic=(0.0, 0.0), sensor_dropout=(0.0, 0.0))
+    env = jaxnav.make_env("avoid", layouts=[], randomize=cfg, sensor=sensor)
+    robot = Sensor(sensor.fov, sensor.num_sectors, sensor.range_min, sensor.range_max)
+    columns = np.arange(sensor.num_sectors * sensor.rays_per_sector) // sensor.rays_per_sector
+
+    @jax.jit
+    def sim(key):
+        state = env.reset(key)
+        params = state.info["params"]
+        m = env.scene.model_for(params)
+        reading, geom, floor = ray_readings(m, state.data, params, sensor, env.scene)
+        slot = jnp.asarray(env.scene.slot_of_geom)[jnp.maximum(geom, 0)]
+        dark = (geom >= 0) & (slot >= 0) & params.dark[jnp.maximum(slot, 0)]
+        return state.obs, reading, dark, floor
+
+    near_seen = 0
+    for seed in range(24):
+        obs, reading, dark, floor = (np.asarray(x) for x in sim(jax.random.PRNGKey(seed)))
+        unknown = dark | (reading < sensor.range_min) | (reading > sensor.range_max)
+        depth = np.where(unknown, np.nan, reading)
+        sector = np.broadcast_to(columns, reading.shape)
+        expected = reduce_sectors(depth[~floor], sector[~floor], robot, sensor.blind_fraction)
+        np.testing.assert_allclose(obs, expected, rtol=1e-6)
+        near_seen += int((obs == sensor.range_min).any())
+    assert near_seen >= 2  # the blind-zone rule was exercised
+
+
+def test_fidelity_ranges_are_drawn_per_episode_without_recompiling():
+    env = jaxnav.make_env("avoid", layouts=[], randomize=RandomizeConfig(**FIDELITY))
+    reset = jax.jit(jax.vmap(env.reset))
+    params = reset(jax.random.split(jax.random.PRNGKey(0), 256)).info["params"]
+    assert set(np.unique(np.asarray(params.latency)).tolist()) == {0, 1, 2}
+    accel = np.asarray(params.accel)
+    assert (accel[:, 0] >= 0.25).all() and (accel[:, 0] <= 0.35).all()
+    gain = np.asarray(params.wheel_gain)
+    assert np.abs(gain[:, 1] - gain[:, 0]).max() <= 0.05 + 1e-6
+    assert 0 < np.asarray(params.dark).mean() < 0.2
+    low = (np.asarray(params.box_height) <= 0.25) & np.asarray(params.box_active)
+    hang = np.asarray(params.box_bottom) > 0
+    assert low.any() and hang.any()
