@@ -35,13 +35,6 @@ from jaxnav.io.checkpoint import CheckpointError, SavedPolicy, read_policy, reso
 from jaxnav.ppo.networks import LEAKY_SLOPE, normalize
 from jaxnav.robot_side.policy import FORMAT_VERSION, NumpyPolicy
 
-
-def action_table(config) -> tuple[tuple[str, ...], np.ndarray]:
-    """(names [A], commands float32 [A, 2] of (forward m/s, yaw rad/s)) of the run's actions."""
-    spec = config.task.action_spec
-    return tuple(spec.names), spec.table()
-
-
 FORMATS = ("numpy", "onnx")
 SUFFIX = {"numpy": ".npz", "onnx": ".onnx"}
 NORM_EPS = np.float32(1e-8)  # as in jaxnav.ppo.networks.normalize
@@ -61,7 +54,8 @@ class CheckFailed(ExportError):
 
 def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
     """The actor weights, normaliser, sensor and action table of a checkpoint's policy (the .npz)."""
-    config, names, commands = saved.config, *action_table(saved.config)
+    config = saved.config
+    names, commands = config.task.action_spec.names, config.task.action_spec.table()
     if saved.num_actions != len(names):
         raise CheckpointError(
             f"{saved.ckpt / 'policy.msgpack'}: the actor has {saved.num_actions} outputs, but the "

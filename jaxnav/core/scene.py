@@ -19,10 +19,9 @@ from mujoco import mjx
 
 from jaxnav.core.checks import require_finite
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
-from jaxnav.io.assets import scene_file, scenes_dir
+from jaxnav.io.assets import scenes_dir
 
 SCENES_DIR = scenes_dir()
-ROBOT_XML = scene_file("turtlebot2i.xml")
 
 OBSTACLE_GROUP = 1  # geom group of walls and obstacles: the only geoms the depth rays see
 PARK_DEPTH = -10.0  # m; z of parked slots, far below the floor and the rays
