@@ -1,21 +1,22 @@
-"""Env-only throughput: random-policy rollouts of the default `avoid` distribution.
+"""Env-only throughput: random-policy rollouts of the training distribution of `python -m jaxnav.train`.
 
-    python benchmarks/env_rollout.py --num-envs 1024 --steps 100 --json benchmarks/env_rollout.json
-    python benchmarks/env_rollout.py --fidelity rows,dynamics ...   # with sim-to-real pieces on
+    python benchmarks/env_rollout.py --num-envs 1024 --steps 100 --json benchmarks/results/env_rollout_cpu.json
+    python benchmarks/env_rollout.py --variants default,rows1,no_fidelity,pool_all ...
 
-`--fidelity` switches on pieces of the sim-to-real model, to time what each costs: `rows` (the
-5-row camera with the Astra's far-range invalid readings), `dynamics` (randomize.FIDELITY: velocity
-smoother, latency, wheel mismatch, noise model, dark obstacles, camera error, low obstacles and
-overhangs).
+Each variant is the default training env (5-row camera, sim-to-real ranges of randomize.FIDELITY,
+the auto-reset pool of the PPO default) with one thing changed, to time what each piece costs:
+`rows1`/`rows3` (a 1- or 3-row camera), `no_fidelity` (randomize.FIDELITY off), `families` (sampled
+rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step).
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
-and prints env-steps/s per batch size.
+and prints env-steps/s per variant and batch size.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import json
 import platform
 import time
@@ -26,29 +27,38 @@ import jax.numpy as jnp
 import jaxnav
 from jaxnav.core.randomize import FIDELITY, TRAINING
 from jaxnav.core.sensors import SensorConfig
+from jaxnav.ppo.config import PPOConfig
 from jaxnav.wrappers import AutoReset
 
+NO_FIDELITY = {k: getattr(jaxnav.core.randomize.RandomizeConfig(), k) for k in FIDELITY}
+VARIANTS = {
+    "default": {},
+    "rows1": {"sensor": SensorConfig(rows=1)},
+    "rows3": {"sensor": SensorConfig(rows=3)},
+    "no_fidelity": {"randomize": dataclasses.replace(TRAINING, **NO_FIDELITY)},
+    "families": {"randomize": dataclasses.replace(TRAINING, families="all")},
+    "pool_all": {"reset_share": 1.0},
+}
 
-def make(fidelity: tuple[str, ...]):
-    """The training env with the named fidelity pieces on."""
-    kwargs = {}
-    if "rows" in fidelity:
-        kwargs["sensor"] = SensorConfig(rows=5, far_invalid=True)
-    if "dynamics" in fidelity:
-        kwargs["randomize"] = dataclasses.replace(TRAINING, **FIDELITY)
-    return AutoReset(jaxnav.make_env("avoid", **kwargs))  # new episodes where they end
+
+def make(variant: str, num_envs: int):
+    """The training env of `variant`, auto-reset as PPO runs it."""
+    kwargs = dict(VARIANTS[variant])
+    share = kwargs.pop("reset_share", PPOConfig().reset_share)
+    pool = max(1, round(share * num_envs))
+    return AutoReset(jaxnav.make_env("avoid", **kwargs), pool=pool)
 
 
-def measure(num_envs: int, steps: int, repeats: int, fidelity=()) -> dict:
-    env = make(fidelity)
-    reset = jax.jit(jax.vmap(env.reset))
+def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -> dict:
+    env = make(variant, num_envs)
+    reset = jax.jit(env.reset)
 
     @jax.jit
     def rollout(state, key):
         def body(carry, k):
             state, total = carry
             action = jax.random.randint(k, (num_envs,), 0, env.action_spec.n)
-            state = jax.vmap(env.step)(state, action)
+            state = env.step(state, action)
             return (state, total + state.reward.sum()), None
 
         (state, total), _ = jax.lax.scan(
@@ -67,7 +77,7 @@ def measure(num_envs: int, steps: int, repeats: int, fidelity=()) -> dict:
         best = min(best, time.perf_counter() - tick)
     return {
         "num_envs": num_envs,
-        "fidelity": ",".join(fidelity) or "off",
+        "variant": variant,
         "steps": steps,
         "compile_s": round(compile_s, 2),
         "seconds": round(best, 4),
@@ -81,26 +91,30 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", help="write the results here")
-    parser.add_argument("--fidelity", default="", help="comma-separated: rows, dynamics")
+    parser.add_argument(
+        "--variants", default="default", help=f"comma-separated: {', '.join(VARIANTS)}"
+    )
     args = parser.parse_args()
-    fidelity = tuple(f for f in args.fidelity.split(",") if f)
     sizes = [int(n) for n in args.num_envs.split(",")]
-    rows = [measure(n, args.steps, args.repeats, fidelity) for n in sizes]
+    variants = args.variants.split(",")
+    rows = [measure(n, args.steps, args.repeats, v) for v in variants for n in sizes]
     device = jax.devices()[0]
     result = {
         "device": f"{device.platform}: {device.device_kind}",
         "cpus": jax.local_device_count(),
         "python": platform.python_version(),
+        "date": datetime.date.today().isoformat(),
         "jax": jax.__version__,
         "rows": rows,
     }
     print(
-        f"{'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   ({result['device']}, "
-        f"fidelity: {args.fidelity or 'off'})"
+        f"{'variant':>12} {'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   "
+        f"({result['device']})"
     )
     for r in rows:
         print(
-            f"{r['num_envs']:>8} {r['steps']:>6} {r['compile_s']:>10} {r['env_steps_per_s']:>12,}"
+            f"{r['variant']:>12} {r['num_envs']:>8} {r['steps']:>6} {r['compile_s']:>10} "
+            f"{r['env_steps_per_s']:>12,}"
         )
     if args.json:
         with open(args.json, "w") as fh:

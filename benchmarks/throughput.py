@@ -2,7 +2,8 @@
 
     python benchmarks/throughput.py --num-envs 1024,4096 --steps 100 --json benchmarks/throughput.json
 
-For each size: (a) env-only random rollouts of the default scene with every obstacle slot in use,
+For each size: (a) env-only random rollouts of the training distribution (sim-to-real ranges and the
+5-row camera on, auto-reset with PPO's default pool) with every obstacle slot in use,
 (b) full PPO updates of the `cpu` preset shape (rollout 32, 4 epochs, 4 minibatches), and the split of
 one control step into physics / sensor / reset sampling / policy forward. Every timing is the best of
 `--repeats` runs of a jitted scan, after compiling it, with `block_until_ready`.
@@ -11,6 +12,8 @@ one control step into physics / sensor / reset sampling / policy forward. Every 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import datetime
 import json
 import platform
 import resource
@@ -20,13 +23,14 @@ import jax
 import jax.numpy as jnp
 
 import jaxnav
-from jaxnav.core.randomize import RandomizeConfig
-from jaxnav.ppo.config import preset
+from jaxnav.core.randomize import TRAINING
+from jaxnav.ppo.config import PPOConfig, preset
 from jaxnav.ppo.train import make_network, make_train
 from jaxnav.tasks.avoid import AvoidConfig
 from jaxnav.wrappers import AutoReset
 
-FULL = RandomizeConfig(num_boxes=(8, 8), num_cylinders=(4, 4), sampled_room_prob=1.0)
+# The training distribution (sim-to-real ranges on) with every obstacle slot in use.
+FULL = dataclasses.replace(TRAINING, num_boxes=(8, 8), num_cylinders=(4, 4), sampled_room_prob=1.0)
 
 
 def timed(fn, *args, repeats=3):
@@ -50,8 +54,9 @@ def scan_steps(fn, steps):
 def env_pieces(env, n, steps, repeats):
     """env-steps/s of a whole step and of its pieces, each run alone over `steps` steps."""
     keys = jax.random.split(jax.random.PRNGKey(0), n)
-    wrapped = AutoReset(env)  # the step training runs (episode statistics aside)
-    state = jax.jit(jax.vmap(wrapped.reset))(keys)
+    pool = PPOConfig(num_envs=n).reset_pool
+    wrapped = AutoReset(env, pool)  # the step training runs (episode statistics aside)
+    state = jax.jit(wrapped.reset)(keys)
     actions = jax.random.randint(jax.random.PRNGKey(1), (n,), 0, env.action_spec.n)
     cmd = jnp.array(env.action_spec.commands[0])  # forward
 
@@ -70,7 +75,7 @@ def env_pieces(env, n, steps, repeats):
         return s.replace(data=data, info={**s.info, "params": params, "steps": steps + 1})
 
     pieces = {
-        "step": lambda s: jax.vmap(wrapped.step)(s, actions),
+        "step": lambda s: wrapped.step(s, actions),
         "physics": physics,
         "sensor": sensor,
         "reset_sampling": reset_sampling,
@@ -144,6 +149,7 @@ def main() -> None:
         "device": f"{device.platform}: {device.device_kind}",
         "devices": jax.device_count(),
         "python": platform.python_version(),
+        "date": datetime.date.today().isoformat(),
         "jax": jax.__version__,
         "rows": [],
     }

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import dataclasses
 import json
 import re
 import sys
@@ -33,7 +32,7 @@ from flax import struct
 import jaxnav
 from jaxnav.cli import Parser, UsageError, make_callable, print_error
 from jaxnav.core import families
-from jaxnav.core.randomize import RandomizeConfig, SceneParams
+from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.io.assets import scenes_dir
 from jaxnav.io.files import check_writable, write_atomic
@@ -85,18 +84,19 @@ class Kept:
 def eval_randomize(spawn: str = "layout", stochastic_env: bool = True) -> RandomizeConfig:
     """Layouts only (no sampled rooms); the layout's spawn or a random free one.
 
-    `stochastic_env` keeps the default traction, speed-gain and sensor-noise ranges, so episodes
-    from the same spawn differ; otherwise physics and sensing are exact.
+    `stochastic_env`: the robot as it really is, drawn per episode from the training ranges and
+    the sim-to-real ranges of `randomize.FIDELITY` (traction, speed gain, the Kobuki's velocity
+    smoother, command latency, wheel mismatch, depth noise, dark obstacles, camera mount error),
+    so episodes from the same spawn differ. Otherwise physics and sensing are exact: commands
+    reach the wheels at once, no noise.
     """
     if spawn not in ("layout", "random"):
         raise ValueError(f"spawn: must be 'layout' or 'random', got {spawn!r}")
-    cfg = RandomizeConfig(
-        sampled_room_prob=0.0, random_spawn_prob=0.0 if spawn == "layout" else 1.0
-    )
+    rooms = dict(sampled_room_prob=0.0, random_spawn_prob=0.0 if spawn == "layout" else 1.0)
     if stochastic_env:
-        return cfg
-    return dataclasses.replace(
-        cfg,
+        return RandomizeConfig(**rooms, **FIDELITY)
+    return RandomizeConfig(
+        **rooms,
         friction=(1.0, 1.0),
         speed_gain=(1.0, 1.0),
         sensor_noise=(0.0, 0.0),
@@ -403,7 +403,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--deterministic-env",
         action="store_true",
-        help="no traction, speed-gain or sensor-noise randomisation",
+        help="exact physics and sensing: no randomised traction, gains, smoother, latency or noise",
     )
     p.add_argument("--json", metavar="OUT", help="write the metrics here")
     p.add_argument("--plots", metavar="DIR", help="top-down PNGs, one per layout")

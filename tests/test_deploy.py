@@ -8,7 +8,7 @@ import pytest
 from conftest import EXACT
 
 import jaxnav
-from jaxnav.core.sensors import ray_depths
+from jaxnav.core.sensors import SensorConfig, ray_depths
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout
 from jaxnav.robot_side import observation as deploy
 from jaxnav.robot_side.observation import Sensor
@@ -37,10 +37,13 @@ def scene():
             Cylinder(pos=(1.2, -0.35), radius=0.1),
         ),
     )
-    env = jaxnav.make_env("avoid", layouts=[layout], randomize=EXACT)
+    # One row of rays: what a LaserScan, or the horizon row of a depth image, reads.
+    env = jaxnav.make_env("avoid", layouts=[layout], randomize=EXACT, sensor=SensorConfig(rows=1))
     state = jax.jit(env.reset)(jax.random.PRNGKey(0))
-    m = env.scene.model_for(state.info["params"])
-    depths = jax.jit(lambda m, d: ray_depths(m, d, env.sensor, env.scene))(m, state.data)
+    params = state.info["params"]
+    depths = jax.jit(ray_depths, static_argnums=(2, 3))(
+        params, state.data.qpos, env.sensor, env.robot
+    )
     obs, depths = np.asarray(state.obs), np.asarray(depths)
     assert len(set(np.round(obs, 3))) >= 5 and obs.max() == env.sensor.range_max  # a varied scene
     cfg = env.sensor

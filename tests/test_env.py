@@ -35,8 +35,7 @@ def test_unknown_env_lists_valid_names():
 def test_batch_of_mixed_layouts_shapes_and_finite(mixed_env):
     batch = 16
     env = AutoReset(EpisodeStats(mixed_env))
-    reset = jax.jit(jax.vmap(env.reset))
-    step = jax.jit(jax.vmap(env.step))
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
     state = reset(jax.random.split(jax.random.PRNGKey(0), batch))
     ids = set(np.asarray(state.info["params"].layout_id).tolist())
     assert {-1, 0, 1} <= ids, ids  # sampled rooms and both layouts in one batch

@@ -78,10 +78,8 @@ def test_simulator_and_robot_reduce_alike():
     def sim(key):
         state = env.reset(key)
         params = state.info["params"]
-        m = env.scene.model_for(params)
-        reading, geom, floor = ray_readings(m, state.data, params, sensor, env.scene)
-        slot = jnp.asarray(env.scene.slot_of_geom)[jnp.maximum(geom, 0)]
-        dark = (geom >= 0) & (slot >= 0) & params.dark[jnp.maximum(slot, 0)]
+        reading, slot, floor = ray_readings(params, state.data.qpos, sensor, env.robot)
+        dark = (slot >= 0) & params.dark[jnp.maximum(slot, 0)]
         return state.obs, reading, dark, floor
 
     near_seen = 0

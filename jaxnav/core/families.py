@@ -19,7 +19,13 @@ import numpy as np
 from flax import struct
 
 from jaxnav.core.geometry import box_distance
-from jaxnav.core.randomize import RandomizeConfig, SceneParams, sample_room
+from jaxnav.core.randomize import (
+    RANDOM,
+    RandomizeConfig,
+    SceneParams,
+    family_weights,
+    sample_room,
+)
 from jaxnav.io import layouts as lay
 
 SPAWN_CLEARANCE = 0.3  # m between the robot's edge and anything at the spawn (RandomizeConfig's)
@@ -334,13 +340,29 @@ FAMILIES = {
     "furniture": furniture,
     "low_overhang": low_and_overhang,
 }
-"""Name -> sampler `(key, nb, nc, radius) -> SceneParams`; `sample_family` indexes them in order."""
+"""Name -> sampler `(key, nb, nc, radius) -> SceneParams`; `sample_family` indexes them in order.
+The names are `randomize.FAMILY_NAMES` after 'random' (tests/test_families.py checks)."""
 
 
 def sample_family(key, index, nb: int, nc: int, radius: float) -> SceneParams:
     """A room of family `index` (traced int32: families mix without recompiling)."""
     branches = [lambda k, f=f: f(k, nb, nc, radius) for f in FAMILIES.values()]
     return jax.lax.switch(index, branches, key)
+
+
+def sample_weighted(key, cfg: RandomizeConfig, nb: int, nc: int, radius: float) -> SceneParams:
+    """A room of a family drawn with the weights of `cfg.families` ('random': `sample_room(cfg)`).
+
+    Only families of positive weight are traced; under vmap each of them is computed for every
+    env and one kept, so the cost grows with their number (see benchmarks/env_rollout.py)."""
+    weights = family_weights(cfg.families)
+    samplers = {RANDOM: lambda k: sample_room(k, cfg, nb, nc, radius)}
+    samplers.update({n: lambda k, f=f: f(k, nb, nc, radius) for n, f in FAMILIES.items()})
+    branches = [samplers[n] for n in weights]
+    k_pick, k_room = jax.random.split(key)
+    # Family: drawn with the given weights.
+    index = jax.random.choice(k_pick, len(branches), p=jnp.asarray(list(weights.values())))
+    return jax.lax.switch(index, branches, k_room) if len(branches) > 1 else branches[0](k_room)
 
 
 def mixture(key, nb: int, nc: int, radius: float) -> SceneParams:

@@ -65,3 +65,85 @@ def signed_distance(room, p, z=None):
     box = jnp.where(room.box_active, box, jnp.inf).min(-1, initial=jnp.inf)
     cyl = jnp.where(room.cyl_active, cyl, jnp.inf).min(-1, initial=jnp.inf)
     return jnp.minimum(walls, jnp.minimum(box, cyl))
+
+
+def ray_cast(room, origin, dirs):
+    """Where rays from `origin` [3] along unit `dirs` [..., 3] first meet a wall or an active
+    obstacle of `room`: (distance [...] m, inf where none; slot [...] int32, the obstacle's index
+    in boxes-then-cylinders order, -1 for a wall or none).
+
+    The shapes are the ones the MJX scene has (cross-checked against `mjx.ray` in the tests): wall
+    planes at +-room_half, boxes spanning [box_bottom, box_height], cylinders as upright capsules
+    (the segment [cyl_bottom, cyl_height] widened by the radius). A ray starting inside a shape
+    does not see it. The floor is not a shape here: the sensor tests it itself.
+    """
+    o, d = jnp.asarray(origin, jnp.float32), jnp.asarray(dirs, jnp.float32)
+    walls = _ray_walls(o, d, room.room_half)  # [...]
+    box = _ray_boxes(o, d, room)  # [..., Sb]
+    cyl = _ray_capsules(o, d, room)  # [..., Sc]
+    hits = jnp.concatenate([walls[..., None], box, cyl], -1)  # [..., 1 + Sb + Sc]
+    first = jnp.argmin(hits, -1)
+    dist = jnp.take_along_axis(hits, first[..., None], -1)[..., 0]
+    return dist, jnp.where(jnp.isfinite(dist), first - 1, -1).astype(jnp.int32)
+
+
+def _safe(x):
+    """x with zeros moved to a tiny signed value, for 1 / x."""
+    return jnp.where(jnp.abs(x) < 1e-12, jnp.where(x < 0, -1e-12, 1e-12), x)
+
+
+def _ray_walls(o, d, half):
+    """[...] distance along d [..., 3] from o (inside) to the first of the 4 wall planes."""
+    t = (jnp.sign(d[..., :2]) * half - o[:2]) / _safe(d[..., :2])  # [..., 2]
+    t = jnp.where(d[..., :2] == 0, jnp.inf, t)
+    return t.min(-1)
+
+
+def _ray_boxes(o, d, room):
+    """[..., Sb] slab test of each ray against each yawed box (inf: missed or inactive)."""
+    c, s = jnp.cos(room.box_yaw), jnp.sin(room.box_yaw)  # [Sb]
+    rel = o[:2] - room.box_pos  # [Sb, 2]
+    centre_z = 0.5 * (room.box_bottom + room.box_height)
+    half = jnp.stack([room.box_half[:, 0], room.box_half[:, 1], centre_z - room.box_bottom], -1)
+    # Origin and directions in each box's frame: [Sb, 3] and [..., Sb, 3].
+    ol = jnp.stack(
+        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], o[2] - centre_z], -1
+    )
+    dx, dy = d[..., None, 0], d[..., None, 1]
+    dl = jnp.stack(
+        [
+            c * dx + s * dy,
+            -s * dx + c * dy,
+            jnp.broadcast_to(d[..., None, 2], dx.shape[:-1] + c.shape),
+        ],
+        -1,
+    )
+    inv = 1.0 / _safe(dl)
+    t1, t2 = (-half - ol) * inv, (half - ol) * inv
+    near = jnp.minimum(t1, t2).max(-1)
+    far = jnp.maximum(t1, t2).min(-1)
+    hit = (far >= near) & (near >= 0) & room.box_active
+    return jnp.where(hit, near, jnp.inf)
+
+
+def _ray_capsules(o, d, room):
+    """[..., Sc] first hit of each ray on each upright capsule (inf: missed or inactive)."""
+    r = room.cyl_radius  # [Sc]
+    rel = o[:2] - room.cyl_pos  # [Sc, 2]
+    dxy = d[..., None, :2]  # [..., 1, 2]
+    # Side: |rel + t d_xy| = r, the nearer root, where it lies between the two ends.
+    a = jnp.sum(dxy * dxy, -1)  # [..., 1]
+    b = jnp.sum(rel * dxy, -1)  # [..., Sc]
+    disc = b * b - a * (jnp.sum(rel * rel, -1) - r * r)
+    t_side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / _safe(a)
+    z = o[2] + t_side * d[..., None, 2]
+    side_ok = (disc >= 0) & (t_side >= 0) & (z >= room.cyl_bottom) & (z <= room.cyl_height)
+    best = jnp.where(side_ok, t_side, jnp.inf)
+    # Ends: spheres of radius r at the segment's two end points.
+    for end in (room.cyl_bottom, room.cyl_height):
+        m = jnp.concatenate([rel, (o[2] - end)[:, None]], -1)  # [Sc, 3]
+        md = jnp.sum(m * d[..., None, :], -1)  # [..., Sc]
+        disc = md * md - (jnp.sum(m * m, -1) - r * r)
+        t = -md - jnp.sqrt(jnp.maximum(disc, 0.0))
+        best = jnp.minimum(best, jnp.where((disc >= 0) & (t >= 0), t, jnp.inf))
+    return jnp.where(room.cyl_active, best, jnp.inf)

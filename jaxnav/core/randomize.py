@@ -50,6 +50,40 @@ class SceneParams:
     wheel_gain: jax.Array  # [2] actual / commanded speed of the left and right wheels
 
 
+RANDOM = "random"  # the family of `RandomizeConfig.families` that is `sample_room` with that config
+FAMILY_NAMES = (
+    RANDOM,
+    *("open", "clutter", "pillars", "corridor", "ltu", "joined", "furniture", "low_overhang"),
+)
+"""Names of `RandomizeConfig.families`: 'random' and the room families of `jaxnav.core.families`."""
+
+
+def family_weights(spec: str) -> dict[str, float]:
+    """{name: probability} of a `RandomizeConfig.families` spec ('name:weight,...', 'name' alone
+    weighs 1, 'all' is every family and 'random' equally). Errors name the field and the part."""
+    names, where = FAMILY_NAMES, "RandomizeConfig.families"
+    weights: dict[str, float] = {}
+    for part in spec.split(","):
+        name, _, value = part.strip().partition(":")
+        if name == "all" and not value:
+            weights.update(dict.fromkeys(names, 1.0))
+            continue
+        if name not in names:
+            raise ValueError(f"{where}: unknown family {name!r}; valid: all, {', '.join(names)}")
+        try:
+            weights[name] = float(value) if value else 1.0
+        except ValueError:
+            raise ValueError(
+                f"{where}: weight of {name!r} must be a number, got {value!r}"
+            ) from None
+        if not np.isfinite(weights[name]) or weights[name] < 0:
+            raise ValueError(f"{where}: weight of {name!r} must be >= 0, got {value!r}")
+    total = sum(weights.values())
+    if total <= 0:
+        raise ValueError(f"{where}: the weights must not all be 0, got {spec!r}")
+    return {k: w / total for k, w in weights.items() if w > 0}
+
+
 @dataclasses.dataclass(frozen=True)
 class RandomizeConfig:
     """Ranges of the per-episode randomisation. Pairs are inclusive [low, high] ranges.
@@ -77,11 +111,16 @@ class RandomizeConfig:
     """Full extent of a sampled box along each of its axes, m."""
     cylinder_radius: tuple[float, float] = (0.08, 0.3)
     """Radius of a sampled cylinder, m."""
+    families: str = ""
+    """Kinds of room the sampled rooms are, as 'name:weight,...': names of
+    `jaxnav.core.families.FAMILIES` (open, clutter, pillars, corridor, ltu, joined, furniture,
+    low_overhang) and 'random' (the sampler configured by the fields below); 'all' is every one,
+    equally weighted. Empty: 'random' only."""
     obstacle_height: tuple[float, float] = (0.4, 1.0)
     """Height of a sampled obstacle, m; the TurtleBot 2i's camera sits at 0.30 m."""
     low_prob: float = 0.0
     """Probability that a sampled obstacle is low (height in low_height): below the camera.
-    The ranges from here to wheel_asymmetry are off by default; `FIDELITY` has them on."""
+    The ranges from here to wheel_asymmetry are off in a bare config; `FIDELITY` has them on."""
     low_height: tuple[float, float] = (0.05, 0.25)
     """Height of a low obstacle, m."""
     overhang_prob: float = 0.0
@@ -164,6 +203,9 @@ class RandomizeConfig:
                 f"{self.room_size_min} > {self.room_size_max}"
             )
 
+        if self.families:
+            family_weights(self.families)
+
     def check_robot(self, radius: float) -> None:
         """Sampled rooms must fit a robot of `radius` with its spawn clearance."""
         smallest = 2 * (radius + self.spawn_clearance)
@@ -173,9 +215,6 @@ class RandomizeConfig:
                 f"and spawn_clearance on both sides), got {self.room_size_min}"
             )
 
-
-TRAINING = RandomizeConfig(sampled_room_prob=0.5, random_spawn_prob=0.5)
-"""The training distribution: half sampled rooms; half of the layout episodes from a random spawn."""
 
 FIDELITY = dict(
     low_prob=0.2,
@@ -193,9 +232,15 @@ FIDELITY = dict(
 )
 """The sim-to-real ranges around the TurtleBot 2i's figures: low obstacles and overhangs, the
 Kobuki's velocity smoother (0.3 m/s^2, 3.5 rad/s^2), 0-2 steps of command latency, wheel mismatch,
-structured-light depth noise, dark obstacles and camera mount error. `RandomizeConfig(**FIDELITY)`
-or the matching `--randomize.*` flags switch them on (off by default: each changes what a policy
-must learn; see the README)."""
+structured-light depth noise, dark obstacles and camera mount error. On in `TRAINING` and in
+evaluation; a bare `RandomizeConfig()` has them off (exact physics and sensing)."""
+
+TRAINING = RandomizeConfig(sampled_room_prob=0.75, random_spawn_prob=0.5, **FIDELITY)
+"""The training distribution of `python -m jaxnav.train`: three episodes in four in a sampled room
+(the 'random' family, with low obstacles and overhangs), the rest in the given layouts, half of
+those from a random spawn; the sim-to-real ranges of `FIDELITY` on. The room families of
+`jaxnav.core.families` stay out of it by default, so the benchmark suite, built from them, is
+rooms the policy never saw (`families="all"` mixes them in; benchmarks/RESULTS.md compares)."""
 
 
 @struct.dataclass
@@ -379,7 +424,12 @@ def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float
     k_pick, k_room, k_layout, k_spawn, k_rand, k_phys = jax.random.split(key, 6)
     nb, nc = bank.rooms.box_pos.shape[1], bank.rooms.cyl_pos.shape[1]
     # Room: a sampled room with probability sampled_room_prob, otherwise a uniform pick of the layouts.
-    sampled = sample_room(k_room, cfg, nb, nc, radius)
+    if cfg.families:
+        from jaxnav.core.families import sample_weighted  # families builds on this module
+
+        sampled = sample_weighted(k_room, cfg, nb, nc, radius)
+    else:
+        sampled = sample_room(k_room, cfg, nb, nc, radius)
     idx = jax.random.randint(k_layout, (), 0, bank.size)
     layout = jax.tree_util.tree_map(lambda x: x[idx], bank.rooms).replace(layout_id=idx)
     # Spawn in a layout: its own pose, or with probability random_spawn_prob (always if it has none)

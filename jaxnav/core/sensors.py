@@ -27,11 +27,10 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from mujoco import mjx
 
 from jaxnav.core.checks import require_finite
+from jaxnav.core.geometry import ray_cast
 from jaxnav.core.robot import RobotSpec
-from jaxnav.core.scene import OBSTACLE_GROUP
 
 SENSOR_MODELS = ("camera", "lidar")
 
@@ -48,9 +47,10 @@ class SensorConfig:
     """Ray columns per slice; more see thinner obstacles further away."""
     fov: float = float(np.deg2rad(60.0))
     """Horizontal field of view, rad (Astra: 60 deg)."""
-    rows: int = 1
-    """Ray rows, evenly spread over `row_angles` (1: a horizontal fan at the camera's height, the
-    default; 5 sees obstacles from 0.05 m tall and overhangs, at 5x the ray cost)."""
+    rows: int = 5
+    """Ray rows, evenly spread over `row_angles`. 5 (default) sees obstacles from 0.05 m tall and
+    overhangs: trained with 1 (a horizontal fan at the camera's height, 1/5 of the ray cost) or 3
+    rows, a policy collides with most low obstacles (benchmarks/RESULTS.md)."""
     row_angles: tuple[float, float] = (-0.40, 0.17)
     """Elevation of the lowest and highest row from the optical axis, rad (up +); the Astra's
     vertical field of view is 49.5 deg (+-0.43 rad)."""
@@ -140,31 +140,29 @@ def _directions(cfg: SensorConfig, yaw, pitch) -> tuple[jax.Array, jax.Array]:
     return world, cam[..., 0]
 
 
-def ray_readings(m: mjx.Model, d: mjx.Data, params, cfg: SensorConfig, scene):
-    """Noiseless per-ray readings [rows, C]: (reading m, hit geom or -1, floor bool), for the
-    robot of `scene` (a `Scene`) with the mount error of `params` (None: none).
+def ray_readings(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec):
+    """Noiseless per-ray readings [rows, C]: (reading m, hit slot, floor bool), for a robot at
+    qpos = (x, y, yaw) with the mount error of `params` (the episode's `SceneParams`).
 
-    reading is camera depth (lidar: range), inf where the ray meets nothing; floor marks rays that
-    meet the floor before any obstacle. Slots index the `SceneParams` boxes then cylinders.
+    reading is camera depth (lidar: range), inf where the ray meets nothing; slot is the obstacle
+    hit (boxes then cylinders, as in `SceneParams`; -1 for a wall or nothing); floor marks rays
+    that meet the floor before any obstacle. The rays are cast analytically on the room's shapes
+    (`geometry.ray_cast`, which agrees with `mjx.ray` on the MJX scene: tested).
     """
-    error = None if params is None else params.camera
-    pos, yaw, pitch = camera_pose(d.qpos, scene.robot, error)
+    pos, yaw, pitch = camera_pose(qpos, robot, params.camera)
     dirs, cosine = _directions(cfg, yaw, pitch)
-    groups = tuple(int(g == OBSTACLE_GROUP) for g in range(6))
-    body = scene.robot_body
-    cast = lambda v: mjx.ray(m, d, pos, v, geomgroup=groups, bodyexclude=body)  # noqa: E731
-    dist, geom = jax.vmap(jax.vmap(cast))(dirs)  # [rows, C]
-    hit = dist >= 0
+    dist, slot = ray_cast(params, pos, dirs)  # [rows, C]
+    hit = jnp.isfinite(dist)
     floor_dist = jnp.where(dirs[..., 2] < 0, pos[2] / jnp.maximum(-dirs[..., 2], 1e-9), jnp.inf)
     floor = jnp.where(hit, floor_dist < dist, jnp.isfinite(floor_dist))
     scale = cosine if cfg.model == "camera" else jnp.ones_like(cosine)
     reading = jnp.where(hit, dist * scale, jnp.inf)
-    return reading, geom, floor
+    return reading, slot, floor
 
 
-def ray_depths(m: mjx.Model, d: mjx.Data, cfg: SensorConfig, scene):
+def ray_depths(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec):
     """[rows * C] noiseless readings of the rays, inf where a ray meets nothing or the floor."""
-    reading, _, floor = ray_readings(m, d, None, cfg, scene)
+    reading, _, floor = ray_readings(params, qpos, cfg, robot)
     return jnp.where(floor, jnp.inf, reading).reshape(-1)
 
 
@@ -185,21 +183,15 @@ def reduce_sectors(reading, valid, floor, cfg: SensorConfig, xp=jnp):
     return xp.clip(out, cfg.range_min, cfg.range_max)
 
 
-def observe(m, d, params, key, cfg: SensorConfig, scene) -> jax.Array:
-    """[num_sectors] float32 observation with the episode's noise, dropout, dark obstacles and
-    camera mount error (`scene`: the `Scene`, for the robot and its geoms)."""
-    reading, geom, floor = ray_readings(m, d, params, cfg, scene)
+def observe(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> jax.Array:
+    """[num_sectors] float32 observation of a robot at qpos = (x, y, yaw) with the episode's
+    noise, dropout, dark obstacles and camera mount error (`params`: its `SceneParams`)."""
+    reading, slot, floor = ray_readings(params, qpos, cfg, robot)
     k_noise, k_drop = jax.random.split(key)
     std = params.noise_std + params.noise_quad * jnp.square(jnp.minimum(reading, cfg.range_max))
     reading = reading + std * jax.random.normal(k_noise, reading.shape)
     dropped = jax.random.bernoulli(k_drop, params.dropout, reading.shape)
-    dark = _dark_hit(scene.slot_of_geom, geom, params)
+    dark = (slot >= 0) & params.dark[jnp.maximum(slot, 0)]  # an obstacle with no return
     in_range = (reading <= cfg.range_max) | (not cfg.far_invalid)
     valid = (reading >= cfg.range_min) & in_range & ~dropped & ~dark
     return reduce_sectors(reading, valid, floor, cfg).astype(jnp.float32)
-
-
-def _dark_hit(slot_of_geom: np.ndarray, geom: jax.Array, params) -> jax.Array:
-    """[rows, C] bool: the ray hit an obstacle that returns no depth this episode."""
-    slot = jnp.asarray(slot_of_geom)[jnp.maximum(geom, 0)]  # -1 for walls
-    return (geom >= 0) & (slot >= 0) & params.dark[jnp.maximum(slot, 0)]

@@ -53,6 +53,9 @@ class PPOConfig:
     """Rewards are multiplied by this for learning (use 0.01 with a tanh critic); logs stay raw."""
     normalize_obs: bool = True
     """Standardise observations with running mean/variance."""
+    reset_share: float = 0.0625
+    """New episodes drawn per step for the robots whose episode ended, as a share of num_envs
+    (at least one; 1: one per robot). See `jaxnav.wrappers.AutoReset`."""
     updates_per_chunk: int = 10
     """Updates per jitted call; progress, metrics and checkpoints happen between chunks."""
     checkpoint_every: int = 50
@@ -88,6 +91,8 @@ class PPOConfig:
         for name in ("learning_rate", "clip_eps", "max_grad_norm", "reward_scale"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{_flag(name)}: must be > 0, got {getattr(self, name)}")
+        if not 0 < self.reset_share <= 1:
+            raise ValueError(f"--reset-share: must be in (0, 1], got {self.reset_share}")
         for name in ("vf_coef", "ent_coef"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{_flag(name)}: must be >= 0, got {getattr(self, name)}")
@@ -109,6 +114,11 @@ class PPOConfig:
     @property
     def num_minibatches(self) -> int:
         return self.batch_size // self.minibatch_size
+
+    @property
+    def reset_pool(self) -> int:
+        """New episodes drawn per step (`reset_share` of the robots, at least one)."""
+        return max(1, round(self.reset_share * self.num_envs))
 
     @property
     def num_updates(self) -> int:

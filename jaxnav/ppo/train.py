@@ -114,9 +114,9 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     network = make_network(cfg, env.action_spec)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
-    env = AutoReset(EpisodeStats(env))
-    reset = lambda keys: shard(jax.vmap(env.reset)(keys))  # noqa: E731
-    step = lambda state, action: shard(jax.vmap(env.step)(state, action))  # noqa: E731
+    env = AutoReset(EpisodeStats(env), pool=cfg.reset_pool)
+    reset = lambda keys: shard(env.reset(keys))  # noqa: E731
+    step = lambda state, action: shard(env.step(state, action))  # noqa: E731
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
 
     def init(key: jax.Array) -> TrainState:

@@ -68,8 +68,7 @@ class NavTask:
 
     def sense(self, params: SceneParams, data: mjx.Data, key: jax.Array) -> jax.Array:
         """[num_sectors] float32 sector minima of the depth sensor, with the episode's noise."""
-        m = self.scene.model_for(params)
-        return observe(m, data, params, key, self.sensor, self.scene)
+        return observe(params, data.qpos, key, self.sensor, self.robot)
 
     def touching(self, params: SceneParams, data: mjx.Data) -> jax.Array:
         """[] bool: the robot's collision volume touches a wall or an obstacle."""

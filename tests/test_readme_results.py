@@ -1,0 +1,36 @@
+"""The README's Results table is exactly what benchmarks/readme_results.py made of its last JSON."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "benchmarks" / "readme_results.py"
+
+
+@pytest.fixture(scope="module")
+def script():
+    if not SCRIPT.exists():
+        pytest.skip("benchmarks/ is not in this checkout")
+    spec = importlib.util.spec_from_file_location("readme_results", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_readme_table_matches_results_json(script):
+    results = json.loads(script.OUT.read_text())
+    readme = (ROOT / "README.md").read_text()
+    table = readme.split(script.BEGIN, 1)[1].split(script.END, 1)[0].strip()
+    assert table == script.render(results), "run benchmarks/readme_results.py --write-readme"
+    for line in results["lines"]:
+        assert line["command"] and line["machine"] and line["date"], line
+
+
+def test_render_names_command_machine_and_date(script):
+    line = dict(what="w", command="python -m x", machine="m", date="2026-01-01", result="r")
+    assert script.render({"lines": [line]}).splitlines()[-1] == (
+        "| w | `python -m x` | m, 2026-01-01 | r |"
+    )
