@@ -14,7 +14,7 @@ import jaxnav
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig
 from jaxnav.core.sensors import SensorConfig, ray_readings
 from jaxnav.io.layouts import Box, Cylinder
-from jaxnav.robot_side.observation import Sensor, reduce_sectors
+from jaxnav.robot_side.observation import Sensor, floor_mask, reduce_sectors
 
 CAMERA = SensorConfig(rows=5, far_invalid=True)
 
@@ -55,7 +55,7 @@ def test_overhang_is_seen_and_collides():
 
 def test_floor_is_not_an_obstacle():
     _, _, obs = first_obs(Cylinder(pos=(3.5, 1.2), radius=0.05), size=(8.0, 3.0))
-    assert obs.min() > 1.0  # the lowest row meets the floor 0.7 m out: not an obstacle
+    assert obs.min() > 1.0  # the lowest row meets the floor 0.74 m out: not an obstacle
 
 
 def test_blind_zone_reads_near():
@@ -65,8 +65,9 @@ def test_blind_zone_reads_near():
 
 
 def test_simulator_and_robot_reduce_alike():
-    """The robot side's reduction over the simulator's own rays (unknown -> NaN, floor rays left
-    out) gives the simulator's observation, in rooms with low, near and dark obstacles."""
+    """The robot side's floor rule and reduction over the simulator's own rays (unknown -> NaN,
+    floor readings left out by the numpy `floor_mask`) give the simulator's observation, in rooms
+    with low, near and dark obstacles and camera mount errors."""
     sensor = dataclasses.replace(CAMERA, rays_per_sector=4)
     cfg = RandomizeConfig(sampled_room_prob=1.0, **{**FIDELITY, "sensor_noise": (0.0, 0.0)})
     cfg = dataclasses.replace(cfg, sensor_noise_quadratic=(0.0, 0.0), sensor_dropout=(0.0, 0.0))
@@ -79,21 +80,23 @@ def test_simulator_and_robot_reduce_alike():
         state = env.reset(key)
         params = state.info["params"]
         m = env.scene.model_for(params)
-        reading, geom, floor = ray_readings(m, state.data, params, sensor, env.scene)
-        slot = jnp.asarray(env.scene.slot_of_geom)[jnp.maximum(geom, 0)]
-        dark = (geom >= 0) & (slot >= 0) & params.dark[jnp.maximum(slot, 0)]
-        return state.obs, reading, dark, floor
+        rays = ray_readings(m, state.data, params, sensor, env.scene)
+        slot = jnp.asarray(env.scene.slot_of_geom)[jnp.maximum(rays.geom, 0)]
+        dark = (rays.geom >= 0) & (slot >= 0) & params.dark[jnp.maximum(slot, 0)]
+        return state.obs, rays.reading, dark, rays.rise, rays.height
 
-    near_seen = 0
+    near_seen = floor_seen = 0
     for seed in range(24):
-        obs, reading, dark, floor = (np.asarray(x) for x in sim(jax.random.PRNGKey(seed)))
+        obs, reading, dark, rise, height = (np.asarray(x) for x in sim(jax.random.PRNGKey(seed)))
         unknown = dark | (reading < sensor.range_min) | (reading > sensor.range_max)
+        floor = floor_mask(reading, ~unknown, rise, float(height), robot)
         depth = np.where(unknown, np.nan, reading)
         sector = np.broadcast_to(columns, reading.shape)
         expected = reduce_sectors(depth[~floor], sector[~floor], robot, sensor.blind_fraction)
         np.testing.assert_allclose(obs, expected, rtol=1e-6)
         near_seen += int((obs == sensor.range_min).any())
-    assert near_seen >= 2  # the blind-zone rule was exercised
+        floor_seen += int(floor.any())
+    assert near_seen >= 2 and floor_seen >= 20  # the blind-zone and floor rules were exercised
 
 
 def test_fidelity_ranges_are_drawn_per_episode_without_recompiling():
