@@ -88,6 +88,12 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
         range_min=np.float32(config.sensor.range_min),
         range_max=np.float32(config.sensor.range_max),
         num_sectors=np.int32(size),
+        # The rows and the floor rule: the robot reads the same pixels (observation.ray_pixels).
+        elevations=np.asarray(config.sensor.elevations, np.float64),
+        camera_height=np.float64(config.robot.camera_height),
+        camera_pitch=np.float64(config.robot.camera_pitch),
+        floor_margin=np.float64(config.sensor.floor_margin),
+        floor_margin_slope=np.float64(config.sensor.floor_margin_slope),
         control_period=np.float64(config.scene.control_period),  # s; float64: exact 10 Hz
         format_version=np.int32(FORMAT_VERSION),
     )
@@ -251,6 +257,11 @@ Needs Python 3 with numpy, and ROS 2 (rclpy) for the node; no jax. Run in this f
   python3 -m {package}.ros_node --policy policy.npz \\
       --ros-args -r cmd_vel:=commands/velocity -p speed_calibration:=1.2
 
+  # the camera's measured height (m) and pitch (deg, down +), for the floor rule of policies
+  # trained with several rows (default: the mount they were trained with)
+  python3 -m {package}.ros_node --policy policy.npz \
+      --ros-args -r cmd_vel:=commands/velocity -p camera_height:=0.3 -p tilt_deg:=1.0
+
   # all flags (camera tilt, rows read around the horizon, topics)
   python3 -m {package}.ros_node --help
 
@@ -259,8 +270,10 @@ Without ROS, in Python:
   from {package} import Controller, NumpyPolicy
   from {package}.observation import horizon_rows
   controller = Controller(NumpyPolicy.from_npz("policy.npz"))
-  rows = horizon_rows(depth.shape[0], vfov=0.864)  # the rows near the horizon (Astra: 49.5 deg)
-  twist = controller.image_to_twist(depth, rows)   # depth image [H, W] in metres -> (m/s, rad/s)
+  # the pixels of the trained rays, floor left out (Astra: 49.5 deg vertical field of view)
+  twist = controller.image_to_twist(depth, vfov=0.864)  # depth [H, W] in metres -> (m/s, rad/s)
+  # or, for a one-row policy, the image rows near the horizon
+  twist = controller.image_to_twist(depth, horizon_rows(depth.shape[0], vfov=0.864))
 
 Trained with: {sensor}; actions (forward m/s, yaw rad/s): {actions}.
 """

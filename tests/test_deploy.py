@@ -6,6 +6,7 @@ import jax
 import numpy as np
 import pytest
 from conftest import EXACT
+from test_robot_side import ASTRA_VFOV, floor_image
 
 import jaxnav
 from jaxnav.core.sensors import SensorConfig, ray_depths
@@ -146,6 +147,71 @@ def test_uneven_widths_and_geometry_helpers():
     tilted = deploy.horizon_rows(480, math.radians(49.5), 2.0, tilt=math.radians(5))
     assert tilted.mean() < rows.mean()  # looking down: the horizon is higher in the image
     assert len(deploy.horizon_rows(480, math.radians(49.5), 0.0)) == 1
+
+
+FIVE_ROWS = SensorConfig(rows=5)
+
+
+def rows_sensor(**changes):
+    """The robot-side `Sensor` of a 5-row policy of the TurtleBot 2i (camera 0.295 m, level)."""
+    base = dict(elevations=tuple(FIVE_ROWS.elevations), camera_height=0.295)
+    return Sensor(SENSOR.fov, 8, 0.6, 8.0, **{**base, **changes})
+
+
+def test_ray_pixels_follow_the_simulators_rays():
+    sensor = rows_sensor()
+    pixels = deploy.ray_pixels(sensor, 480, 640, ASTRA_VFOV, azimuths=FIVE_ROWS.ray_angles)
+    focal = 240 / math.tan(0.5 * ASTRA_VFOV)
+    across = (319.5 - pixels.cols) / focal
+    up = (239.5 - pixels.rows) / focal
+    azimuth, elevation = np.arctan(across), np.arctan(up / np.hypot(1.0, across))
+    one_pixel = 1 / focal
+    assert np.abs(azimuth - FIVE_ROWS.ray_angles).max() < one_pixel
+    assert np.abs(elevation - FIVE_ROWS.elevations[:, None]).max() < one_pixel
+    np.testing.assert_array_equal(pixels.sector, np.arange(24) // 3)
+    np.testing.assert_allclose(pixels.rise, up)  # a level camera: height per metre of depth
+    dense = deploy.ray_pixels(sensor, 480, 640, ASTRA_VFOV)  # every column within +-30 deg
+    assert 600 < dense.cols.size < 620 and np.all(np.diff(dense.cols) == 1)
+    assert np.all(np.diff(dense.sector) <= 0) and dense.sector[-1] == 0  # sector 0 on the right
+    low = deploy.ray_pixels(rows_sensor(elevations=(-0.45,)), 480, 640, ASTRA_VFOV)
+    assert low.rows.max() == 479  # beyond the image: its edge row
+
+
+def test_floor_is_left_out_of_a_depth_image():
+    """A 5-row policy's rays see the floor from 0.64-0.74 m out: it is no obstacle on the robot
+    either, while what stands above the floor margin (2 cm + 1 cm per metre) is."""
+
+    def obs(image, sensor=None):
+        return deploy.depth_image_to_sectors(image, sensor or rows_sensor(), vfov=ASTRA_VFOV)
+
+    np.testing.assert_allclose(obs(floor_image()), 5.0, rtol=1e-6)  # the wall, not the floor
+    unruled = obs(floor_image(), rows_sensor(camera_height=None))  # no floor rule
+    assert 0.6 < unruled.min() and unruled.max() < 0.74  # the lowest row's floor, as obstacle
+    # A 10 cm face 1 m ahead: the second row meets it 4.8 cm up ahead (obstacle), but 0.9 cm up
+    # at +-30 deg, within the floor margin (taken for floor, as in the simulator).
+    np.testing.assert_allclose(obs(floor_image(box=(1.0, 0.1)))[1:7], 1.0, rtol=1e-6)
+    # A camera 5 cm lower than the robot side believes sees the floor 5 cm up: obstacles
+    # (calibrate the mount); 5 cm higher, the floor 5 cm down: still floor.
+    assert obs(floor_image(camera_height=0.245)).max() < 1.0
+    np.testing.assert_allclose(obs(floor_image(camera_height=0.345)), 5.0, rtol=1e-6)
+    with pytest.raises(ValueError, match="give vfov, or rows and column_angles"):
+        deploy.depth_image_to_sectors(floor_image(), rows_sensor(), rows=[0], vfov=ASTRA_VFOV)
+
+
+def test_floor_mask_rule():
+    sensor = rows_sensor()  # range 0.6-8 m, margin 0.02 m + 0.01 m per metre
+    rise = np.array([-0.4, -0.4, -0.4, -0.4, -0.04, 0.1, -0.4, -0.4])
+    reading = np.array([0.7375, 0.675, 0.65, 1.0, 0.0, 0.0, 0.0, np.inf])
+    known = np.array([True, True, True, True, False, False, False, True])
+    # On the floor; 2.5 cm up (margin 2.7 cm); 3.5 cm up (margin 2.65 cm); below the floor
+    # (noise); unknown, floor 7.4 m out (in range: not floor); unknown, looking up; unknown,
+    # floor at 0.74 m (in range: not floor); +inf looking down: through the floor.
+    want = [True, True, False, True, False, False, False, True]
+    got = deploy.floor_mask(reading, known, rise, 0.295, sensor)
+    np.testing.assert_array_equal(got, want)
+    # Unknown where the camera cannot read the floor (nearer than 0.6 m, beyond 8 m): floor.
+    far = deploy.floor_mask(np.zeros(2), np.zeros(2, bool), np.array([-0.6, -0.03]), 0.295, sensor)
+    np.testing.assert_array_equal(far, [True, True])
 
 
 def test_action_to_twist():

@@ -14,7 +14,7 @@ import jaxnav
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig
 from jaxnav.core.sensors import SensorConfig, ray_readings
 from jaxnav.io.layouts import Box, Cylinder
-from jaxnav.robot_side.observation import Sensor, reduce_sectors
+from jaxnav.robot_side.observation import Sensor, floor_mask, reduce_sectors
 
 CAMERA = SensorConfig(rows=5, far_invalid=True)
 
@@ -28,7 +28,7 @@ def first_obs(obstacle, sensor=CAMERA, size=(8.0, 3.0)):
 @pytest.mark.parametrize("height", [0.05, 0.12, 0.25])
 def test_low_obstacles_are_seen_only_with_rows(height):
     box = Box(pos=(1.0, 0.0), size=(0.3, 1.2), height=height)  # face 0.85 m ahead of the centre
-    _, _, fan = first_obs(box, SensorConfig())
+    _, _, fan = first_obs(box, SensorConfig(rows=1))
     _, _, camera = first_obs(box)
     assert fan[3:5].min() > 2.0  # the horizontal fan at 0.295 m looks over it
     assert camera[3:5].min() == pytest.approx(0.85 + 0.05, abs=0.12)  # camera 0.05 m behind
@@ -55,7 +55,7 @@ def test_overhang_is_seen_and_collides():
 
 def test_floor_is_not_an_obstacle():
     _, _, obs = first_obs(Cylinder(pos=(3.5, 1.2), radius=0.05), size=(8.0, 3.0))
-    assert obs.min() > 1.0  # the lowest row meets the floor 0.7 m out: not an obstacle
+    assert obs.min() > 1.0  # the lowest row meets the floor 0.74 m out: not an obstacle
 
 
 def test_blind_zone_reads_near():
@@ -65,8 +65,9 @@ def test_blind_zone_reads_near():
 
 
 def test_simulator_and_robot_reduce_alike():
-    """The robot side's reduction over the simulator's own rays (unknown -> NaN, floor rays left
-    out) gives the simulator's observation, in rooms with low, near and dark obstacles."""
+    """The robot side's floor rule and reduction over the simulator's own rays (unknown -> NaN,
+    floor readings left out by the numpy `floor_mask`) give the simulator's observation, in rooms
+    with low, near and dark obstacles and camera mount errors."""
     sensor = dataclasses.replace(CAMERA, rays_per_sector=4)
     cfg = RandomizeConfig(sampled_room_prob=1.0, **{**FIDELITY, "sensor_noise": (0.0, 0.0)})
     cfg = dataclasses.replace(cfg, sensor_noise_quadratic=(0.0, 0.0), sensor_dropout=(0.0, 0.0))
@@ -78,20 +79,22 @@ def test_simulator_and_robot_reduce_alike():
     def sim(key):
         state = env.reset(key)
         params = state.info["params"]
-        reading, slot, floor = ray_readings(params, state.data.qpos, sensor, env.robot)
-        dark = (slot >= 0) & params.dark[jnp.maximum(slot, 0)]
-        return state.obs, reading, dark, floor
+        rays = ray_readings(params, state.data.qpos, sensor, env.robot)
+        dark = (rays.slot >= 0) & params.dark[jnp.maximum(rays.slot, 0)]
+        return state.obs, rays.reading, dark, rays.rise, rays.height
 
-    near_seen = 0
+    near_seen = floor_seen = 0
     for seed in range(24):
-        obs, reading, dark, floor = (np.asarray(x) for x in sim(jax.random.PRNGKey(seed)))
+        obs, reading, dark, rise, height = (np.asarray(x) for x in sim(jax.random.PRNGKey(seed)))
         unknown = dark | (reading < sensor.range_min) | (reading > sensor.range_max)
+        floor = floor_mask(reading, ~unknown, rise, float(height), robot)
         depth = np.where(unknown, np.nan, reading)
         sector = np.broadcast_to(columns, reading.shape)
         expected = reduce_sectors(depth[~floor], sector[~floor], robot, sensor.blind_fraction)
         np.testing.assert_allclose(obs, expected, rtol=1e-6)
         near_seen += int((obs == sensor.range_min).any())
-    assert near_seen >= 2  # the blind-zone rule was exercised
+        floor_seen += int(floor.any())
+    assert near_seen >= 2 and floor_seen >= 20  # the blind-zone and floor rules were exercised
 
 
 def test_fidelity_ranges_are_drawn_per_episode_without_recompiling():

@@ -71,6 +71,7 @@ def outputs(nb) -> list:
     return [out for cell in nb.cells if cell.cell_type == "code" for out in cell.outputs]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", FIGURES)
 def test_notebook_runs_and_draws(executed, name):
     nb, err = executed[name]

@@ -68,6 +68,7 @@ def tiny_config():
     return train_module.build_config("cpu", 0, None, train_module.overrides_from_args(flags))
 
 
+@pytest.mark.slow
 def test_same_seed_same_params():
     config = tiny_config()
     env = train_module.make_run_env(config)

@@ -1,6 +1,7 @@
 """The robot side on its own: numpy only, importable and runnable where jax cannot be imported."""
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -49,6 +50,25 @@ def run_without_jax(code: str, cwd: Path, pythonpath: Path | None = None):
         env=env,
         timeout=120,
     )
+
+
+ASTRA_VFOV = math.radians(49.5)
+
+
+def floor_image(wall=5.0, box=None, camera_height=0.295, height=480, width=640):
+    """A 640 x 480 depth image (Astra: 49.5 deg vertically, camera level) as the Astra reports it
+    (0 outside 0.6-8 m): the floor, a wall across the view at depth `wall`, and with box =
+    (depth, top) a box face across the view at that depth, from the floor to `top` m."""
+    focal = 0.5 * height / math.tan(0.5 * ASTRA_VFOV)
+    up = ((0.5 * (height - 1) - np.arange(height)) / focal)[:, None]  # [H, 1] per metre of depth
+    depth = np.full((height, width), wall)
+    with np.errstate(divide="ignore"):
+        depth = np.where(up < 0, np.minimum(depth, camera_height / -up), depth)
+    if box is not None:
+        d, top = box
+        face = (camera_height + d * up >= 0) & (camera_height + d * up <= top)
+        depth = np.where(face, np.minimum(depth, d), depth)
+    return np.where((depth >= 0.6) & (depth <= 8.0), depth, 0.0).astype(np.float32)
 
 
 def write_policy_npz(path: Path, **changes) -> Path:
@@ -149,6 +169,17 @@ def test_policy_file_errors_name_the_file(tmp_path, changes, message):
     with pytest.raises(ValueError, match=message) as err:
         NumpyPolicy.from_npz(path)
     assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
+
+
+def test_sensor_rows_and_mount_come_from_the_policy_file(tmp_path):
+    old = NumpyPolicy.from_npz(write_policy_npz(tmp_path / "old.npz")).sensor
+    assert old.elevations == (0.0,) and old.camera_height is None and old.camera_pitch == 0.0
+    rows = dict(elevations=np.array([-0.38, 0.0, 0.17]), camera_height=np.float64(0.3))
+    mount = dict(camera_pitch=np.float64(0.05), floor_margin=np.float64(0.03))
+    path = write_policy_npz(tmp_path / "new.npz", **rows, **mount)
+    new = NumpyPolicy.from_npz(path).sensor
+    assert new.elevations == (-0.38, 0.0, 0.17) and new.camera_height == 0.3
+    assert new.camera_pitch == 0.05 and new.floor_margin == 0.03 and new.floor_margin_slope == 0.01
 
 
 def test_unreadable_policy_file(tmp_path):

@@ -11,7 +11,7 @@ import types
 
 import numpy as np
 import pytest
-from test_robot_side import write_policy_npz
+from test_robot_side import floor_image, write_policy_npz
 
 from jaxnav.robot_side import ros_node
 from jaxnav.robot_side.observation import Controller, Twist, horizon_rows
@@ -72,6 +72,21 @@ def expected(policy, depth) -> Twist:
     """What the node must send for a fresh depth image (the default reader's rows)."""
     rows = horizon_rows(depth.shape[0], math.radians(49.5), 2.0)
     return Controller(policy).image_to_twist(depth, rows)
+
+
+def test_several_row_policies_read_their_rays_floor_left_out(tmp_path):
+    """A 5-row policy reads the pixels of its rays with the floor rule (a wall at 5 m behind
+    the floor reads 5 m); the camera height and pitch parameters override the file's."""
+    elevations = np.linspace(-0.38, 0.17, 5)  # SensorConfig(rows=5).elevations
+    npz = write_policy_npz(tmp_path / "p.npz", elevations=elevations, camera_height=0.295)
+    controller = Controller(NumpyPolicy.from_npz(npz))
+    msg = image_msg(floor_image())
+    np.testing.assert_allclose(MessageReader()(msg, controller), 5.0, rtol=1e-6)
+    # Told the camera is 5 cm higher than it is, the floor seems 5 cm up: obstacles.
+    assert MessageReader(camera_height=0.345)(msg, controller).max() < 1.0
+    assert MessageReader(tilt_deg=-3.0)(msg, controller).max() < 1.0  # said to look up 3 deg
+    with pytest.raises(ValueError, match="camera_height: must be > 0 m"):
+        MessageReader(camera_height=0.0)
 
 
 def test_image_message_conversion():

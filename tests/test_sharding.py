@@ -30,6 +30,7 @@ def train_on(devices: int, out: Path) -> dict:
     return dict(np.load(out))
 
 
+@pytest.mark.slow
 def test_two_devices_match_one(tmp_path):
     one = train_on(1, tmp_path / "one.npz")
     two = train_on(2, tmp_path / "two.npz")

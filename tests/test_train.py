@@ -18,6 +18,7 @@ from jaxnav.ppo.train import make_train
 TINY = dict(num_envs=64, rollout_length=32, minibatch_size=512, num_epochs=4, updates_per_chunk=5)
 
 
+@pytest.mark.slow
 def test_tiny_training_improves_reward():
     env = jaxnav.make_env("avoid", max_steps=200)
     cfg = preset("cpu", **TINY, total_steps=64 * 32 * 40)

@@ -7,12 +7,17 @@ turned into camera depth (distance along the optical axis, what a depth image ho
 the range itself. Sectors are ordered right to left (increasing angle, as in a ROS LaserScan): obs[0]
 is the rightmost slice, obs[7] the leftmost.
 
-Each ray reads one of three things, as the Orbbec Astra reports them:
-- floor: the ray meets the floor before any obstacle. Not an obstacle; left out of the sector.
+Each ray reads the first surface it meets, floor included, as the Orbbec Astra reports it:
 - invalid (the camera reports 0): the surface is nearer than `range_min` (the blind zone), the
   obstacle returns no depth (dark, glossy, glass), the pixel drops out, or (with `far_invalid`)
   the surface is farther than `range_max` or absent.
 - valid: a depth in [range_min, range_max], with noise of std `noise_std + noise_quad * depth^2`.
+Then rays that see the floor are told apart from obstacle hits by the robot side's own rule,
+`jaxnav.robot_side.observation.floor_mask` (the same code): a reading whose point lies within
+`floor_margin + floor_margin_slope * depth` of the floor plane, or an invalid one whose ray meets
+the floor outside the camera's range. Floor is not an obstacle; it is left out of the sector.
+The simulator classifies with the episode's true camera mount: the robot side must be given the
+robot's calibrated one.
 
 One reduction per sector, the same rule as on the robot (`jaxnav.robot_side.observation`): if at
 least `blind_fraction` of its non-floor rays are invalid (a sector of floor only included), the
@@ -23,6 +28,7 @@ safe reading); otherwise the minimum of its valid readings, clipped to the range
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +37,7 @@ import numpy as np
 from jaxnav.core.checks import require_finite
 from jaxnav.core.geometry import ray_cast
 from jaxnav.core.robot import RobotSpec
+from jaxnav.robot_side.observation import FLOOR_MARGIN, FLOOR_MARGIN_SLOPE, floor_mask
 
 SENSOR_MODELS = ("camera", "lidar")
 
@@ -51,9 +58,11 @@ class SensorConfig:
     """Ray rows, evenly spread over `row_angles`. 5 (default) sees obstacles from 0.05 m tall and
     overhangs: trained with 1 (a horizontal fan at the camera's height, 1/5 of the ray cost) or 3
     rows, a policy collides with most low obstacles (benchmarks/RESULTS.md)."""
-    row_angles: tuple[float, float] = (-0.40, 0.17)
-    """Elevation of the lowest and highest row from the optical axis, rad (up +); the Astra's
-    vertical field of view is 49.5 deg (+-0.43 rad)."""
+    row_angles: tuple[float, float] = (-0.38, 0.17)
+    """Elevation of the lowest and highest row from the optical axis, rad (up +). The Astra's
+    vertical field of view is 49.5 deg (+-0.43 rad) at the image's centre but only +-0.38 rad at
+    its sides (+-30 deg: a pinhole image's edge rows curve towards the axis), so lower rows would
+    see what the camera cannot (tests/test_rendered_depth.py)."""
     range_min: float = 0.6
     """Nearest readable depth, m; nearer surfaces are invalid (Astra: 0.6)."""
     range_max: float = 8.0
@@ -63,6 +72,11 @@ class SensorConfig:
     far_invalid: bool = False
     """Surfaces beyond range_max (and rays meeting nothing) are invalid, as the Astra reports them
     (0); False (default): they read range_max, as a LaserScan's inf does."""
+    floor_margin: float = FLOOR_MARGIN
+    """A reading within floor_margin + floor_margin_slope * depth (m) of the floor plane, or
+    below it, is floor, not an obstacle (`floor_mask`, shared with the robot side)."""
+    floor_margin_slope: float = FLOOR_MARGIN_SLOPE
+    """Growth of the floor margin per metre of depth, m/m."""
 
     def __post_init__(self):
         require_finite(self)
@@ -96,6 +110,9 @@ class SensorConfig:
             raise ValueError(
                 f"SensorConfig.blind_fraction: must be in [0, 1], got {self.blind_fraction}"
             )
+        for name in ("floor_margin", "floor_margin_slope"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"SensorConfig.{name}: must be >= 0, got {getattr(self, name)}")
 
     @property
     def ray_angles(self) -> np.ndarray:
@@ -140,30 +157,43 @@ def _directions(cfg: SensorConfig, yaw, pitch) -> tuple[jax.Array, jax.Array]:
     return world, cam[..., 0]
 
 
-def ray_readings(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec):
-    """Noiseless per-ray readings [rows, C]: (reading m, hit slot, floor bool), for a robot at
-    qpos = (x, y, yaw) with the mount error of `params` (the episode's `SceneParams`).
+class Rays(NamedTuple):
+    """Noiseless readings of the sensor's rays [rows, C] (`ray_readings`)."""
 
-    reading is camera depth (lidar: range), inf where the ray meets nothing; slot is the obstacle
-    hit (boxes then cylinders, as in `SceneParams`; -1 for a wall or nothing); floor marks rays
-    that meet the floor before any obstacle. The rays are cast analytically on the room's shapes
-    (`geometry.ray_cast`, which agrees with `mjx.ray` on the MJX scene: tested).
-    """
+    reading: jax.Array  # [rows, C] camera depth (lidar: range) of the first surface, m; inf: none
+    slot: jax.Array  # [rows, C] int32 obstacle hit first (boxes, then cylinders); -1: wall, floor
+    rise: jax.Array  # [rows, C] height the ray gains per metre of reading, m/m (< 0: downwards)
+    height: jax.Array  # [] the camera's height above the floor, m (with the mount error)
+
+
+def ray_readings(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec) -> Rays:
+    """The noiseless `Rays` of a robot at qpos = (x, y, yaw) with the mount error of `params` (the
+    episode's `SceneParams`): what each ray meets first, the floor included. The rays are cast
+    analytically on the room's shapes (`geometry.ray_cast`, which agrees with `mjx.ray` on the MJX
+    scene: tested); the floor plane z = 0 is intersected here."""
     pos, yaw, pitch = camera_pose(qpos, robot, params.camera)
     dirs, cosine = _directions(cfg, yaw, pitch)
     dist, slot = ray_cast(params, pos, dirs)  # [rows, C]
     hit = jnp.isfinite(dist)
     floor_dist = jnp.where(dirs[..., 2] < 0, pos[2] / jnp.maximum(-dirs[..., 2], 1e-9), jnp.inf)
     floor = jnp.where(hit, floor_dist < dist, jnp.isfinite(floor_dist))
+    dist = jnp.where(floor, floor_dist, dist)
     scale = cosine if cfg.model == "camera" else jnp.ones_like(cosine)
-    reading = jnp.where(hit, dist * scale, jnp.inf)
-    return reading, slot, floor
+    slot = jnp.where(floor, -1, slot)
+    return Rays(dist * scale, slot, dirs[..., 2] / scale, pos[2])
+
+
+def _floor(rays: Rays, reading, valid, cfg: SensorConfig):
+    """[rows, C] bool: the rays whose readings (`reading`, `valid` [rows, C]) are the floor."""
+    return floor_mask(reading, valid, rays.rise, rays.height, cfg, xp=jnp)
 
 
 def ray_depths(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec):
     """[rows * C] noiseless readings of the rays, inf where a ray meets nothing or the floor."""
-    reading, _, floor = ray_readings(params, qpos, cfg, robot)
-    return jnp.where(floor, jnp.inf, reading).reshape(-1)
+    rays = ray_readings(params, qpos, cfg, robot)
+    in_range = (rays.reading <= cfg.range_max) | (not cfg.far_invalid)
+    floor = _floor(rays, rays.reading, (rays.reading >= cfg.range_min) & in_range, cfg)
+    return jnp.where(floor, jnp.inf, rays.reading).reshape(-1)
 
 
 def reduce_sectors(reading, valid, floor, cfg: SensorConfig, xp=jnp):
@@ -186,12 +216,14 @@ def reduce_sectors(reading, valid, floor, cfg: SensorConfig, xp=jnp):
 def observe(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> jax.Array:
     """[num_sectors] float32 observation of a robot at qpos = (x, y, yaw) with the episode's
     noise, dropout, dark obstacles and camera mount error (`params`: its `SceneParams`)."""
-    reading, slot, floor = ray_readings(params, qpos, cfg, robot)
+    rays = ray_readings(params, qpos, cfg, robot)
     k_noise, k_drop = jax.random.split(key)
+    reading = rays.reading
     std = params.noise_std + params.noise_quad * jnp.square(jnp.minimum(reading, cfg.range_max))
     reading = reading + std * jax.random.normal(k_noise, reading.shape)
     dropped = jax.random.bernoulli(k_drop, params.dropout, reading.shape)
-    dark = (slot >= 0) & params.dark[jnp.maximum(slot, 0)]  # an obstacle with no return
+    dark = (rays.slot >= 0) & params.dark[jnp.maximum(rays.slot, 0)]  # no return
     in_range = (reading <= cfg.range_max) | (not cfg.far_invalid)
     valid = (reading >= cfg.range_min) & in_range & ~dropped & ~dark
+    floor = _floor(rays, reading, valid, cfg)
     return reduce_sectors(reading, valid, floor, cfg).astype(jnp.float32)

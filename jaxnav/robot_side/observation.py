@@ -10,6 +10,12 @@ simulator mirrors. Its point is the Orbbec Astra's blind zone: the camera report
 surfaces nearer than its ~0.6 m minimum and for no return, so a sector the camera cannot read is
 taken as near (range_min, the reading that makes the policy turn), never as far (range_max, the
 reading the reward pays most for driving into).
+
+A depth image is read where the simulator casts its rays (`ray_pixels`: for each image column, one
+pixel per ray row of the sensor, at that row's elevation), and pixels that see the floor are left
+out (`floor_mask`: the same function the simulator applies to its rays), so a policy trained with
+rows below the horizon (`--sensor.rows 5`, which sees obstacles from 0.05 m tall) is deployed on the
+pixels it was trained on: `depth_image_to_sectors(depth, sensor, vfov=...)`.
 """
 
 from __future__ import annotations
@@ -19,6 +25,20 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+
+FLOOR_MARGIN = 0.02
+"""m: a reading whose point lies this close to the floor plane (plus `FLOOR_MARGIN_SLOPE` per metre
+of depth), or below it, is floor (`floor_mask`); the default of `Sensor` and `SensorConfig`.
+
+Why these: the height of a floor point is known to about +-1 cm from the camera's mount, and depth
+noise moves it by noise * camera_height / depth (the Astra's ~1 cm at 1 m: 3 mm), hence 2 cm at
+the camera. Farther out a pitch error dominates: it moves a point by depth * error, and 0.01 m/m
+is 0.57 deg of pitch calibration (structured-light noise, ~0.0016 depth^2, adds only
+0.0016 * 0.295 * depth = 0.0005 m/m). What this costs: an obstacle is told from the floor where
+it stands taller than the margin, 5 cm tall out to 3 m, 10 cm tall over the whole 8 m range.
+"""
+FLOOR_MARGIN_SLOPE = 0.01
+"""m of floor margin per m of depth (see `FLOOR_MARGIN`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +53,19 @@ class Sensor:
     """m; nearer readings, and sectors the camera cannot read, read range_min (`reduce_sectors`)."""
     range_max: float
     """m; farther readings, and no return within range, read range_max."""
+    elevations: tuple[float, ...] = (0.0,)
+    """Elevation of each ray row from the optical axis, rad, bottom to top (the simulator's
+    `SensorConfig.elevations`; (0,): the horizontal fan, and policy files that do not say)."""
+    camera_height: float | None = None
+    """Height of the camera's optical centre above the floor, m (the mount the policy was trained
+    with; set the robot's measured one). None: no pixel is taken for floor (`floor_mask`)."""
+    camera_pitch: float = 0.0
+    """Downward tilt of the optical axis, rad (positive = looking down)."""
+    floor_margin: float = FLOOR_MARGIN
+    """A pixel within floor_margin + floor_margin_slope * depth (m) of the floor plane, or below
+    it, is floor (`floor_mask`)."""
+    floor_margin_slope: float = FLOOR_MARGIN_SLOPE
+    """Growth of the floor margin per metre of depth, m/m (see `floor_mask`)."""
 
     def __post_init__(self):
         if not 0 < self.fov < 2 * math.pi:
@@ -44,6 +77,16 @@ class Sensor:
                 f"Sensor.range_min/range_max: need 0 <= range_min < range_max, "
                 f"got {self.range_min}, {self.range_max}"
             )
+        object.__setattr__(self, "elevations", tuple(float(e) for e in self.elevations))
+        if not self.elevations or not all(abs(e) < math.pi / 2 for e in self.elevations):
+            raise ValueError(
+                f"Sensor.elevations: need at least one, each in (-pi/2, pi/2), got {self.elevations}"
+            )
+        if self.camera_height is not None and not self.camera_height > 0:
+            raise ValueError(f"Sensor.camera_height: must be > 0 m, got {self.camera_height}")
+        for name in ("floor_margin", "floor_margin_slope"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"Sensor.{name}: must be >= 0, got {getattr(self, name)}")
 
 
 class Twist(NamedTuple):
@@ -97,6 +140,34 @@ def reduce_sectors(depth, sector, sensor: Sensor, blind_fraction=BLIND_FRACTION)
     return np.where(blind, sensor.range_min, near).astype(np.float32)
 
 
+def floor_mask(reading, known, rise, camera_height, sensor, xp=np):
+    """[...] bool: the readings that are the floor, which `reduce_sectors` must not see.
+
+    The one floor rule, applied by the simulator to its rays (`jaxnav.core.sensors.observe`, with
+    `xp` = jax.numpy) and here to depth-image pixels. reading [...] is camera depth (a lidar:
+    range), m; known [...] bool marks the readings the camera returned; rise [...] is the height
+    the ray gains per metre of reading (negative: towards the floor); camera_height is the
+    camera's height above the floor, m; `sensor` gives range_min, range_max, floor_margin and
+    floor_margin_slope (a `Sensor` or the simulator's `SensorConfig`).
+
+    - A known reading is floor when the point it measures, camera_height + reading * rise above
+      the floor, is at most floor_margin + floor_margin_slope * min(reading, range_max) (its
+      noise and the mount's calibration error, see `FLOOR_MARGIN`); below the floor counts too.
+    - An unknown reading (the camera's 0) is floor when its ray meets the floor where the camera
+      cannot read it: nearer than range_min or beyond range_max. The floor would have read 0 there
+      too; elsewhere the floor would have been read, so a 0 means something else (a surface in the
+      blind zone, or one that returns no depth).
+    """
+    down = rise < 0
+    finite = known & xp.isfinite(reading)
+    r = xp.where(finite, reading, 0.0)
+    margin = sensor.floor_margin + sensor.floor_margin_slope * xp.minimum(r, sensor.range_max)
+    seen = xp.where(finite, camera_height + r * rise <= margin, down)  # +inf down: through it
+    meets = camera_height / xp.where(down, -rise, 1.0)  # reading at which the ray meets the floor
+    unreadable = down & ((meets < sensor.range_min) | (meets > sensor.range_max))
+    return xp.where(known, seen, unreadable)
+
+
 def _angle_sectors(angles, sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
     """(keep [N] bool: within +-fov/2, sector [K] of each kept angle), bins of fov/num_sectors."""
     half, n = 0.5 * sensor.fov, sensor.num_sectors
@@ -127,27 +198,38 @@ def scan_to_sectors(ranges, angles, sensor: Sensor) -> np.ndarray:
 
 
 def depth_image_to_sectors(
-    depth, sensor: Sensor, rows=None, column_angles=None, blind_fraction=BLIND_FRACTION
+    depth, sensor: Sensor, rows=None, column_angles=None, blind_fraction=BLIND_FRACTION, vfov=None
 ) -> np.ndarray:
     """[num_sectors] float32 observation from a depth image [H, W] in metres (camera depth, z).
 
     Column 0 is the LEFT of the image of a forward-looking camera, so sector 0 holds the rightmost
-    columns: the columns are split into num_sectors equal slices right to left (the image is taken
-    to span exactly `sensor.fov`). The pixels of a sector's columns in `rows` go to
-    `reduce_sectors`: 0, NaN and negative pixels are unknown (the Astra's 0 means too close or no
-    return), +inf reads range_max; so a sector at least `blind_fraction` unknown reads range_min.
+    columns. 0, NaN and negative pixels are unknown (the Astra's 0 means too close or no return),
+    +inf reads range_max; a sector at least `blind_fraction` unknown reads range_min
+    (`reduce_sectors`). Two ways to pick the pixels:
 
+    vfov: the image's vertical field of view, rad (a pinhole camera: the Astra's 49.5 deg is
+        0.864). The pixels where the simulator casts its rays are read (`ray_pixels`: every
+        column within +-fov/2, binned by angle, one pixel per row of `sensor.elevations`) and
+        those that see the floor are left out (`floor_mask`, given `sensor.camera_height`): the
+        simulator's observation, for one row or several. rows and column_angles must be None.
+    Otherwise (vfov None) the pixels of `rows` are read in every column, none taken for floor:
     rows: row indices or a slice; None = all rows. On the robot pass the rows around the horizon
-        (`horizon_rows`): the simulator sees a horizontal fan only, and lower rows see the floor,
-        which is no obstacle but would read as one ~0.65 m ahead.
+        (`horizon_rows`) for a one-row sensor: lower rows see the floor, which is no obstacle
+        but would read as one ~0.65 m ahead.
     column_angles: [W] angle of each column (rad, positive = left, e.g. `pinhole_column_angles`);
         when given, columns are binned by angle like `scan_to_sectors` instead of equal slices
-        (columns beyond +-fov/2 are dropped). Equal slices of a pinhole image are up to ~1.5 deg
-        off the simulator's equal-angle bins.
+        (columns beyond +-fov/2 are dropped; the image is otherwise taken to span exactly
+        `sensor.fov`). Equal slices of a pinhole image are up to ~1.5 deg off the simulator's
+        equal-angle bins.
     """
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth image must be [H, W], got shape {depth.shape}")
+    if vfov is not None:
+        if rows is not None or column_angles is not None:
+            raise ValueError("depth image: give vfov, or rows and column_angles, not both")
+        pixels = ray_pixels(sensor, depth.shape[0], depth.shape[1], vfov)
+        return rays_to_sectors(depth, pixels, sensor, blind_fraction)
     band = depth if rows is None else depth[rows]
     if band.ndim != 2 or band.shape[0] == 0:
         raise ValueError(f"rows {rows!r} select no image rows")
@@ -164,6 +246,69 @@ def depth_image_to_sectors(
         readings = np.where(band > 0, band, np.nan)  # 0, NaN, negative: unknown
     sector = np.broadcast_to(sector, readings.shape)
     return reduce_sectors(readings, sector, sensor, blind_fraction)
+
+
+class RayPixels(NamedTuple):
+    """Where a depth image holds the simulator's rays (`ray_pixels`), K columns by R rows."""
+
+    rows: np.ndarray  # [R, K] int image row of each ray (row 0 at the top)
+    cols: np.ndarray  # [K] int image column (column 0 on the left)
+    sector: np.ndarray  # [K] int sector of each column (0 = rightmost)
+    rise: np.ndarray  # [R, K] height gained per metre of depth along each pixel's ray, m/m
+
+
+def ray_pixels(sensor: Sensor, height: int, width: int, vfov: float, azimuths=None) -> RayPixels:
+    """The pixels of a depth image [height, width] that see along the simulator's rays.
+
+    The camera is a pinhole with square pixels, its principal point at the image centre and a
+    vertical field of view `vfov` (rad). Columns: every column whose angle lies within +-fov/2,
+    binned into sectors by angle as the simulator's rays are; or, with `azimuths` [K] (rad,
+    positive = left, e.g. `SensorConfig.ray_angles`), the column nearest each. Rows: in each
+    column, for each of `sensor.elevations`, the pixel whose ray's elevation from the optical
+    axis is nearest (a row of rays at one elevation is a curve on the image, not an image row).
+    A ray beyond the top or bottom of the image (rows wider than the camera's vertical field of
+    view at the image's sides) reads the edge row.
+    """
+    if not 0 < vfov < math.pi:
+        raise ValueError(f"vfov: must be in (0, pi) rad, got {vfov}")
+    focal = 0.5 * height / math.tan(0.5 * vfov)
+    across = (0.5 * (width - 1) - np.arange(width)) / focal  # tan of each column's angle
+    angles = np.arctan(across)
+    if azimuths is None:
+        keep, sector = _angle_sectors(angles, sensor)
+        cols = np.flatnonzero(keep)
+    else:
+        azimuths = np.asarray(azimuths, np.float64).ravel()
+        if np.abs(azimuths).max() > np.abs(angles).max():
+            raise ValueError(f"azimuths: beyond the image's +-{np.abs(angles).max():.3f} rad")
+        cols = np.abs(angles[None, :] - azimuths[:, None]).argmin(-1)
+        sector = _angle_sectors(angles[cols], sensor)[1]
+    if cols.size == 0:
+        raise ValueError(f"depth image of {width} columns has none within the sensor's fov")
+    # The pixel ray (1, t, y) (forward, left, up, per metre of depth) has elevation
+    # atan(y / sqrt(1 + t^2)): y = tan(e) * sqrt(1 + t^2) puts it at elevation e.
+    up = np.tan(np.asarray(sensor.elevations))[:, None] * np.hypot(1.0, across[cols])[None, :]
+    rows = np.clip(np.rint(0.5 * (height - 1) - focal * up), 0, height - 1).astype(np.int64)
+    y = (0.5 * (height - 1) - rows) / focal  # the chosen pixels' own rays
+    pitch = sensor.camera_pitch
+    return RayPixels(rows, cols, sector, math.cos(pitch) * y - math.sin(pitch))
+
+
+def rays_to_sectors(depth, pixels: RayPixels, sensor: Sensor, blind_fraction=BLIND_FRACTION):
+    """[num_sectors] float32 observation from a depth image [H, W] (m) read at `pixels`
+    (`ray_pixels`): 0, NaN and negative pixels are unknown, floor pixels are left out
+    (`floor_mask`; none without `sensor.camera_height`), the rest go to `reduce_sectors`."""
+    reading = np.asarray(depth, np.float64)[pixels.rows, pixels.cols[None, :]]  # [R, K]
+    with np.errstate(invalid="ignore"):
+        known = reading > 0
+    if sensor.camera_height is None:
+        floor = np.zeros(reading.shape, bool)
+    else:
+        with np.errstate(invalid="ignore"):
+            floor = floor_mask(reading, known, pixels.rise, sensor.camera_height, sensor)
+    readings = np.where(known, reading, np.nan)
+    sector = np.broadcast_to(pixels.sector, reading.shape)
+    return reduce_sectors(readings[~floor], sector[~floor], sensor, blind_fraction)
 
 
 def pinhole_column_angles(width: int, hfov: float) -> np.ndarray:
@@ -228,18 +373,18 @@ class Controller:
         """The command for an observation [num_sectors] (metres, right to left)."""
         return action_to_twist(self.policy(obs), self.policy.commands, self.speed_calibration)
 
-    def image_obs(self, depth, rows=None, column_angles=None) -> np.ndarray:
+    def image_obs(self, depth, rows=None, column_angles=None, vfov=None) -> np.ndarray:
         """The observation of a depth image [H, W] in metres (see `depth_image_to_sectors`)."""
-        sensor = self.policy.sensor
-        return depth_image_to_sectors(depth, sensor, rows, column_angles, self.blind_fraction)
+        sensor, fraction = self.policy.sensor, self.blind_fraction
+        return depth_image_to_sectors(depth, sensor, rows, column_angles, fraction, vfov)
 
     def scan_obs(self, ranges, angles) -> np.ndarray:
         """The observation of a laser scan: ranges [N] m at angles [N] rad (0 ahead, + left)."""
         return scan_to_sectors(ranges, angles, self.policy.sensor)
 
-    def image_to_twist(self, depth, rows=None, column_angles=None) -> Twist:
+    def image_to_twist(self, depth, rows=None, column_angles=None, vfov=None) -> Twist:
         """The command for a depth image [H, W] in metres (see `depth_image_to_sectors`)."""
-        return self.act(self.image_obs(depth, rows, column_angles))
+        return self.act(self.image_obs(depth, rows, column_angles, vfov))
 
     def scan_to_twist(self, ranges, angles) -> Twist:
         """The command for a laser scan: ranges [N] m at angles [N] rad (0 ahead, positive left)."""

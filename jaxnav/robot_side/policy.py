@@ -12,7 +12,11 @@ obs_mean, obs_var (the training normaliser's, float32 [D]), obs_std = sqrt(obs_v
 applied; with obs_mean zeros/ones when training did not normalise), clip (inf when it did not),
 leaky_slope, action_names [A] str, commands float32 [A, 2] (forward m/s, yaw rad/s per action), the
 sensor's fov (rad), range_min and range_max (m) and num_sectors (= D), and format_version.
-Optional: control_period (s per action in training; the ROS node's timer runs at its inverse).
+Optional (older files lack them; readers that do not know them ignore them): control_period (s per
+action in training; the ROS node's timer runs at its inverse); the sensor's ray rows and floor rule,
+`Sensor`'s fields of the same names: elevations [R] (rad; absent: one horizontal row),
+camera_height (m; absent: no pixel is floor), camera_pitch (rad, down +), floor_margin (m) and
+floor_margin_slope (m/m).
 """
 
 from __future__ import annotations
@@ -27,6 +31,18 @@ from .observation import Sensor
 FORMAT_VERSION = 2
 _REQUIRED = ("W0", "b0", "obs_mean", "obs_std", "clip", "leaky_slope", "action_names", "commands")
 _REQUIRED += ("fov", "range_min", "range_max", "num_sectors")
+
+
+def _optional_sensor_fields(arrays: dict) -> dict:
+    """The `Sensor` fields an .npz may hold (see the module docstring); absent ones keep their
+    defaults."""
+    out = {}
+    if "elevations" in arrays:
+        out["elevations"] = tuple(float(e) for e in np.atleast_1d(arrays["elevations"]))
+    for name in ("camera_height", "camera_pitch", "floor_margin", "floor_margin_slope"):
+        if name in arrays:
+            out[name] = float(arrays[name])
+    return out
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -76,6 +92,7 @@ class NumpyPolicy:
                 num_sectors=int(arrays["num_sectors"]),
                 range_min=float(arrays["range_min"]),
                 range_max=float(arrays["range_max"]),
+                **_optional_sensor_fields(arrays),
             ),
             action_names=tuple(str(a) for a in arrays["action_names"]),
             commands=np.asarray(arrays["commands"], np.float32),

@@ -8,7 +8,8 @@ On the robot, in the folder `python -m jaxnav.export RUN --bundle DIR` wrote (nu
 
 (`python -m jaxnav.robot_side.ros_node` works too where jaxnav is installed.) The flags set the
 defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, rate_hz, max_age,
-speed_calibration, blind_fraction, vfov_deg, band_deg, tilt_deg), which `--ros-args -p` overrides.
+speed_calibration, blind_fraction, vfov_deg, band_deg, tilt_deg, camera_height), which
+`--ros-args -p` overrides.
 
 What it does (the logic is `ControlLoop` below, which has no ROS in it and is tested alone;
 `python -m jaxnav.replay` drives the same loop from a recorded bag):
@@ -30,8 +31,11 @@ this node's watchdog. Run `kobuki_safety_controller` beside it (enable it by pub
 on its own `cmd_vel`, which a mux must rank above this node. The camera's blind zone (nearer than
 ~0.6 m) reads near (see `observation.reduce_sectors`), but the bumper is the last resort.
 
-Depth images may be 32FC1 (metres) or 16UC1 (millimetres); only rows within +-band_deg of the
-horizon are read, as the simulator's sensor is a horizontal fan. rclpy and the message packages are
+Depth images may be 32FC1 (metres) or 16UC1 (millimetres). For a policy trained with one row of
+rays (a horizontal fan) only image rows within +-band_deg of the horizon are read; for one trained
+with several rows (`--sensor.rows 5`) the pixels along its rays are read and those that see the
+floor are left out, by the simulator's own rule (`observation.floor_mask`), which needs the
+camera's pitch and height (tilt_deg, camera_height; default: the policy file's). rclpy and the message packages are
 imported inside `main` only: everything else here is numpy, and reads messages by their fields
 (`MessageReader`), so rclpy's messages and those the `rosbags` library deserialises both work.
 """
@@ -47,7 +51,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .observation import BLIND_FRACTION, Controller, Twist, horizon_rows
+from .observation import (
+    BLIND_FRACTION,
+    Controller,
+    Sensor,
+    Twist,
+    depth_image_to_sectors,
+    horizon_rows,
+)
 from .policy import NumpyPolicy
 
 STOP = Twist(0.0, 0.0)
@@ -100,17 +111,33 @@ class MessageReader:
     scan: bool = False
     """The messages are LaserScans; otherwise depth images (32FC1 metres or 16UC1 millimetres)."""
     vfov_deg: float = ASTRA_VFOV_DEG
-    """Depth camera's vertical field of view, deg (finds the horizon rows)."""
+    """Depth camera's vertical field of view, deg (finds the horizon rows, or the sensor's rows)."""
     band_deg: float = 2.0
-    """Only image rows within +-band_deg of the horizon are read (`horizon_rows`); 0: all rows."""
-    tilt_deg: float = 0.0
-    """Camera pitch, deg, positive = looking down."""
+    """One-row policies: only image rows within +-band_deg of the horizon are read
+    (`horizon_rows`); 0: all rows. Policies trained with several rows read the pixels of their
+    rays, floor left out (`observation.ray_pixels`, `floor_mask`)."""
+    tilt_deg: float = math.nan
+    """Camera pitch, deg, positive = looking down; NaN: the policy file's (0 for older files)."""
+    camera_height: float = math.nan
+    """Camera height above the floor, m (the floor rule of several-row policies); NaN: the policy
+    file's."""
 
     def __post_init__(self):
         if not 0 < self.vfov_deg < 180:
             raise ValueError(f"vfov_deg: must be in (0, 180), got {self.vfov_deg}")
         if not self.band_deg >= 0:
             raise ValueError(f"band_deg: must be >= 0, got {self.band_deg}")
+        if not (math.isnan(self.camera_height) or self.camera_height > 0):
+            raise ValueError(f"camera_height: must be > 0 m, got {self.camera_height}")
+
+    def mount(self, sensor: Sensor) -> Sensor:
+        """`sensor` with this reader's camera pitch and height where they are set."""
+        changes = {}
+        if not math.isnan(self.tilt_deg):
+            changes["camera_pitch"] = math.radians(self.tilt_deg)
+        if not math.isnan(self.camera_height):
+            changes["camera_height"] = self.camera_height
+        return dataclasses.replace(sensor, **changes)
 
     def __call__(self, msg, controller: Controller) -> np.ndarray:
         """[num_sectors] float32 observation of `msg` for `controller`'s policy and settings."""
@@ -120,10 +147,14 @@ class MessageReader:
         depth = image_msg_to_array(
             msg.encoding, msg.height, msg.width, msg.data, msg.step, bool(msg.is_bigendian)
         )
+        sensor, vfov = self.mount(controller.policy.sensor), math.radians(self.vfov_deg)
+        if len(sensor.elevations) > 1:
+            return depth_image_to_sectors(
+                depth, sensor, vfov=vfov, blind_fraction=controller.blind_fraction
+            )
         rows = None
         if self.band_deg > 0:
-            vfov, tilt = math.radians(self.vfov_deg), math.radians(self.tilt_deg)
-            rows = horizon_rows(msg.height, vfov, self.band_deg, tilt)
+            rows = horizon_rows(msg.height, vfov, self.band_deg, sensor.camera_pitch)
         return controller.image_obs(depth, rows)
 
 
@@ -223,7 +254,9 @@ def add_loop_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--vfov-deg", type=float, default=ASTRA_VFOV_DEG, help="camera")
     p.add_argument("--band-deg", type=float, default=2.0, help="rows within +-this of horizon")
-    p.add_argument("--tilt-deg", type=float, default=0.0, help="camera pitch, positive = down")
+    nan, file = math.nan, "nan: the policy file's"
+    p.add_argument("--tilt-deg", type=float, default=nan, help=f"camera pitch, + down ({file})")
+    p.add_argument("--camera-height", type=float, default=nan, help=f"camera, m ({file})")
 
 
 def parse_args(argv=None):
@@ -242,7 +275,9 @@ def make_loop(get: dict, log) -> tuple[ControlLoop, float]:
     policy, scan and those of `add_loop_flags` (rate_hz None: the policy's rate)."""
     policy = NumpyPolicy.from_npz(get["policy"])
     controller = Controller(policy, get["speed_calibration"], get["blind_fraction"])
-    reader = MessageReader(get["scan"], get["vfov_deg"], get["band_deg"], get["tilt_deg"])
+    reader = MessageReader(
+        get["scan"], get["vfov_deg"], get["band_deg"], get["tilt_deg"], get["camera_height"]
+    )
     loop = ControlLoop(controller, reader, get["max_age"], log)
     return loop, control_rate(policy, get["rate_hz"])
 

@@ -1,10 +1,10 @@
 """Videos of episodes: MuJoCo's renderer over one env's scene, written as an animated GIF.
 
-`render_episode` copies an episode's room into the scene's `mj_model` (the same `geom_pos`,
-`geom_quat` and `geom_size` the MJX model gets from `Scene.geom_fields`), poses the robot at each
-recorded `qpos` and renders two cameras side by side: a top-down free camera over the room (with the
-robot's path so far and its heading) and the robot's own `depth` camera (what the Orbbec Astra sees,
-in colour).
+`render_episode` copies an episode's room into the scene's `mj_model` (`episode_model`: the same
+`geom_pos`, `geom_quat` and `geom_size` the MJX model gets from `Scene.geom_fields`; the rendered
+depth test draws depth images of it too), poses the robot at each recorded `qpos` and renders two
+cameras side by side: a top-down free camera over the room (with the robot's path so far and its
+heading) and the robot's own `depth` camera (what the Orbbec Astra sees, in colour).
 
 Rendering without a display needs an OpenGL backend: EGL (Debian/Ubuntu: libegl1 and
 libgl1-mesa-dri for software rendering, or the NVIDIA driver) or OSMesa (libosmesa6). mujoco picks
@@ -37,6 +37,7 @@ ROBOT_COLOR = (1.0, 0.6, 0.0, 1.0)
 HEADING_COLOR = (0.1, 0.1, 0.1, 1.0)
 FOV_COLOR = (0.2, 0.6, 1.0, 0.8)
 FOV_LENGTH = 1.2  # m, drawn length of the camera's field-of-view edges
+WALL_GROUP = 5  # geom group of the plane walls in `episode_model`: not drawn by default
 
 # Creates a tiny renderer and draws one frame: run in a fresh interpreter per backend.
 _PROBE = """
@@ -119,7 +120,7 @@ def render_episode(
         raise ValueError(f"qpos_seq: must have shape [T, 3] with T >= 1, got {qpos.shape}")
     if min(width, height, fps) < 1:
         raise ValueError(f"width, height, fps: must be >= 1, got {width}, {height}, {fps}")
-    model = _episode_model(env.scene, params, width, height)
+    model = episode_model(env.scene, params, width, height)
     data = mujoco.MjData(model)
     shapes = room_shapes(params)
     camera = _top_down_camera(model, shapes.outer_half, width / height, wall_height)
@@ -151,18 +152,17 @@ def render_episode(
     return _write_gif(frames, Path(path), fps, title, period)
 
 
-def _episode_model(scene, params, width: int, height: int) -> mujoco.MjModel:
-    """A copy of the scene's mj_model with this episode's room; the plane walls are hidden
-    (infinite planes hide the room from above) and drawn as boxes instead (`_add_walls`)."""
+def episode_model(scene, params, width: int, height: int) -> mujoco.MjModel:
+    """A copy of the scene's mj_model with this episode's room (`set_room`), for a renderer of
+    `width` x `height` pixels; the plane walls are in group `WALL_GROUP`, which the default
+    MjvOption does not draw (infinite planes hide the room from above: `render_episode` draws
+    them as boxes instead)."""
     model = copy.deepcopy(scene.mj_model)
-    fields = jax.device_get(scene.geom_fields(params))
-    model.geom_pos[:] = fields["geom_pos"]
-    model.geom_quat[:] = fields["geom_quat"]
-    model.geom_size[:] = fields["geom_size"]
+    set_room(model, scene, params)
     # The slots were compiled unrotated, so C MuJoCo marks them "same rotation as the body" and
     # would ignore geom_quat (MJX does not): every geom gets its own frame.
     model.geom_sameframe[:] = 0
-    model.geom_group[scene.wall_ids] = 5  # a group the default MjvOption does not draw
+    model.geom_group[scene.wall_ids] = WALL_GROUP
     # Light from straight above, the same everywhere: no bright cone, shadows under the obstacles.
     if hasattr(model, "light_type"):  # mujoco >= 3.3.1; before, a flag
         model.light_type[:] = mujoco.mjtLightType.mjLIGHT_DIRECTIONAL
@@ -179,6 +179,15 @@ def _episode_model(scene, params, width: int, height: int) -> mujoco.MjModel:
     model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
     model.vis.global_.offheight = max(model.vis.global_.offheight, height)
     return model
+
+
+def set_room(model: mujoco.MjModel, scene, params) -> None:
+    """Puts the room of `params` (one env's SceneParams) into `model` (from `episode_model`): the
+    `geom_pos`, `geom_quat` and `geom_size` the MJX model gets from `Scene.geom_fields`."""
+    fields = jax.device_get(scene.geom_fields(params))
+    model.geom_pos[:] = fields["geom_pos"]
+    model.geom_quat[:] = fields["geom_quat"]
+    model.geom_size[:] = fields["geom_size"]
 
 
 def _top_down_camera(model, outer_half: np.ndarray, aspect: float, wall_height: float):
