@@ -96,7 +96,7 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
         fov=np.float32(config.sensor.fov),
         range_min=np.float32(config.sensor.range_min),
         range_max=np.float32(config.sensor.range_max),
-        num_sectors=np.int32(size),
+        num_sectors=np.int32(config.sensor.num_sectors),
         control_period=np.float64(config.scene.control_period),  # s; float64: exact 10 Hz
         format_version=np.int32(2),  # what a format-2 reader reads right
     )
@@ -115,7 +115,7 @@ def _format3(config, spec, size: int) -> dict:
         out["command_scale"] = np.array(
             [config.task.forward_speed, config.task.turn_rate], np.float32
         )
-        out["success_radius"] = np.float32(config.task.success_radius)
+        out["success_radius"] = np.float64(config.task.success_radius)
     if out:
         out["format_version"] = np.int32(FORMAT_VERSION)
     return out
@@ -154,12 +154,13 @@ def onnx_model(arrays: dict[str, np.ndarray]):
             x = f"h{i}"
     if "action_low" in arrays:  # the command: centre + half * mean, within the bounds
         low, high = arrays["action_low"], arrays["action_high"]
-        inits.update(centre=0.5 * (high + low), half=0.5 * (high - low), low=low, high=high)
+        inits.update(cmd_centre=0.5 * (high + low), cmd_half=0.5 * (high - low))
+        inits.update(cmd_low=low, cmd_high=high)
         nodes += [
-            helper.make_node("Mul", ["logits", "half"], ["spread"]),
-            helper.make_node("Add", ["spread", "centre"], ["mean"]),
-            helper.make_node("Max", ["mean", "low"], ["above"]),
-            helper.make_node("Min", ["above", "high"], ["action"]),
+            helper.make_node("Mul", ["logits", "cmd_half"], ["cmd_spread"]),
+            helper.make_node("Add", ["cmd_spread", "cmd_centre"], ["cmd_mean"]),
+            helper.make_node("Max", ["cmd_mean", "cmd_low"], ["cmd_above"]),
+            helper.make_node("Min", ["cmd_above", "cmd_high"], ["action"]),
         ]
         action = helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", d_out])
     else:
