@@ -219,3 +219,24 @@ def test_layout_goal_is_checked():
     walled["obstacles"] = [{"type": "box", "pos": [0.5, 0], "size": [0.2, 4.0]}]
     with pytest.raises(LayoutError, match="room 'r': goal.pos: not reachable from robot.pos"):
         jaxnav.make_env("goal", layouts=parse_layouts(walled))
+
+
+def test_goal_success_rises_above_random(tmp_path):
+    """A short run in an open room: the success rate of its last updates is well above that of
+    its first (a near-uniform random policy's)."""
+    import csv
+
+    from jaxnav.io.layouts import save_layouts
+
+    rooms = tmp_path / "open.json"
+    save_layouts(rooms, RoomLayout(name="open", size=(4.0, 4.0)))
+    jaxnav.train(
+        out=tmp_path / "run", env="goal", layouts=[rooms], progress=False,
+        num_envs=64, rollout_length=32, minibatch_size=1024, num_epochs=4, learning_rate=3e-3,
+        total_steps=64 * 32 * 40, updates_per_chunk=10, checkpoint_every=40,
+        task={"max_steps": 100}, randomize={"sampled_room_prob": 0.0},
+    )  # fmt: skip
+    with open(tmp_path / "run" / "metrics.csv") as fh:
+        success = [float(r["success"]) for r in csv.DictReader(fh) if r["success"] != "nan"]
+    first, last = np.mean(success[:5]), np.mean(success[-5:])
+    assert last > first + 0.3 and last > 0.5, (first, last)
