@@ -232,6 +232,27 @@ def grid_graph(free: np.ndarray, step: tuple[float, float]):
     return coo_matrix((v, (r, c)), shape=(h * w, h * w)).tocsr()
 
 
+class ShortestPaths:
+    """Shortest path lengths in one room, its grid and graph built once (see `shortest_paths`)."""
+
+    def __init__(self, layout: lay.RoomLayout, radius: float = lay.ROBOT_RADIUS, cell=CELL):
+        self.free, self.centres = families.free_cells(layout, radius, cell)
+        size = np.asarray(layout.size, np.float64)
+        step = (size[0] / self.free.shape[1], size[1] / self.free.shape[0])
+        self.graph = grid_graph(self.free, step)
+
+    def __call__(self, starts, goals) -> np.ndarray:
+        """[E] m from starts [E, 2] to goals [E, 2]."""
+        starts, goals = np.asarray(starts, np.float64), np.asarray(goals, np.float64)
+        src = np.array([_nearest(self.free, self.centres, g) for g in goals])
+        dst = np.array([_nearest(self.free, self.centres, s) for s in starts])
+        if (src < 0).any():
+            return np.full(len(starts), np.inf)
+        unique, inverse = np.unique(src, return_inverse=True)
+        table = dijkstra(self.graph, directed=False, indices=unique)  # [U, H * W]
+        return np.maximum(table[inverse.ravel(), dst], np.linalg.norm(goals - starts, axis=-1))
+
+
 def shortest_paths(
     layout: lay.RoomLayout, starts, goals, radius: float = lay.ROBOT_RADIUS, cell: float = CELL
 ) -> np.ndarray:
@@ -240,17 +261,7 @@ def shortest_paths(
     On the occupancy grid of `families.free_cells` (`cell` m, obstacles inflated by the radius),
     8-connected (`grid_graph`), between the free cells nearest each start and goal; never less
     than the straight line. inf where no path exists. Grid paths run up to 8 % longer than the
-    true shortest path (octile vs. Euclidean), and each end may be off by half a cell.
+    true shortest path (octile vs. Euclidean), the grid rounds inflated obstacles out by up to a
+    cell, and each end may be off by half a cell.
     """
-    free, centres = families.free_cells(layout, radius, cell)
-    size = np.asarray(layout.size, np.float64)
-    graph = grid_graph(free, (size[0] / free.shape[1], size[1] / free.shape[0]))
-    starts, goals = np.asarray(starts, np.float64), np.asarray(goals, np.float64)
-    src = np.array([_nearest(free, centres, g) for g in goals])
-    dst = np.array([_nearest(free, centres, s) for s in starts])
-    straight = np.linalg.norm(goals - starts, axis=-1)
-    if (src < 0).any():
-        return np.full(len(starts), np.inf)
-    unique, inverse = np.unique(src, return_inverse=True)
-    table = dijkstra(graph, directed=False, indices=unique)  # [U, H * W]
-    return np.maximum(table[inverse.ravel(), dst], straight)
+    return ShortestPaths(layout, radius, cell)(starts, goals)
