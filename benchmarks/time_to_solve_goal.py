@@ -6,8 +6,9 @@
 The bar: over `--episodes` episodes in each of the 32 rooms of `scenes/benchmark/` (the layout's
 spawn, a reachable goal drawn per episode at least `goal_min_distance` away, `--steps` control
 steps), a success rate of at least 90 % and an SPL of at least 0.7 (issue 12). Every
-`--eval-every` chunks the greedy policy is evaluated in one compiled batch; SPL's shortest paths
-come from `jaxnav.core.goals.ShortestPaths` (0.1 m grid, 8-connected), built once per room.
+`--eval-every` chunks the greedy policy is evaluated in one compiled batch; SPL is evaluate's
+(`jaxnav.evaluate.spl_values`: the grid's shortest path less the success radius), its shortest
+paths from `jaxnav.core.goals.ShortestPaths` built once per room.
 Training time excludes the evaluations and the compile, which is reported on its own.
 """
 
@@ -23,7 +24,7 @@ import numpy as np
 
 import jaxnav
 from jaxnav.core.goals import ShortestPaths
-from jaxnav.evaluate import eval_randomize, load_suite, make_rollout
+from jaxnav.evaluate import eval_randomize, load_suite, make_rollout, spl_from
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import normalize
@@ -56,9 +57,10 @@ def make_evaluator(trainer, cfg, task: dict, episodes: int, steps: int):
         spl = np.zeros(len(success))
         for r, shortest in enumerate(paths):
             e = slice(r * episodes, (r + 1) * episodes)
-            length = shortest(track.start[e], track.goal[e])
-            spl[e] = success[e] * length / np.maximum(np.maximum(track.distance[e], length), 1e-9)
-        return float(success.mean()), float(np.nan_to_num(spl).mean())
+            reach = shortest(track.start[e], track.goal[e]) - env.task.success_radius
+            room = {"metrics": {"success": success[e]}, "distance": track.distance[e]}
+            spl[e] = spl_from(reach, room)
+        return float(success.mean()), float(spl.mean())
 
     return evaluate
 

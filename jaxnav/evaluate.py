@@ -221,15 +221,24 @@ def metrics(
     return out
 
 
-def spl_values(layout: RoomLayout, track_room: dict, radius: float) -> np.ndarray:
+def spl_values(layout: RoomLayout, track_room: dict, radius: float, success_radius: float):
     """[N] success weighted by path length per episode (Anderson et al., 2018): S l / max(p, l),
-    with l the shortest path from the start to the goal on the room's occupancy grid
-    (`jaxnav.core.goals.shortest_paths`: 0.1 m cells, obstacles inflated by the robot radius,
-    8-connected) and p the path the robot drove."""
+    with p the path the robot drove and l the shortest path that reaches the goal: the shortest
+    path from the start to the goal on the room's occupancy grid (`goals.shortest_paths`: 0.1 m
+    cells, obstacles inflated by the robot radius, 8-connected) less the success radius (stricter
+    than taking the path to the goal's centre, which lets every successful path be that much
+    shorter than l)."""
     shortest = goals.shortest_paths(layout, track_room["start"], track_room["goal"], radius)
+    return spl_from(shortest - success_radius, track_room)
+
+
+def spl_from(reach: np.ndarray, track_room: dict) -> np.ndarray:
+    """[N] S l / max(p, l) for shortest paths l = `reach` [N] (m) and the episodes' successes and
+    driven distances p of `track_room` (0 where l is not finite)."""
     success = np.asarray(track_room["metrics"]["success"]) > 0
     driven = np.asarray(track_room["distance"], np.float64)
-    ratio = np.where(success, shortest / np.maximum(np.maximum(driven, shortest), 1e-9), 0.0)
+    reach = np.maximum(reach, 0.0)
+    ratio = np.where(success, reach / np.maximum(np.maximum(driven, reach), 1e-9), 0.0)
     return np.where(np.isfinite(ratio), ratio, 0.0)
 
 
@@ -263,7 +272,9 @@ def evaluate_rooms(policy: Policy, layouts, key, *, episodes, steps, randomize) 
         ]
         params = jax.tree_util.tree_map(lambda x, r=r: x[r], kept.params)
         if with_goals:
-            per_episode["spl"] = spl_values(layout, per_episode, env.robot.radius)
+            per_episode["spl"] = spl_values(
+                layout, per_episode, env.robot.radius, env.task.success_radius
+            )
         out.append(
             {
                 **per_episode,

@@ -98,14 +98,15 @@ def test_shortest_path_by_hand():
     got = shortest_paths(wall, [start], [goal])[0]
     # 8-connected steps add up to 8 %; the grid rounds the inflated wall out by up to a cell.
     assert hand <= got <= 1.08 * hand + 4 * 0.1
-    # SPL: success x l / max(driven, l).
+    # SPL: success x l / max(driven, l), l the shortest path less the success radius.
+    reach = got - 0.3
     track = {
-        "start": np.array([start] * 3),
-        "goal": np.array([goal] * 3),
-        "distance": np.array([got, 2 * got, got]),
-        "metrics": {"success": np.array([1.0, 1.0, 0.0])},
+        "start": np.array([start] * 4),
+        "goal": np.array([goal] * 4),
+        "distance": np.array([reach, 2 * reach, reach, got]),
+        "metrics": {"success": np.array([1.0, 1.0, 0.0, 1.0])},
     }
-    np.testing.assert_allclose(spl_values(wall, track, R), [1.0, 0.5, 0.0])
+    np.testing.assert_allclose(spl_values(wall, track, R, 0.3), [1.0, 0.5, 0.0, reach / got])
     closed = RoomLayout(
         name="closed", size=(4.0, 4.0), obstacles=(Box(pos=(0, 0), size=(0.4, 4.0)),)
     )
