@@ -593,8 +593,7 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
         if "spl" in m:
             title = (
                 f"{name}: {results['policy']}, {100 * m['success_rate']:.0f}% success, "
-                f"SPL {m['spl']:.2f}, {100 * m['collision_free_rate']:.0f}% collision-free "
-                f"({m['episodes']} episodes)"
+                f"SPL {m['spl']:.2f} ({m['episodes']} episodes)"
             )
         path = out / f"{_file_name(label)}.png"
         plot_trajectories(
