@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import re
 import sys
@@ -31,14 +32,14 @@ from flax import struct
 
 import jaxnav
 from jaxnav.cli import Parser, UsageError, make_callable, print_error
-from jaxnav.core import families
+from jaxnav.core import families, goals
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.io.assets import scenes_dir
 from jaxnav.io.files import check_writable, write_atomic
 from jaxnav.io.layouts import LayoutError, RoomLayout
 from jaxnav.policy import BASELINES, Policy
-from jaxnav.tasks.registry import make_env
+from jaxnav.tasks.registry import make_env, observation_size, task_entry
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
 MAX_TRAJECTORIES = 20  # paths kept per layout for the pictures; more only clutter them
@@ -51,6 +52,7 @@ METRIC_KEYS = (
     "time_to_collision",
     "coverage",
 )
+GOAL_KEYS = ("success_rate", "spl", "time_to_goal")  # added for tasks with a `success` metric
 
 
 @struct.dataclass
@@ -65,6 +67,8 @@ class Track:
     distance: jax.Array  # [E] float32, path length travelled, m
     xy: jax.Array  # [E, 2] float32, position (the last one before freezing), m
     metrics: dict  # {name: [E] float32}: the task's metrics summed over each episode
+    start: jax.Array  # [E, 2] float32, position at the reset, m
+    goal: jax.Array  # [E, 2] float32, the episode's goal (goal tasks; else the start), m
 
 
 @struct.dataclass
@@ -154,6 +158,8 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
             distance=track.distance + jnp.where(live, moved, 0.0),
             xy=jnp.where(live[:, None], xy, track.xy),
             metrics={k: v + jnp.where(live, nxt.metrics[k], 0.0) for k, v in track.metrics.items()},
+            start=track.start,
+            goal=track.goal,
         )
         return (nxt, track), (track.xy[kept], nxt.data.qpos[firsts])
 
@@ -164,7 +170,8 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
         xy0 = state.data.qpos[:, :2]  # [E, 2]
         false, zero = jnp.zeros(n, bool), jnp.zeros(n)
         sums = {k: zero for k in env.metric_names if k != "collision"}
-        track = Track(false, false, jnp.zeros(n, jnp.int32), zero, xy0, sums)
+        goal = state.info.get("goal", xy0)  # [E, 2]
+        track = Track(false, false, jnp.zeros(n, jnp.int32), zero, xy0, sums, xy0, goal)
         keys = jax.random.split(k_act, steps)
         (_, track), (path, qpos) = jax.lax.scan(body, (state, track), keys)  # [steps, R * K, 2]
         path = jnp.concatenate([xy0[None, kept], path])  # [steps + 1, R * K, 2]
@@ -175,13 +182,18 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
     return jax.jit(rollout)
 
 
-def metrics(collided, steps_run, distance, control_period, task_metrics=None, cover=None) -> dict:
+def metrics(
+    collided, steps_run, distance, control_period, task_metrics=None, cover=None, spl=None
+) -> dict:
     """Summary of per-episode arrays [N]: rates in [0, 1], speeds m/s, distances m, times s, and
     the mean over episodes of each task metric's episode sum (`task_metrics`: {name: [N]}).
 
     `control_period` (s) is a float or one per episode [N]. `cover` [N] is each episode's
     coverage (`jaxnav.core.families.coverage`). `time_to_collision` is the mean time to the first
     collision of the episodes that collided, and the longest episode's time when none did.
+    Goal tasks (a `success` task metric, and `spl` [N], see `spl_values`) add `success_rate`,
+    `spl` and `time_to_goal`: the mean time of the successful episodes, and the longest
+    episode's time when none succeeded.
     """
     steps_run = np.asarray(steps_run, np.float64)
     distance = np.asarray(distance, np.float64)
@@ -202,7 +214,33 @@ def metrics(collided, steps_run, distance, control_period, task_metrics=None, co
     }
     if cover is not None:
         out["coverage"] = float(np.mean(cover))
+    if spl is not None:
+        success = np.asarray(task_metrics["success"]) > 0
+        out["success_rate"] = float(np.mean(success))
+        out["spl"] = float(np.mean(spl))
+        out["time_to_goal"] = float(np.mean(seconds[success]) if success.any() else np.max(seconds))
     return out
+
+
+def spl_values(layout: RoomLayout, track_room: dict, radius: float, success_radius: float):
+    """[N] success weighted by path length per episode (Anderson et al., 2018): S l / max(p, l),
+    with p the path the robot drove and l the shortest path that reaches the goal: the shortest
+    path from the start to the goal on the room's occupancy grid (`goals.shortest_paths`: 0.1 m
+    cells, obstacles inflated by the robot radius, 8-connected) less the success radius (stricter
+    than taking the path to the goal's centre, which lets every successful path be that much
+    shorter than l)."""
+    shortest = goals.shortest_paths(layout, track_room["start"], track_room["goal"], radius)
+    return spl_from(shortest - success_radius, track_room)
+
+
+def spl_from(reach: np.ndarray, track_room: dict) -> np.ndarray:
+    """[N] S l / max(p, l) for shortest paths l = `reach` [N] (m) and the episodes' successes and
+    driven distances p of `track_room` (0 where l is not finite)."""
+    success = np.asarray(track_room["metrics"]["success"]) > 0
+    driven = np.asarray(track_room["distance"], np.float64)
+    reach = np.maximum(reach, 0.0)
+    ratio = np.where(success, reach / np.maximum(np.maximum(driven, reach), 1e-9), 0.0)
+    return np.where(np.isfinite(ratio), ratio, 0.0)
 
 
 def _env_kwargs(policy: Policy, steps: int, randomize: RandomizeConfig) -> dict:
@@ -217,21 +255,31 @@ def evaluate_rooms(policy: Policy, layouts, key, *, episodes, steps, randomize) 
     env = make_env(policy.env, layouts=layouts, **_env_kwargs(policy, steps, randomize))
     rollout = make_rollout(env, policy.act, episodes, steps, keep=episodes, pinned=True)
     track, kept = jax.device_get(rollout(key))
+    with_goals = "success" in env.metric_names
     out = []
     for r, layout in enumerate(layouts):
         room = slice(r * episodes, (r + 1) * episodes)
+        per_episode = {
+            "collided": track.collided[room],
+            "steps": track.steps[room],
+            "distance": track.distance[room],
+            "start": track.start[room],
+            "goal": track.goal[room],
+            "metrics": {k: v[room] for k, v in track.metrics.items()},
+        }
         # Trim each path after its episode ended: [steps_run + 1, 2].
         paths = [
             np.asarray(p[: n + 1]) for p, n in zip(kept.xy[room], track.steps[room], strict=True)
         ]
         params = jax.tree_util.tree_map(lambda x, r=r: x[r], kept.params)
+        if with_goals:
+            per_episode["spl"] = spl_values(
+                layout, per_episode, env.robot.radius, env.task.success_radius
+            )
         out.append(
             {
-                "collided": track.collided[room],
-                "steps": track.steps[room],
-                "distance": track.distance[room],
+                **per_episode,
                 "control_period": env.control_period,
-                "metrics": {k: v[room] for k, v in track.metrics.items()},
                 "coverage": families.coverage(layout, paths),
                 "paths": paths[:MAX_TRAJECTORIES],
                 "qpos": np.asarray(kept.qpos[r, : track.steps[room][0] + 1]),  # [T_0 + 1, 3]
@@ -260,7 +308,10 @@ def _pool(rooms: list[dict]) -> dict:
     cat = lambda k: np.concatenate([e[k] for e in rooms])  # noqa: E731
     periods = np.concatenate([np.full(len(e["steps"]), e["control_period"]) for e in rooms])
     task = {k: np.concatenate([e["metrics"][k] for e in rooms]) for k in rooms[0]["metrics"]}
-    return metrics(cat("collided"), cat("steps"), cat("distance"), periods, task, cat("coverage"))
+    spl = cat("spl") if "spl" in rooms[0] else None
+    return metrics(
+        cat("collided"), cat("steps"), cat("distance"), periods, task, cat("coverage"), spl
+    )
 
 
 def evaluate(
@@ -313,6 +364,7 @@ def evaluate(
         name: {
             **{k: room[k] for k in keys},
             "collided": room["collided"][:MAX_TRAJECTORIES].tolist(),
+            "goals": room["goal"][:MAX_TRAJECTORIES] if "spl" in room else None,
         }
         for name, room in zip(names, rooms, strict=True)
     }
@@ -391,6 +443,10 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME",
         help="a suite of jaxnav's scenes (benchmark: rooms of every family, per-family metrics)",
     )
+    p.add_argument(
+        "--env",
+        help="the task of a --policy baseline (default avoid; a checkpoint brings its own)",
+    )
     p.add_argument("--episodes", type=int, default=100, help="episodes per layout (default 100)")
     p.add_argument("--steps", type=int, default=600, help="control steps per episode (default 600)")
     p.add_argument("--seed", type=int, default=0)
@@ -441,7 +497,9 @@ def _check_outputs(args) -> None:
 
 def _load_policy(args) -> Policy:
     if args.policy is not None:
-        return BASELINES[args.policy]()
+        return baseline(args.policy, args.env or "avoid")
+    if args.env is not None:
+        raise UsageError("--env: only with --policy (a checkpoint evaluates its own task)")
     from flax.errors import FlaxError
 
     from jaxnav.io.checkpoint import CheckpointError, load_policy  # lazy: only checkpoints need it
@@ -452,7 +510,8 @@ def _load_policy(args) -> Policy:
         raise UsageError(f"--checkpoint: {err}") from None
     # The weights must fit the network that the checkpoint's config.json describes; tracing one
     # call (no compile) says so now, instead of a traceback from inside the jitted rollout.
-    obs = jax.ShapeDtypeStruct((1, policy.env_kwargs["sensor"].num_sectors), jnp.float32)
+    size = observation_size(policy.env_kwargs["task"], policy.env_kwargs["sensor"])
+    obs = jax.ShapeDtypeStruct((1, size), jnp.float32)
     try:
         jax.eval_shape(policy.act, obs, jax.random.PRNGKey(0))
     except FlaxError as err:
@@ -462,6 +521,15 @@ def _load_policy(args) -> Policy:
             f"config.json ({detail})"
         ) from None
     return policy
+
+
+def baseline(name: str, env: str = "avoid") -> Policy:
+    """Baseline `name` (forward, random) acting in task `env` with its default actions."""
+    try:
+        spec = task_entry(env).config_cls().action_spec
+    except ValueError as err:
+        raise UsageError(f"--env: {err}") from None
+    return dataclasses.replace(BASELINES[name](spec), env=env)
 
 
 def _plots_dir(args) -> Path:
@@ -484,6 +552,9 @@ def format_table(results: dict) -> str:
     """The metrics as a text table: one row per layout, per family (suites) and `overall`."""
     head = f"{'layout':<24} {'episodes':>8} {'collision-free %':>16} {'speed m/s':>9} "
     head += f"{'distance m':>10} {'steps':>7} {'coverage %':>10}"
+    goal = "spl" in results["overall"]
+    if goal:
+        head += f" {'success %':>9} {'SPL':>5}"
     families_ = [(f"family {k}", m) for k, m in results.get("families", {}).items()]
     rows = [*results["layouts"].items(), *families_, ("overall", results["overall"])]
     lines = [head, "-" * len(head)]
@@ -492,6 +563,7 @@ def format_table(results: dict) -> str:
             f"{name[:24]:<24} {m['episodes']:>8d} {100 * m['collision_free_rate']:>16.1f} "
             f"{m['mean_speed']:>9.3f} {m['mean_distance']:>10.2f} {m['mean_steps']:>7.1f} "
             f"{100 * m['coverage']:>10.1f}"
+            + (f" {100 * m['success_rate']:>9.1f} {m['spl']:>5.2f}" if goal else "")
         )
     return "\n".join(lines)
 
@@ -519,8 +591,15 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
             f"{name}: {results['policy']}, {100 * m['collision_free_rate']:.0f}% collision-free, "
             f"coverage {100 * m['coverage']:.0f}% ({m['episodes']} episodes)"
         )
+        if "spl" in m:
+            title = (
+                f"{name}: {results['policy']}, {100 * m['success_rate']:.0f}% success, "
+                f"SPL {m['spl']:.2f} ({m['episodes']} episodes)"
+            )
         path = out / f"{_file_name(label)}.png"
-        plot_trajectories(by_name[name], traj["paths"], traj["collided"], path, title)
+        plot_trajectories(
+            by_name[name], traj["paths"], traj["collided"], path, title, goals=traj["goals"]
+        )
     print(f"plots: {out}/ ({len(shown)} PNG)")
 
 

@@ -7,8 +7,10 @@ python -m jaxnav.export runs/avoid-cpu --format onnx --out policy.onnx   # for o
 RUN is a run folder (its latest intact checkpoint is taken) or one checkpoint folder. A bundle is one
 folder holding `jaxnav_robot/` (a copy of `jaxnav.robot_side`: numpy, and rclpy for the ROS 2 node),
 `policy.npz` and `README.txt` with the commands to run on the robot. Both formats hold the actor MLP and
-the observation normaliser, so they take raw sector distances (metres). The ONNX model maps `obs`
-float32 [N, D] to `logits` float32 [N, A] and `action` int64 [N] (greedy); it is built node by node with
+the observation normaliser, so they take raw sector distances (metres; the goal task's goal and last
+command after them, see `jaxnav.robot_side.policy.goal_observation`). The ONNX model maps `obs`
+float32 [N, D] to `logits` float32 [N, A] and `action` int64 [N] (greedy), or for continuous actions
+`action` float32 [N, 2] (the command, m/s and rad/s, within the bounds); it is built node by node with
 `onnx.helper` (opset 17, IR 8, loadable by onnxruntime >= 1.10), which needs only the `onnx` package.
 Before the file gets its name, it is written beside it under a temporary name, run on random
 observations and compared with the JAX network; only a file that passes is renamed into place (a
@@ -31,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnav.cli import Parser, UsageError, print_error
+from jaxnav.core.types import ContinuousActions
 from jaxnav.io.checkpoint import CheckpointError, SavedPolicy, read_policy, resolve
 from jaxnav.ppo.networks import LEAKY_SLOPE, normalize
 from jaxnav.robot_side.policy import FORMAT_VERSION, NumpyPolicy
@@ -55,7 +58,13 @@ class CheckFailed(ExportError):
 def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
     """The actor weights, normaliser, sensor and action table of a checkpoint's policy (the .npz)."""
     config = saved.config
-    names, commands = config.task.action_spec.names, config.task.action_spec.table()
+    spec = config.task.action_spec
+    continuous = isinstance(spec, ContinuousActions)
+    if continuous:  # the rows of `commands` are the lowest and the highest command
+        names = ("lowest", "highest")
+        commands = np.array([spec.low, spec.high], np.float32)
+    else:
+        names, commands = spec.names, spec.table()
     if saved.num_actions != len(names):
         raise CheckpointError(
             f"{saved.ckpt / 'policy.msgpack'}: the actor has {saved.num_actions} outputs, but the "
@@ -67,7 +76,7 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
         layer = actor[f"Dense_{i}"]
         out[f"W{i}"] = np.asarray(layer["kernel"], np.float32)
         out[f"b{i}"] = np.asarray(layer["bias"], np.float32)
-    size = config.sensor.num_sectors
+    size = saved.observation_size
     if config.ppo.normalize_obs:
         mean = np.asarray(saved.obs_stats.mean, np.float32)
         var, clip = np.asarray(saved.obs_stats.var, np.float32), NORM_CLIP
@@ -75,7 +84,7 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
     else:  # training fed raw observations: identity normaliser, no clipping
         mean, var, clip = np.zeros(size, np.float32), np.ones(size, np.float32), np.inf
         std = np.ones(size, np.float32)
-    return dict(
+    arrays = dict(
         out,
         obs_mean=mean,
         obs_var=var,
@@ -87,7 +96,7 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
         fov=np.float32(config.sensor.fov),
         range_min=np.float32(config.sensor.range_min),
         range_max=np.float32(config.sensor.range_max),
-        num_sectors=np.int32(size),
+        num_sectors=np.int32(config.sensor.num_sectors),
         # The rows and the floor rule: the robot reads the same pixels (observation.ray_pixels).
         elevations=np.asarray(config.sensor.elevations, np.float64),
         camera_height=np.float64(config.robot.camera_height),
@@ -95,8 +104,27 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
         floor_margin=np.float64(config.sensor.floor_margin),
         floor_margin_slope=np.float64(config.sensor.floor_margin_slope),
         control_period=np.float64(config.scene.control_period),  # s; float64: exact 10 Hz
-        format_version=np.int32(FORMAT_VERSION),
+        format_version=np.int32(2),  # what a format-2 reader reads right
     )
+    return {**arrays, **_format3(config, spec, size)}
+
+
+def _format3(config, spec, size: int) -> dict:
+    """The format-3 entries of continuous actions and goal inputs (none for the paper's task)."""
+    out = {}
+    if isinstance(spec, ContinuousActions):
+        out["action_low"] = np.asarray(spec.low, np.float32)
+        out["action_high"] = np.asarray(spec.high, np.float32)
+    extra = size - config.sensor.num_sectors
+    if extra:
+        out["extra_observations"] = np.int32(extra)
+        out["command_scale"] = np.array(
+            [config.task.forward_speed, config.task.turn_rate], np.float32
+        )
+        out["success_radius"] = np.float64(config.task.success_radius)
+    if out:
+        out["format_version"] = np.int32(FORMAT_VERSION)
+    return out
 
 
 def onnx_model(arrays: dict[str, np.ndarray]):
@@ -130,15 +158,25 @@ def onnx_model(arrays: dict[str, np.ndarray]):
             slope = float(arrays["leaky_slope"])
             nodes.append(helper.make_node("LeakyRelu", [f"pre{i}"], [f"h{i}"], alpha=slope))
             x = f"h{i}"
-    nodes.append(helper.make_node("ArgMax", ["logits"], ["action"], axis=1, keepdims=0))
+    if "action_low" in arrays:  # the command: centre + half * mean, within the bounds
+        low, high = arrays["action_low"], arrays["action_high"]
+        inits.update(cmd_centre=0.5 * (high + low), cmd_half=0.5 * (high - low))
+        inits.update(cmd_low=low, cmd_high=high)
+        nodes += [
+            helper.make_node("Mul", ["logits", "cmd_half"], ["cmd_spread"]),
+            helper.make_node("Add", ["cmd_spread", "cmd_centre"], ["cmd_mean"]),
+            helper.make_node("Max", ["cmd_mean", "cmd_low"], ["cmd_above"]),
+            helper.make_node("Min", ["cmd_above", "cmd_high"], ["action"]),
+        ]
+        action = helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", d_out])
+    else:
+        nodes.append(helper.make_node("ArgMax", ["logits"], ["action"], axis=1, keepdims=0))
+        action = helper.make_tensor_value_info("action", TensorProto.INT64, ["N"])
     graph = helper.make_graph(
         nodes,
         "jaxnav_actor",
         [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", d_in])],
-        [
-            helper.make_tensor_value_info("logits", TensorProto.FLOAT, ["N", d_out]),
-            helper.make_tensor_value_info("action", TensorProto.INT64, ["N"]),
-        ],
+        [helper.make_tensor_value_info("logits", TensorProto.FLOAT, ["N", d_out]), action],
         initializer=[numpy_helper.from_array(np.asarray(v), k) for k, v in inits.items()],
     )
     model = helper.make_model(
@@ -149,6 +187,12 @@ def onnx_model(arrays: dict[str, np.ndarray]):
     meta["action_names"] = ",".join(str(a) for a in arrays["action_names"])
     meta["commands"] = json.dumps(arrays["commands"].tolist())  # [A, 2] (forward m/s, yaw rad/s)
     meta["num_sectors"] = int(arrays["num_sectors"])
+    for key in ("action_low", "action_high", "command_scale"):  # format-3 entries, where given
+        if key in arrays:
+            meta[key] = json.dumps(np.asarray(arrays[key]).tolist())
+    for key in ("extra_observations", "success_radius"):
+        if key in arrays:
+            meta[key] = float(arrays[key])
     helper.set_model_props(model, {k: str(v) for k, v in meta.items()})
     onnx.checker.check_model(model)
     return model
@@ -187,9 +231,11 @@ def verify(
     sensor = saved.config.sensor
     rng = np.random.default_rng(seed)
     # Beyond the sensor's range on both sides too, so the normaliser's clipping is exercised.
-    obs = rng.uniform(0.0, 1.25 * sensor.range_max, (n, sensor.num_sectors)).astype(np.float32)
+    size = saved.observation_size
+    obs = rng.uniform(0.0, 1.25 * sensor.range_max, (n, size)).astype(np.float32)
     exported = exported_logits(out, fmt)(obs)
-    reference = np.asarray(jax.jit(saved.logits)(obs))  # what load_policy's greedy act argmaxes
+    # What load_policy's greedy act reads (a continuous actor's means, without its log-stds).
+    reference = np.asarray(jax.jit(saved.logits)(obs))[:, : exported.shape[-1]]
     diff = float(np.max(np.abs(exported - reference)))
     return diff, int(np.sum(exported.argmax(-1) == reference.argmax(-1)))
 

@@ -3,6 +3,8 @@
 python -m jaxnav.train                                  # the cpu preset into runs/avoid-cpu
 python -m jaxnav.train --preset paper --out runs/paper  # the paper's Table II
 python -m jaxnav.train --num-envs 1024 --task.near-threshold 0.8 --layouts my_rooms.json
+python -m jaxnav.train --env goal                       # point-goal navigation
+python -m jaxnav.train --env goal --actions continuous  # (forward m/s, yaw rad/s) commands
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layout, parse_la
 from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overrides_from_args
 from jaxnav.ppo.config import PRESETS, preset
 from jaxnav.ppo.train import make_train
+from jaxnav.tasks.base import ACTIONS
 from jaxnav.tasks.registry import TASKS, make_env
 
 
@@ -448,6 +451,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     if name not in TASKS:
         raise ValueError(f"--env: unknown task '{name}'; valid: {', '.join(sorted(TASKS))}")
     add_flags(parser, name)  # the task's own flags
+    if "actions" in {f.name for f in dataclasses.fields(TASKS[name].config_cls)}:
+        parser.add_argument(
+            "--actions",
+            dest="task.actions",
+            choices=ACTIONS,
+            help="short for --task.actions: the paper's three actions or continuous commands",
+        )
     args = parser.parse_args(argv)
     args.given = [
         action.option_strings[0]

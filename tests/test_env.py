@@ -28,8 +28,8 @@ def test_api_sizes(mixed_env):
 
 
 def test_unknown_env_lists_valid_names():
-    with pytest.raises(ValueError, match="valid names: avoid"):
-        jaxnav.make_env("goal")
+    with pytest.raises(ValueError, match="valid names: avoid, goal"):
+        jaxnav.make_env("fly")
 
 
 def test_batch_of_mixed_layouts_shapes_and_finite(mixed_env):

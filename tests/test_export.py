@@ -15,6 +15,7 @@ from test_robot_side import run_without_jax
 
 import jaxnav
 from jaxnav import export
+from jaxnav.core.sensors import SensorConfig
 from jaxnav.io import checkpoint
 from jaxnav.io.runconfig import RunConfig
 from jaxnav.ppo.config import preset
@@ -104,7 +105,8 @@ def test_numpy_export_matches_jax(run, tmp_path):
     assert policy.action_names == ("forward", "left", "right")
     assert policy.sensor.num_sectors == 8 and policy.sensor.range_max == 8.0
     # The rows and the floor rule's mount, for `observation.ray_pixels` and `floor_mask`.
-    assert policy.sensor.elevations == (0.0,) and policy.sensor.camera_height == 0.295
+    rows = tuple(float(e) for e in SensorConfig().elevations)
+    assert policy.sensor.elevations == pytest.approx(rows) and policy.sensor.camera_height == 0.295
     assert policy.sensor.floor_margin == 0.02 and policy.sensor.camera_pitch == 0.0
     # The default task's speeds: 0.5 m/s forward, 1.5 rad/s turning in place.
     np.testing.assert_array_equal(policy.commands, [[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]])

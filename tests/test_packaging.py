@@ -24,7 +24,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "README.md", "jaxnav", "scenes")  # what the build reads
-ROS_MODULES = {"rclpy", "sensor_msgs", "geometry_msgs"}  # come with ROS 2, not from PyPI
+# Come with ROS 2, not from PyPI.
+ROS_MODULES = {"rclpy", "sensor_msgs", "geometry_msgs", "nav_msgs"}
 
 # Builds the default env from the installed package and resets it once.
 _MAKE_ENV = """

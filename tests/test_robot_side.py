@@ -158,10 +158,10 @@ def test_forward_pass_by_hand(tmp_path):
 @pytest.mark.parametrize(
     "changes, message",
     [
-        (dict(format_version=np.int32(1)), "policy file format 1; this reader knows 2"),
+        (dict(format_version=np.int32(1)), "policy file format 1; this reader knows 2, 3"),
         (dict(commands=None), "no 'commands'"),
         (dict(commands=COMMANDS[:2]), "3 actor outputs"),
-        (dict(num_sectors=np.int32(6)), "do not chain from num_sectors"),
+        (dict(num_sectors=np.int32(6)), "do not chain from the observation size 6"),
     ],
 )
 def test_policy_file_errors_name_the_file(tmp_path, changes, message):

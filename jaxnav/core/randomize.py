@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -249,6 +250,7 @@ class LayoutBank:
 
     rooms: SceneParams  # room fields of K layouts; spawn/physics fields are placeholders
     has_spawn: jax.Array  # [K] bool: the layout fixes the robot's spawn
+    goals: Any = None  # goal tasks only: the layouts' goals and free cells (`goals.GoalCells`)
 
     @property
     def size(self) -> int:

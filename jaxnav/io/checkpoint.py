@@ -272,8 +272,23 @@ class SavedPolicy:
 
         return make_network(self.config.ppo, self.config.task.action_spec)
 
+    @property
+    def observation_size(self) -> int:
+        """D: the depth sectors and the task's extra entries (the goal task's goal and command)."""
+        from jaxnav.tasks.registry import observation_size
+
+        return observation_size(self.config.task, self.config.sensor)
+
+    @property
+    def distribution(self):
+        """The actor's action distribution (`jaxnav.ppo.distributions`)."""
+        from jaxnav.ppo.distributions import make_distribution
+
+        return make_distribution(self.config.task.action_spec)
+
     def logits(self, obs: jax.Array) -> jax.Array:
-        """obs [..., D] metres -> action logits [..., A]; jittable."""
+        """obs [..., D] -> the actor's output [..., K] (logits; a Gaussian's means and log-stds
+        for continuous actions); jittable."""
         from jaxnav.ppo.networks import normalize
 
         x = normalize(self.obs_stats, obs) if self.config.ppo.normalize_obs else obs
@@ -301,7 +316,7 @@ def read_policy(ckpt: Path) -> SavedPolicy:
 
 def _check_fits(saved: SavedPolicy, file: Path) -> None:
     """The weights have the shapes of the network (and sensor) that config.json describes."""
-    size = saved.config.sensor.num_sectors
+    size = saved.observation_size
     expected = jax.eval_shape(saved.network.init, jax.random.PRNGKey(0), jnp.zeros((1, size)))
     shapes = lambda tree: {  # noqa: E731
         jax.tree_util.keystr(path): tuple(np.shape(x))
@@ -318,14 +333,14 @@ def _check_fits(saved: SavedPolicy, file: Path) -> None:
 
 
 def load_policy(path: str | os.PathLike, deterministic: bool = True) -> Policy:
-    """The trained policy of a run or checkpoint folder: greedy (argmax) or sampling actions."""
+    """The trained policy of a run or checkpoint folder: greedy (argmax; the clipped mean of
+    continuous actions) or sampling actions."""
     saved = read_policy(resolve(path))
+    dist = saved.distribution
 
     def act(obs, key):
-        logits = saved.logits(obs)
-        if deterministic:
-            return jnp.argmax(logits, axis=-1).astype(jnp.int32)
-        return jax.random.categorical(key, logits).astype(jnp.int32)
+        out = saved.logits(obs)
+        return dist.mode(out) if deterministic else dist.sample(key, out)
 
     name = f"{saved.ckpt.parent.parent.name}/{saved.ckpt.name}"
     return Policy(name=name, act=act, env_kwargs=saved.config.env_kwargs(), env=saved.config.env)

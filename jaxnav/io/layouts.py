@@ -13,9 +13,11 @@ interior is centred on the origin, x to the east, y to the north, and walls are 
       ]
     }
 
-`name`, `room.wall_height`, `robot`, `obstacles` and each obstacle's `yaw`/`height` are
+`name`, `room.wall_height`, `robot`, `goal`, `obstacles` and each obstacle's `yaw`/`height` are
 optional. Without `robot` the spawn is sampled in free space every episode; with it, `robot.pos` is
-required. `box.size` is the full extent along the box's own axes. Every mistake raises
+required. `"goal": {"pos": [x, y]}` fixes the target of goal-reaching tasks (`jaxnav.tasks.goal`;
+other tasks ignore it); without it a reachable goal is sampled every episode.
+`box.size` is the full extent along the box's own axes. Every mistake raises
 `LayoutError`, whose one-line message names the file, the room and the field in JSON path style
 (`obstacles[2].size`).
 
@@ -29,6 +31,9 @@ Bounds (what the float32 simulator handles exactly enough; anything else is refu
 - A room with `robot` must have the robot's disc (`ROBOT_RADIUS`) clear of every wall and obstacle
   at `robot.pos`; a room without it must have some free spawn, found at load time by a grid search
   over the interior (`SPAWN_GRID`), else it is refused: every episode would start in a collision.
+- A `goal.pos` must have the robot's disc clear of every wall and obstacle too (a goal inside an
+  obstacle could never be reached). That it is reachable from the spawn (not in a closed-off part)
+  is checked where the goal task builds its rooms (`jaxnav.core.goals`), on the occupancy grid.
 
 Clearances are computed by `jaxnav.core.geometry` in float32, the simulator's precision. The file
 must be a regular file of at most 16 MB.
@@ -270,12 +275,14 @@ class RoomLayout:
     robot_pos: tuple[float, float] | None = None  # None -> spawn sampled in free space each episode
     robot_yaw: float = 0.0  # rad; only meaningful with robot_pos
     obstacles: tuple[Obstacle, ...] = ()  # in file order; error messages index into it
+    goal_pos: tuple[float, float] | None = None  # goal tasks' target; None -> sampled each episode
 
     def __post_init__(self):
         try:
             self._coerce()
             _check_inside(self)
             _check_spawn(self)
+            _check_goal(self)
         except LayoutError as err:
             name = self.name if isinstance(self.name, str) else None
             raise err.located(source=None, room=name) from None
@@ -289,6 +296,8 @@ class RoomLayout:
         if self.robot_pos is not None:
             set_("robot_pos", _pair(self.robot_pos, "robot.pos"))
         set_("robot_yaw", _angle(self.robot_yaw, "robot.yaw"))
+        if self.goal_pos is not None:
+            set_("goal_pos", _pair(self.goal_pos, "goal.pos"))
         if self.robot_pos is None and self.robot_yaw != 0.0:
             raise LayoutError("robot.yaw", "a spawn yaw needs robot.pos (None: sampled spawn)")
         if not isinstance(self.obstacles, (list, tuple)):
@@ -427,12 +436,28 @@ def _check_spawn(layout: RoomLayout) -> None:
     )
 
 
+def _check_goal(layout: RoomLayout) -> None:
+    """A goal position leaves the robot's disc clear of every wall and obstacle."""
+    if layout.goal_pos is None or is_free(layout, layout.goal_pos, ROBOT_RADIUS):
+        return
+    dist = _distances(layout, np.asarray(layout.goal_pos))
+    names = [f"the {w} wall" for w in _WALLS]
+    names += [f"obstacles[{i}] ({ob.kind})" for i, ob in enumerate(layout.obstacles)]
+    k = int(dist.argmin())
+    raise LayoutError(
+        "goal.pos",
+        f"the robot (radius {ROBOT_RADIUS} m) at the goal {_show(list(layout.goal_pos))} would "
+        f"overlap {names[k]}: clearance {dist[k]:.3f} m",
+    )
+
+
 # ------------------------------------------------------------------------------
 # Parsing
 
-_TOP_KEYS = ("name", "room", "robot", "obstacles")
+_TOP_KEYS = ("name", "room", "robot", "goal", "obstacles")
 _ROOM_KEYS = ("size", "wall_height")
 _ROBOT_KEYS = ("pos", "yaw")
+_GOAL_KEYS = ("pos",)
 
 
 class _JsonObject(dict):
@@ -515,6 +540,9 @@ def _parse_room(entry, index: int) -> RoomLayout:
     if robot is not None:
         kwargs["robot_pos"] = _require(robot, "pos", "robot")
         kwargs["robot_yaw"] = robot.get("yaw", 0.0)
+    goal = _section(entry, "goal", _GOAL_KEYS, 'with "pos"; omit it to sample a goal')
+    if goal is not None:
+        kwargs["goal_pos"] = _require(goal, "pos", "goal")
     raw = entry.get("obstacles", [])
     if not isinstance(raw, list):
         raise LayoutError("obstacles", f"must be a list of obstacle objects, got {_kind(raw)}")
@@ -584,6 +612,8 @@ def layout_to_dict(layout: RoomLayout) -> dict:
     }
     if layout.robot_pos is not None:
         out["robot"] = {"pos": list(layout.robot_pos), "yaw": layout.robot_yaw}
+    if layout.goal_pos is not None:
+        out["goal"] = {"pos": list(layout.goal_pos)}
     out["obstacles"] = [_obstacle_to_dict(ob) for ob in layout.obstacles]
     return out
 

@@ -10,14 +10,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnav.ppo.networks import entropy, log_prob
+from jaxnav.ppo.distributions import Categorical, Distribution
 
 
 class Batch(NamedTuple):
     """A (mini)batch of N transitions collected by the behaviour policy."""
 
     obs: jax.Array  # [N, D]
-    action: jax.Array  # [N] int
+    action: jax.Array  # [N] int (discrete) or [N, A] float (continuous commands)
     log_prob: jax.Array  # [N] log pi_old(action | obs)
     value: jax.Array  # [N] V_old(obs), used for value clipping
     advantage: jax.Array  # [N] GAE, not yet normalised
@@ -87,17 +87,20 @@ def ppo_loss(
     vf_coef: float,
     ent_coef: float,
     clip_value: bool,
+    dist: Distribution | None = None,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """PPO loss = -surrogate + vf_coef * value_loss - ent_coef * entropy (Eq. 3).
 
-    apply_fn(params, obs [N, D]) -> (logits [N, A], value [N]), e.g. `ActorCritic.apply`.
+    apply_fn(params, obs [N, D]) -> (actor output [N, K], value [N]), e.g. `ActorCritic.apply`;
+    `dist` reads the actor output (default: a categorical over K logits).
     Value clipping (when clip_value) keeps the new value within clip_eps of batch.value; it
     uses the same clip_eps as the policy, so with returns of order 100 it slows the critic.
     Returns (loss, metrics) with metrics total, policy_loss, value_loss, entropy, approx_kl,
     clip_fraction (fraction of samples whose ratio lies outside [1 - eps, 1 + eps]).
     """
-    logits, value = apply_fn(params, batch.obs)  # [N, A], [N]
-    new_log_prob = log_prob(logits, batch.action)  # [N]
+    logits, value = apply_fn(params, batch.obs)  # [N, K], [N]
+    dist = dist or Categorical(logits.shape[-1])
+    new_log_prob = dist.log_prob(logits, batch.action)  # [N]
     log_ratio = new_log_prob - batch.log_prob
     ratio = jnp.exp(log_ratio)  # [N]
 
@@ -116,7 +119,7 @@ def ppo_loss(
         value_err = jnp.maximum(value_err, jnp.square(value_clipped - batch.target))
     value_loss = 0.5 * jnp.mean(value_err)
 
-    ent = jnp.mean(entropy(logits))
+    ent = jnp.mean(dist.entropy(logits))
     total = policy_loss + vf_coef * value_loss - ent_coef * ent  # Eq. 3 as a loss
 
     metrics = {

@@ -16,6 +16,9 @@ from flax import struct
 # (PyTorch, flax).
 LEAKY_SLOPE = 0.01
 CRITIC_OUTPUTS = ("tanh", "linear")
+# Continuous actions: initial std of 0.6 half-ranges, e.g. +-0.15 m/s around 0.25 m/s forward:
+# broad exploration that still rarely saturates a bound.
+INIT_LOG_STD = -0.5
 
 
 class MLP(nn.Module):
@@ -45,6 +48,10 @@ class ActorCritic(nn.Module):
     The paper's actor output is `softmax(logits)`; the softmax is left to the callers
     (`log_prob`, `entropy`, `sample_action`), which work on logits for numerical stability.
 
+    continuous: the actor's output is [..., 2A] instead: A means, then A log standard deviations
+        (a learned parameter `log_std` [A], the same for every observation, starting at
+        INIT_LOG_STD), read by `jaxnav.ppo.distributions.Gaussian`.
+
     critic_output:
         "tanh" (the paper's): value = value_scale * tanh(v). With value_scale = 1.0, the
             paper's setting, values lie in [-1, 1] although returns can reach -100.
@@ -56,6 +63,7 @@ class ActorCritic(nn.Module):
     hidden: tuple[int, ...] = (64, 64)
     critic_output: str = "tanh"
     value_scale: float = 1.0  # 1.0 is the paper's (plain tanh)
+    continuous: bool = False  # A Gaussian's means and log-stds instead of A logits
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -66,6 +74,10 @@ class ActorCritic(nn.Module):
             )
         # Small policy-head gain: near-uniform initial policy, so early exploration is broad.
         logits = MLP(self.hidden, self.action_size, 0.01, name="actor")(obs)  # [..., A]
+        if self.continuous:
+            init = jax.nn.initializers.constant(INIT_LOG_STD)
+            log_std = self.param("log_std", init, (self.action_size,))  # [A]
+            logits = jnp.concatenate([logits, jnp.broadcast_to(log_std, logits.shape)], -1)
         value = MLP(self.hidden, 1, 1.0, name="critic")(obs)[..., 0]  # [...]
         if self.critic_output == "tanh":
             value = self.value_scale * jnp.tanh(value)

@@ -16,18 +16,11 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxnav.core.types import DiscreteActions
+from jaxnav.core.types import ContinuousActions
 from jaxnav.ppo.config import PPOConfig
+from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
-from jaxnav.ppo.networks import (
-    ActorCritic,
-    RunningStats,
-    init_stats,
-    log_prob,
-    normalize,
-    sample_action,
-    update_stats,
-)
+from jaxnav.ppo.networks import ActorCritic, RunningStats, init_stats, normalize, update_stats
 from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
 
 
@@ -46,7 +39,7 @@ class TrainState:
 class Transition(NamedTuple):
     raw_obs: jax.Array  # [T, N, D] observation as sensed, for the normaliser
     obs: jax.Array  # [T, N, D] normalised observation the action was chosen on
-    action: jax.Array  # [T, N]
+    action: jax.Array  # [T, N] int, or [T, N, A] float commands
     log_prob: jax.Array  # [T, N]
     value: jax.Array  # [T, N]
     reward: jax.Array  # [T, N] the task's raw reward
@@ -71,10 +64,13 @@ def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
 
 
 def make_network(cfg: PPOConfig, action_spec) -> ActorCritic:
-    """The actor-critic for an env's `action_spec` (PPO here handles discrete actions)."""
-    if not isinstance(action_spec, DiscreteActions):
-        raise ValueError(f"PPO: needs discrete actions, the task has {type(action_spec).__name__}")
-    return ActorCritic(action_spec.n, hidden=tuple(cfg.hidden), critic_output=cfg.critic_output)
+    """The actor-critic for an env's `action_spec`: logits for a table of commands, a Gaussian's
+    means and log-stds for continuous commands (`jaxnav.ppo.distributions`)."""
+    continuous = isinstance(action_spec, ContinuousActions)
+    size = action_spec.size if continuous else make_distribution(action_spec).out_size
+    return ActorCritic(
+        size, hidden=tuple(cfg.hidden), critic_output=cfg.critic_output, continuous=continuous
+    )
 
 
 def log_name(key: str) -> str:
@@ -112,6 +108,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     The robots are sharded over `devices` (default: every local device).
     """
     network = make_network(cfg, env.action_spec)
+    dist = make_distribution(env.action_spec)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
     env = AutoReset(EpisodeStats(env), pool=cfg.reset_pool)
@@ -138,13 +135,13 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             key, k_act = jax.random.split(key)
             obs = norm(ts.obs_stats, env_state.obs)  # [N, D]
             logits, value = network.apply(ts.params, obs)
-            action = sample_action(k_act, logits)  # [N]
+            action = dist.sample(k_act, logits)  # [N] or [N, A]
             nxt = step(env_state, action)
             tr = Transition(
                 env_state.obs,
                 obs,
                 action,
-                log_prob(logits, action),
+                dist.log_prob(logits, action),
                 value,
                 nxt.reward,
                 nxt.done,
@@ -168,6 +165,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             vf_coef=cfg.vf_coef,
             ent_coef=cfg.ent_coef,
             clip_value=cfg.clip_value,
+            dist=dist,
         )
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return (optax.apply_updates(params, updates), opt_state), metrics

@@ -370,7 +370,13 @@ class Controller:
             )
 
     def act(self, obs) -> Twist:
-        """The command for an observation [num_sectors] (metres, right to left)."""
+        """The command for an observation [D] (sectors in metres, right to left; the goal task's
+        entries after them, see `policy.goal_observation`)."""
+        if getattr(self.policy, "continuous", False):
+            forward, yaw = self.policy(obs)
+            return Twist(
+                float(forward) * self.speed_calibration, float(yaw) * self.speed_calibration
+            )
         return action_to_twist(self.policy(obs), self.policy.commands, self.speed_calibration)
 
     def image_obs(self, depth, rows=None, column_angles=None, vfov=None) -> np.ndarray:

@@ -31,6 +31,14 @@ this node's watchdog. Run `kobuki_safety_controller` beside it (enable it by pub
 on its own `cmd_vel`, which a mux must rank above this node. The camera's blind zone (nearer than
 ~0.6 m) reads near (see `observation.reduce_sectors`), but the bumper is the last resort.
 
+Goal policies (exported from the `goal` task) also need the goal and the robot's pose, in one
+frame: a geometry_msgs/PoseStamped on `goal_topic` (default `goal_pose`, what RViz's "2D Goal
+Pose" tool publishes) and nav_msgs/Odometry on `odom_topic` (default `odom`, the Kobuki driver's).
+The goal must be given in the odometry's frame (`odom`; a goal in another frame, e.g. `map`, is
+refused with zero velocity until one in the right frame comes: transform it first, e.g. with tf2).
+The node sends zero velocity before the first goal, when the odometry is older than `max_age`, and
+once the robot is within the policy's success radius of the goal (until a new goal comes).
+
 Depth images may be 32FC1 (metres) or 16UC1 (millimetres). For a policy trained with one row of
 rays (a horizontal fan) only image rows within +-band_deg of the horizon are read; for one trained
 with several rows (`--sensor.rows 5`) the pixels along its rays are read and those that see the
@@ -59,7 +67,7 @@ from .observation import (
     depth_image_to_sectors,
     horizon_rows,
 )
-from .policy import NumpyPolicy
+from .policy import NumpyPolicy, goal_observation
 
 STOP = Twist(0.0, 0.0)
 DEFAULT_RATE_HZ = 10.0  # the paper's ~10 Hz, where the policy file does not give its control period
@@ -172,6 +180,44 @@ def _stderr(text: str) -> None:
     print(text, file=sys.stderr)
 
 
+class GoalInput:
+    """The goal task's inputs on the robot: the newest goal and odometry pose, in one frame."""
+
+    def __init__(self):
+        self.goal: tuple[float, float] | None = None
+        self.goal_frame: str | None = None
+        self.pose: tuple[float, float, float] | None = None  # x, y, yaw
+        self.pose_frame: str | None = None
+        self.pose_stamp = -math.inf
+
+    def on_goal(self, x: float, y: float, frame: str | None = None) -> None:
+        """A new goal position (m) in `frame`."""
+        self.goal, self.goal_frame = (float(x), float(y)), frame
+
+    def on_pose(self, x: float, y: float, yaw: float, stamp: float, frame=None) -> None:
+        """The robot's pose (m, rad) in `frame`, received at `stamp` (s)."""
+        self.pose, self.pose_frame, self.pose_stamp = (float(x), float(y), float(yaw)), frame, stamp
+
+    def problem(self, now: float, max_age: float, success_radius: float) -> str | None:
+        """Why the robot must not drive now (None: it may)."""
+        if self.goal is None:
+            return "no goal yet"
+        if self.pose is None:
+            return "no odometry yet"
+        if now - self.pose_stamp > max_age:
+            return f"no odometry for over {max_age:g} s"
+        if self.goal_frame and self.pose_frame and self.goal_frame != self.pose_frame:
+            return f"goal in frame '{self.goal_frame}', odometry in '{self.pose_frame}'"
+        if math.dist(self.goal, self.pose[:2]) <= success_radius:
+            return "goal reached"
+        return None
+
+
+def yaw_of(q) -> float:
+    """Yaw (rad) of a geometry_msgs/Quaternion."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
 class ControlLoop:
     """Keeps the newest sensor message; each `tick` sends the policy's command for it, or STOP.
 
@@ -192,10 +238,13 @@ class ControlLoop:
         reader: Callable[[object, Controller], np.ndarray],
         max_age: float = DEFAULT_MAX_AGE,
         log: Callable[[str], None] = _stderr,
+        goal: GoalInput | None = None,
     ):
         if not max_age > 0:
             raise ValueError(f"max_age: must be > 0 s, got {max_age}")
         self.controller, self.reader, self.max_age, self.log = controller, reader, max_age, log
+        self.goal = goal  # the goal task's inputs; None for policies without them
+        self._last = np.zeros(2, np.float32)  # the last command sent, in the policy's units
         self.obs: np.ndarray | None = None
         self.state = "no sensor message yet"
         self._msg, self._stamp, self._result = None, -math.inf, None
@@ -208,6 +257,8 @@ class ControlLoop:
     def tick(self, now: float) -> Twist:
         """The command to send at time `now` (s)."""
         obs, twist, state = self._decide(now)
+        if obs is None:  # the robot is told to stop: the goal task's last command is zero
+            self._last = np.zeros(2, np.float32)
         if state != self.state:
             self.log(f"{state}: {'driving' if obs is not None else 'sending zero velocity'}")
         self.obs, self.state = obs, state
@@ -225,6 +276,10 @@ class ControlLoop:
             return None, STOP, "no sensor message yet"
         if now - self._stamp > self.max_age:
             return None, STOP, f"no sensor message for over {self.max_age:g} s"
+        if self.goal is not None:  # the pose moves between frames: act at every tick
+            radius = self.controller.policy.success_radius
+            why = self.goal.problem(now, self.max_age, radius)
+            return (None, STOP, why) if why else self._act(self._msg)
         if self._result is None:
             self._result = self._act(self._msg)
         return self._result
@@ -232,6 +287,12 @@ class ControlLoop:
     def _act(self, msg):
         try:
             obs = np.asarray(self.reader(msg, self.controller), np.float32)
+            if self.goal is not None:
+                policy = self.controller.policy
+                obs = goal_observation(
+                    obs, self.goal.pose, self.goal.goal, self._last, policy.command_scale
+                )
+                self._last = policy.command(obs)
             return obs, self.controller.act(obs), "policy"
         except Exception as err:  # noqa: BLE001 - any failure must stop the robot, not the node
             return None, STOP, f"error: {type(err).__name__}: {err}"
@@ -266,6 +327,10 @@ def parse_args(argv=None):
     p.add_argument("--topic", default="/camera/depth/image_raw", help="depth image or scan topic")
     p.add_argument("--scan", action="store_true", help="the topic is a sensor_msgs/LaserScan")
     p.add_argument("--cmd-vel", default="cmd_vel", help="geometry_msgs/Twist output topic")
+    p.add_argument(
+        "--goal-topic", default="goal_pose", help="goal policies: geometry_msgs/PoseStamped goal"
+    )
+    p.add_argument("--odom-topic", default="odom", help="goal policies: nav_msgs/Odometry")
     add_loop_flags(p)
     return p.parse_known_args(argv)
 
@@ -278,7 +343,8 @@ def make_loop(get: dict, log) -> tuple[ControlLoop, float]:
     reader = MessageReader(
         get["scan"], get["vfov_deg"], get["band_deg"], get["tilt_deg"], get["camera_height"]
     )
-    loop = ControlLoop(controller, reader, get["max_age"], log)
+    goal = GoalInput() if policy.extra_observations else None
+    loop = ControlLoop(controller, reader, get["max_age"], log, goal)
     return loop, control_rate(policy, get["rate_hz"])
 
 
@@ -303,6 +369,14 @@ def _make_node(args):
             self.create_subscription(
                 msg_type, get["topic"], self.on_message, qos_profile_sensor_data
             )
+            if self.loop.goal is not None:
+                from geometry_msgs.msg import PoseStamped
+                from nav_msgs.msg import Odometry
+
+                self.create_subscription(PoseStamped, get["goal_topic"], self.on_goal, 10)
+                self.create_subscription(
+                    Odometry, get["odom_topic"], self.on_odom, qos_profile_sensor_data
+                )
             self.timer = self.create_timer(1.0 / rate, self.on_timer)
             logger.info(f"{get['policy']}: {get['topic']} -> {get['cmd_vel']} at {rate:g} Hz")
 
@@ -311,6 +385,16 @@ def _make_node(args):
 
         def on_message(self, msg):
             self.loop.on_observation(msg, self.now())
+
+        def on_goal(self, msg):
+            p = msg.pose.position
+            self.loop.goal.on_goal(p.x, p.y, msg.header.frame_id)
+
+        def on_odom(self, msg):
+            pose = msg.pose.pose
+            yaw = yaw_of(pose.orientation)
+            goal = self.loop.goal
+            goal.on_pose(pose.position.x, pose.position.y, yaw, self.now(), msg.header.frame_id)
 
         def on_timer(self):
             self.pub.publish(twist_msg(self.loop.tick(self.now()), TwistMsg))

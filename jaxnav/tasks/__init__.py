@@ -1,1 +1,1 @@
-"""Tasks: the registry (`make_env`) and the tasks that ship (`avoid`, the paper's)."""
+"""Tasks: the registry (`make_env`), the paper's `avoid` and point-goal navigation `goal`."""

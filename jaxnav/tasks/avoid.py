@@ -1,8 +1,10 @@
 """`avoid`: the paper's task. Drive around a room full of static obstacles without touching any.
 
 Observation: the 8 shortest depth-camera distances (m). Actions: 0 forward, 1 turn left, 2 turn right,
-held for one control period. Reward: the paper's Table I (see `AvoidConfig`). A collision ends the
-episode with `collision_reward`; so does the time limit, without penalty. Metric: `collision`.
+held for one control period; or (`actions="continuous"`) any command (forward m/s, yaw rad/s) within
+[0, forward_speed] x [-turn_rate, turn_rate]. Reward: the paper's Table I (see `AvoidConfig`). A
+collision ends the episode with `collision_reward`; so does the time limit, without penalty.
+Metric: `collision`.
 """
 
 from __future__ import annotations
@@ -14,14 +16,18 @@ import jax.numpy as jnp
 
 from jaxnav.core.checks import require_finite
 from jaxnav.core.robot import RobotSpec
-from jaxnav.core.types import DiscreteActions, EnvState
-from jaxnav.tasks.base import Actuator, NavTask
+from jaxnav.core.types import ActionSpec, EnvState
+from jaxnav.tasks.base import ACTIONS, Actuator, NavTask, check_velocity_config, velocity_actions
 
 
 @dataclasses.dataclass(frozen=True)
 class AvoidConfig:
     """The task: speeds of the three actions, the paper's reward table, episode length."""
 
+    actions: str = "discrete"
+    """'discrete': the paper's forward / left / right; 'continuous': (forward m/s, yaw rad/s) in
+    [0, forward_speed] x [-turn_rate, turn_rate], its reward Table I interpolated by the forward
+    share v / forward_speed (1: the forward entries, 0: the turn entries)."""
     forward_speed: float = 0.5
     """Commanded speed of the `forward` action, m/s (Kobuki top speed 0.7)."""
     turn_rate: float = 1.5
@@ -50,26 +56,20 @@ class AvoidConfig:
                 raise ValueError(f"AvoidConfig.{name}: must be > 0, got {getattr(self, name)}")
         if self.max_steps < 1:
             raise ValueError(f"AvoidConfig.max_steps: must be >= 1, got {self.max_steps}")
+        if self.actions not in ACTIONS:
+            raise ValueError(
+                f"AvoidConfig.actions: must be one of {', '.join(ACTIONS)}, got {self.actions!r}"
+            )
 
     @property
-    def action_spec(self) -> DiscreteActions:
-        """The paper's three actions; turning happens in place, as the paper's robot does."""
-        return DiscreteActions(
-            names=("forward", "left", "right"),
-            commands=((self.forward_speed, 0.0), (0.0, self.turn_rate), (0.0, -self.turn_rate)),
-        )
+    def action_spec(self) -> ActionSpec:
+        """The paper's three actions (turning in place, as the paper's robot does), or continuous
+        commands within the same speeds."""
+        return velocity_actions(self.actions, self.forward_speed, self.turn_rate)
 
     def check_robot(self, robot: RobotSpec) -> None:
         """The commanded speeds are within the robot's limits."""
-        for name, top in (
-            ("forward_speed", robot.max_linear_speed),
-            ("turn_rate", robot.max_angular_speed),
-        ):
-            if getattr(self, name) > top:
-                raise ValueError(
-                    f"AvoidConfig.{name}: must be in (0, {top:.3f}] for {robot.name}, "
-                    f"got {getattr(self, name)}"
-                )
+        check_velocity_config(self, robot)
 
 
 class AvoidEnv(NavTask):
@@ -82,7 +82,6 @@ class AvoidEnv(NavTask):
         task.check_robot(self.robot)
         self.action_spec = task.action_spec
         self.observation_size = self.sensor.num_sectors
-        self._commands = jnp.asarray(self.action_spec.table())  # [3, 2]
 
     def reset(self, key: jax.Array) -> EnvState:
         """A new episode: fresh room, spawn and parameters drawn from the randomisation."""
@@ -102,7 +101,8 @@ class AvoidEnv(NavTask):
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; reward per Table I; end on collision or time."""
         params = state.info["params"]
-        command, actuator = self.actuate(params, state.info["actuator"], self._commands[action])
+        target = self.command(action)
+        command, actuator = self.actuate(params, state.info["actuator"], target)
         data, hit = self.drive(params, state.data, command)
         steps = state.info["steps"] + 1
         truncated = (steps >= self.task.max_steps) & ~hit
@@ -110,23 +110,30 @@ class AvoidEnv(NavTask):
         return EnvState(
             data=data,
             obs=self.sense(params, data, k_obs),
-            reward=self._reward(state.obs, action, hit),
+            reward=self._reward(state.obs, action, target, hit),
             done=hit | truncated,
             truncated=truncated,
             metrics={"collision": hit.astype(jnp.float32)},
             info={"params": params, "steps": steps, "key": key, "actuator": actuator},
         )
 
-    def _reward(self, obs: jax.Array, action: jax.Array, hit: jax.Array) -> jax.Array:
-        """Table I of the paper, from the observation the action was chosen on."""
+    def _reward(self, obs, action, target, hit) -> jax.Array:
+        """Table I of the paper, from the observation the action was chosen on; continuous
+        commands interpolate between its forward and turn entries by v / forward_speed."""
         t = self.task
         closest = jnp.min(obs)
         near = closest < t.near_threshold
-        forward = action == 0
-        base = jnp.where(
-            near,
-            jnp.where(forward, t.near_forward, t.near_turn),
-            jnp.where(forward, t.far_forward, t.far_turn),
-        )
+        if t.actions == "continuous":
+            share = jnp.clip(target[0] / t.forward_speed, 0.0, 1.0)
+            forward_value = jnp.where(near, t.near_forward, t.far_forward)
+            turn_value = jnp.where(near, t.near_turn, t.far_turn)
+            base = turn_value + share * (forward_value - turn_value)
+        else:
+            forward = action == 0
+            base = jnp.where(
+                near,
+                jnp.where(forward, t.near_forward, t.near_turn),
+                jnp.where(forward, t.far_forward, t.far_turn),
+            )
         reward = base - t.distance_penalty / closest
         return jnp.where(hit, t.collision_reward, reward).astype(jnp.float32)

@@ -18,9 +18,41 @@ from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams, samp
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import Scene, SceneConfig
 from jaxnav.core.sensors import SensorConfig, observe
+from jaxnav.core.types import ActionSpec, ContinuousActions, DiscreteActions
 
 GRAVITY = 9.81  # m/s^2, for the wheels' traction limit
 MAX_LATENCY = 4  # control steps of command history kept for the episode's latency
+ACTIONS = ("discrete", "continuous")  # the tasks' `actions` options (`velocity_actions`)
+
+
+def velocity_actions(actions: str, forward_speed: float, turn_rate: float) -> ActionSpec:
+    """The paper's three commands (forward, turn left or right in place) or, with `actions` =
+    "continuous", any (forward m/s, yaw rad/s) in [0, forward_speed] x [-turn_rate, turn_rate]
+    (no reversing: the camera looks ahead)."""
+    if actions == "continuous":
+        return ContinuousActions(low=(0.0, -turn_rate), high=(forward_speed, turn_rate))
+    return DiscreteActions(
+        names=("forward", "left", "right"),
+        commands=((forward_speed, 0.0), (0.0, turn_rate), (0.0, -turn_rate)),
+    )
+
+
+def check_velocity_config(cfg, robot: RobotSpec) -> None:
+    """`cfg.actions` is known and its forward_speed / turn_rate are within the robot's limits."""
+    name = type(cfg).__name__
+    if cfg.actions not in ACTIONS:
+        raise ValueError(
+            f"{name}.actions: must be one of {', '.join(ACTIONS)}, got {cfg.actions!r}"
+        )
+    for field, top in (
+        ("forward_speed", robot.max_linear_speed),
+        ("turn_rate", robot.max_angular_speed),
+    ):
+        if not 0 < getattr(cfg, field) <= top:
+            raise ValueError(
+                f"{name}.{field}: must be in (0, {top:.3f}] for {robot.name}, "
+                f"got {getattr(cfg, field)}"
+            )
 
 
 @struct.dataclass
@@ -62,9 +94,24 @@ class NavTask:
     def new_episode(self, key: jax.Array) -> tuple[SceneParams, mjx.Data]:
         """A fresh room, spawn and parameters, and the physics state at the spawn."""
         params = sample(key, self.randomize, self.bank, self.robot.radius)
+        return params, self.place(params)
+
+    def place(self, params: SceneParams) -> mjx.Data:
+        """The physics state of the robot at `params.spawn` in the room of `params`."""
         data = self._data0.replace(qpos=params.spawn)
         # Kinematics places the new room's geoms for the rays; contacts come with the first step.
-        return params, mjx.kinematics(self.scene.model_for(params), data)
+        return mjx.kinematics(self.scene.model_for(params), data)
+
+    def command(self, action: jax.Array) -> jax.Array:
+        """[2] the (forward m/s, yaw rad/s) the policy's `action` asks for: a row of the command
+        table (`DiscreteActions`), or the command itself clipped to the bounds (`ContinuousActions`;
+        a non-finite component reads 0, so a broken policy cannot break the physics)."""
+        spec = self.action_spec
+        if isinstance(spec, ContinuousActions):
+            action = jnp.asarray(action, jnp.float32)
+            action = jnp.where(jnp.isfinite(action), action, 0.0)
+            return jnp.clip(action, jnp.asarray(spec.low), jnp.asarray(spec.high))
+        return jnp.asarray(spec.table())[action]
 
     def sense(self, params: SceneParams, data: mjx.Data, key: jax.Array) -> jax.Array:
         """[num_sectors] float32 sector minima of the depth sensor, with the episode's noise."""

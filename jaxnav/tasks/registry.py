@@ -11,12 +11,14 @@ import dataclasses
 from collections.abc import Sequence
 from typing import NamedTuple
 
+from jaxnav.core.goals import make_goal_cells
 from jaxnav.core.randomize import TRAINING, RandomizeConfig, make_bank
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import SCENES_DIR, SceneConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.io.layouts import RoomLayout, load_layout
 from jaxnav.tasks.avoid import AvoidConfig, AvoidEnv
+from jaxnav.tasks.goal import GoalConfig, GoalEnv
 
 
 class TaskEntry(NamedTuple):
@@ -34,6 +36,7 @@ def register(name: str, env_cls: type, config_cls: type, default_layouts=("train
 
 
 register("avoid", AvoidEnv, AvoidConfig)
+register("goal", GoalEnv, GoalConfig)
 
 
 def task_entry(name: str) -> TaskEntry:
@@ -41,6 +44,12 @@ def task_entry(name: str) -> TaskEntry:
     if name not in TASKS:
         raise ValueError(f"unknown environment '{name}'; valid names: {', '.join(sorted(TASKS))}")
     return TASKS[name]
+
+
+def observation_size(task, sensor: SensorConfig) -> int:
+    """The observation length of a task config with `sensor`: the depth sectors, then the task's
+    `extra_observations` (the goal task's goal and last command)."""
+    return sensor.num_sectors + getattr(task, "extra_observations", 0)
 
 
 def default_layouts(name: str = "avoid") -> list[RoomLayout]:
@@ -89,6 +98,8 @@ def make_env(
     )
     scene = dataclasses.replace(scene, num_boxes=nb, num_cylinders=nc)
     bank = make_bank(layouts, nb, nc)
+    if getattr(entry.env_cls, "uses_goals", False):  # goal tasks: goals and free cells per layout
+        bank = bank.replace(goals=make_goal_cells(layouts, robot.radius))
     return entry.env_cls(
         bank,
         task=task,

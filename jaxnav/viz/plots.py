@@ -129,9 +129,11 @@ def plot_trajectories(
     collided: Sequence[bool],
     path: str | os.PathLike,
     title: str | None = None,
+    goals: Sequence | None = None,
 ) -> None:
     """Writes a top-down PNG: the room, each episode's path ([T_i, 2] xy arrays, one colour each),
-    a start marker and a red X where an episode collided. Draws the first `MAX_PATHS` only.
+    a start marker and a red X where an episode collided; with `goals` ([2] per episode, the goal
+    task), a star in the path's colour at each episode's goal. Draws the first `MAX_PATHS` only.
     """
     trajectories = list(trajectories)[:MAX_PATHS]
     fig = Figure(figsize=(6, 6 * layout.size[1] / layout.size[0] + 0.6), layout="constrained")
@@ -144,7 +146,9 @@ def plot_trajectories(
         ax.plot(*xy[0], marker="o", markersize=4, color=color, zorder=5)
         if hit:
             ax.plot(*xy[-1], marker="X", markersize=9, color="red", markeredgecolor="k", zorder=6)
-    handles = _legend_handles(spawn=layout.robot_pos is not None)
+    for goal, color in zip(goals if goals is not None else [], colors, strict=False):
+        ax.plot(*goal, marker="*", markersize=12, color=color, markeredgecolor="k", zorder=6)
+    handles = _legend_handles(spawn=layout.robot_pos is not None, goal=goals is not None)
     # Below the axes, so it never hides part of the room.
     ax.legend(
         handles=handles,
@@ -166,7 +170,7 @@ def _path_colors(n: int) -> list:
     return [cmap(i % cmap.N) for i in range(n)]
 
 
-def _legend_handles(spawn: bool) -> list[Line2D]:
+def _legend_handles(spawn: bool, goal: bool = False) -> list[Line2D]:
     handles = [
         Line2D([], [], color="0.3", linewidth=1.2, label="path"),
         Line2D([], [], color="0.3", marker="o", linestyle="", markersize=4, label="start"),
@@ -181,6 +185,10 @@ def _legend_handles(spawn: bool) -> list[Line2D]:
             label="collision",
         ),
     ]
+    if goal:
+        handles.append(
+            Line2D([], [], color="0.3", marker="*", linestyle="", markersize=10, label="goal")
+        )
     if spawn:
         handles.append(
             Line2D(

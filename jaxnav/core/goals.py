@@ -1,0 +1,267 @@
+"""Goals of goal-reaching tasks: a reachable goal per episode, and shortest paths for SPL.
+
+Every draw is traced data (a new goal never recompiles anything). Reachability is guaranteed in
+two ways:
+
+- Layouts: `make_goal_cells` precomputes, per layout, the free cells of its *main component* on the
+  occupancy grid of `families.free_cells` (`CELL` = 0.1 m cells, free where the robot's disc touches
+  nothing: walls and obstacles inflated by the robot radius; components 4-connected, as
+  `families.reachable` floods them). The main component is the one holding the layout's goal, else
+  its spawn, else the largest. A random spawn that lands off it (in a closed-off pocket) is moved
+  onto one of its cells, and a sampled goal is one of its cells: spawn and goal are connected, to
+  the grid's resolution. A layout whose fixed spawn and goal lie in different components is refused.
+- Sampled rooms (`randomize.sample_room`): the goal is drawn in the open interior, then every
+  obstacle that would block an L-shaped path spawn -> corner -> goal (a corridor of half-width
+  robot radius + `path_clearance`) is removed, as the spawn's surroundings already are. The path
+  exists by construction; the straight line to the goal is often blocked all the same.
+
+`shortest_paths` measures the geodesic distance for SPL on the same grid, 8-connected (diagonal
+steps only where both cells beside them are free, so no corner is cut).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from jaxnav.core import families
+from jaxnav.core.geometry import signed_distance
+from jaxnav.core.randomize import SceneParams
+from jaxnav.io import layouts as lay
+
+CELL = families.CELL  # m, occupancy grid cell for goals and shortest paths
+TRIES = 32  # uniform candidates per draw of a spawn or a goal
+PATH_POINTS = 64  # points per leg of a sampled room's cleared L-shaped path
+
+
+@struct.dataclass
+class GoalCells:
+    """Per layout (K of them, padded to the largest): its goal and its main component's cells."""
+
+    goal: jax.Array  # [K, 2] the layout's fixed goal, m (0 where it has none)
+    has_goal: jax.Array  # [K] bool
+    cells: jax.Array  # [K, N, 2] centres of the main component's free cells, m (padded)
+    count: jax.Array  # [K] int32 cells in use
+    main: jax.Array  # [K, H, W] bool: the cell is on the main component (padded with False)
+    shape: jax.Array  # [K, 2] int32 the layout's grid rows H and columns W
+
+
+def _nearest(free: np.ndarray, centres: np.ndarray, xy) -> int:
+    """Flat index of the free cell whose centre is nearest `xy` (-1 if none is free)."""
+    if not free.any():
+        return -1
+    dist = np.linalg.norm(centres - np.asarray(xy, np.float64), axis=-1)
+    return int(np.argmin(np.where(free, dist, np.inf)))
+
+
+def main_component(layout: lay.RoomLayout, radius: float = lay.ROBOT_RADIUS, cell: float = CELL):
+    """([H, W] bool main component, [H, W, 2] cell centres) of a layout (see the module doc)."""
+    free, centres = families.free_cells(layout, radius, cell)
+    labels, count = ndimage.label(free)  # the default structure: 4-connected
+    if count == 0:
+        raise lay.LayoutError(
+            None, f"no free {cell:g} m cell for the robot: no goal can be placed", room=layout.name
+        )
+    label_at = lambda xy: labels.flat[_nearest(free, centres, xy)]  # noqa: E731
+    if layout.goal_pos is not None:
+        main = label_at(layout.goal_pos)
+        if layout.robot_pos is not None and label_at(layout.robot_pos) != main:
+            raise lay.LayoutError(
+                "goal.pos",
+                f"not reachable from robot.pos {list(layout.robot_pos)}: the robot (radius "
+                f"{radius} m) cannot pass between them on the {cell:g} m occupancy grid",
+                room=layout.name,
+            )
+    elif layout.robot_pos is not None:
+        main = label_at(layout.robot_pos)
+    else:
+        main = 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+    mask = labels == main
+    if layout.robot_pos is not None:  # the spawn's own cell, even where the grid rounds it off
+        mask.flat[_cell_index(layout, mask.shape, layout.robot_pos)] = True
+    return mask, centres
+
+
+def _cell_index(layout: lay.RoomLayout, shape, xy) -> int:
+    """Flat index of the grid cell containing `xy` (the lookup `_on_main` does traced)."""
+    half = 0.5 * np.asarray(layout.size)
+    frac = (np.asarray(xy) + half) / (2 * half)
+    row, col = (
+        int(np.clip(np.floor(f * n), 0, n - 1)) for f, n in zip(frac[::-1], shape, strict=True)
+    )
+    return row * shape[1] + col
+
+
+def make_goal_cells(layouts, radius: float = lay.ROBOT_RADIUS, cell: float = CELL) -> GoalCells:
+    """The goal data of `layouts` for a `LayoutBank` (one dummy room when there are none)."""
+    layouts = list(layouts) or [lay.RoomLayout(name="none", size=(4.0, 4.0))]
+    masks, cells = [], []
+    for layout in layouts:
+        mask, centres = main_component(layout, radius, cell)
+        masks.append(mask)
+        cells.append(centres[mask])
+    n = max(len(c) for c in cells)
+    h = max(m.shape[0] for m in masks)
+    w = max(m.shape[1] for m in masks)
+    pad_cells = [np.concatenate([c, np.repeat(c[:1], n - len(c), 0)]) for c in cells]
+    pad_masks = [np.pad(m, ((0, h - m.shape[0]), (0, w - m.shape[1]))) for m in masks]
+    goals = [room.goal_pos if room.goal_pos is not None else (0.0, 0.0) for room in layouts]
+    return GoalCells(
+        goal=jnp.asarray(np.array(goals, np.float32)),
+        has_goal=jnp.asarray([room.goal_pos is not None for room in layouts]),
+        cells=jnp.asarray(np.stack(pad_cells).astype(np.float32)),
+        count=jnp.asarray([len(c) for c in cells], jnp.int32),
+        main=jnp.asarray(np.stack(pad_masks)),
+        shape=jnp.asarray([m.shape for m in masks], jnp.int32),
+    )
+
+
+# ------------------------------------------------------------------------------
+# Traced draws
+
+
+def _first_or_best(ok: jax.Array, score: jax.Array) -> jax.Array:
+    """Index of the first True of `ok` [T], or of the highest `score` [T] if none is."""
+    return jnp.where(ok.any(), jnp.argmax(ok), jnp.argmax(score))
+
+
+def _on_main(g: GoalCells, half: jax.Array, xy: jax.Array) -> jax.Array:
+    """[] bool: the grid cell containing `xy` is on the main component of layout `g`."""
+    cols_rows = g.shape[::-1]  # [2] cells along x, y
+    ij = jnp.floor((xy + half) / (2 * half) * cols_rows).astype(jnp.int32)
+    col, row = jnp.clip(ij, 0, cols_rows - 1)
+    return g.main[row, col]
+
+
+def _layout_goal(key, params: SceneParams, goals: GoalCells, radius, clearance, min_distance):
+    """(params with the spawn on the main component, [2] goal) in a layout room."""
+    g = jax.tree_util.tree_map(lambda x: x[jnp.maximum(params.layout_id, 0)], goals)
+    k_spawn, k_goal = jax.random.split(key)
+    draw = lambda k: g.cells[jax.random.randint(k, (TRIES,), 0, g.count)]  # noqa: E731
+    # Spawn: kept if on the main component, else the first of TRIES uniform main cells that keeps
+    # `clearance` from everything (or the one with the most clearance).
+    cand = draw(k_spawn)  # [TRIES, 2]
+    gap = signed_distance(params, cand) - radius
+    moved = cand[_first_or_best(gap >= clearance, gap)]
+    spawn_xy = jnp.where(_on_main(g, params.room_half, params.spawn[:2]), params.spawn[:2], moved)
+    # Goal: the layout's, else the first of TRIES uniform main cells at least min_distance from
+    # the spawn (straight line), or the farthest of them.
+    cand = draw(k_goal)
+    dist = jnp.linalg.norm(cand - spawn_xy, axis=-1)
+    goal = jnp.where(g.has_goal, g.goal, cand[_first_or_best(dist >= min_distance, dist)])
+    return params.replace(spawn=params.spawn.at[:2].set(spawn_xy)), goal
+
+
+def _room_goal(key, params: SceneParams, radius, clearance, min_distance, path_clearance):
+    """(params with an L-shaped path to the goal cleared, [2] goal) in a sampled room."""
+    k_goal, k_corner = jax.random.split(key)
+    spawn = params.spawn[:2]
+    # Goal: the first of TRIES uniform points of the interior (shrunk by the robot and `clearance`)
+    # at least min_distance from the spawn, or the farthest of them.
+    limit = jnp.maximum(params.room_half - radius - clearance, 0.0)
+    cand = jax.random.uniform(k_goal, (TRIES, 2), minval=-1.0, maxval=1.0) * limit
+    dist = jnp.linalg.norm(cand - spawn, axis=-1)
+    goal = cand[_first_or_best(dist >= min_distance, dist)]
+    # Corner of the L: (spawn x, goal y) or (goal x, spawn y), each with probability 1/2.
+    corner = jnp.where(
+        jax.random.bernoulli(k_corner),
+        jnp.stack([spawn[0], goal[1]]),
+        jnp.stack([goal[0], spawn[1]]),
+    )
+    t = jnp.linspace(0.0, 1.0, PATH_POINTS)[:, None]
+    points = jnp.concatenate([spawn + t * (corner - spawn), corner + t * (goal - corner)])
+    legs = jnp.stack([jnp.linalg.norm(corner - spawn), jnp.linalg.norm(goal - corner)])
+    # Clearance is 1-Lipschitz: points `spacing` apart that keep r + spacing/2 keep r in between.
+    keep = radius + path_clearance + 0.5 * legs.max() / (PATH_POINTS - 1)
+    room = families.clear_around(params, points, jnp.full(points.shape[0], keep))
+    return room, goal
+
+
+def sample_goal(
+    key: jax.Array,
+    params: SceneParams,
+    goals: GoalCells,
+    radius: float,
+    clearance: float,
+    min_distance: float,
+    path_clearance: float,
+) -> tuple[SceneParams, jax.Array]:
+    """(the episode's params, [2] goal m) for the room `params` drew (`randomize.sample`).
+
+    Layout rooms (layout_id >= 0) take their goal data from `goals`; sampled rooms get a cleared
+    path (module doc). `clearance` is the spawn clearance of a moved spawn and the margin of a
+    sampled room's goal from the walls, m; goals are at least `min_distance` m from the spawn
+    where the room allows (else as far as TRIES draws found).
+    """
+    k_layout, k_room = jax.random.split(key)
+    in_layout = _layout_goal(k_layout, params, goals, radius, clearance, min_distance)
+    in_room = _room_goal(k_room, params, radius, clearance, min_distance, path_clearance)
+    sampled = params.layout_id < 0
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(sampled, a, b), in_room, in_layout)
+
+
+# ------------------------------------------------------------------------------
+# Shortest paths (numpy, on the host)
+
+
+def grid_graph(free: np.ndarray, step: tuple[float, float]):
+    """The 8-connected graph of the free cells [H, W] (sparse [HW, HW], edge weights in m).
+
+    `step` is the cell's (x, y) size. Orthogonal steps join free neighbours; a diagonal step
+    needs all four cells of its 2 x 2 block free.
+    """
+    h, w = free.shape
+    ids = np.arange(h * w).reshape(h, w)
+    dx, dy = step
+    rows, cols, costs = [], [], []
+
+    def link(a, b, ok, cost):
+        rows.append(a[ok]), cols.append(b[ok]), costs.append(np.full(int(ok.sum()), cost))
+
+    link(ids[:, :-1], ids[:, 1:], free[:, :-1] & free[:, 1:], dx)
+    link(ids[:-1, :], ids[1:, :], free[:-1, :] & free[1:, :], dy)
+    block = free[:-1, :-1] & free[:-1, 1:] & free[1:, :-1] & free[1:, 1:]
+    link(ids[:-1, :-1], ids[1:, 1:], block, np.hypot(dx, dy))
+    link(ids[:-1, 1:], ids[1:, :-1], block, np.hypot(dx, dy))
+    r, c, v = (np.concatenate(x) for x in (rows, cols, costs))
+    return coo_matrix((v, (r, c)), shape=(h * w, h * w)).tocsr()
+
+
+class ShortestPaths:
+    """Shortest path lengths in one room, its grid and graph built once (see `shortest_paths`)."""
+
+    def __init__(self, layout: lay.RoomLayout, radius: float = lay.ROBOT_RADIUS, cell=CELL):
+        self.free, self.centres = families.free_cells(layout, radius, cell)
+        size = np.asarray(layout.size, np.float64)
+        step = (size[0] / self.free.shape[1], size[1] / self.free.shape[0])
+        self.graph = grid_graph(self.free, step)
+
+    def __call__(self, starts, goals) -> np.ndarray:
+        """[E] m from starts [E, 2] to goals [E, 2]."""
+        starts, goals = np.asarray(starts, np.float64), np.asarray(goals, np.float64)
+        src = np.array([_nearest(self.free, self.centres, g) for g in goals])
+        dst = np.array([_nearest(self.free, self.centres, s) for s in starts])
+        if (src < 0).any():
+            return np.full(len(starts), np.inf)
+        unique, inverse = np.unique(src, return_inverse=True)
+        table = dijkstra(self.graph, directed=False, indices=unique)  # [U, H * W]
+        return np.maximum(table[inverse.ravel(), dst], np.linalg.norm(goals - starts, axis=-1))
+
+
+def shortest_paths(
+    layout: lay.RoomLayout, starts, goals, radius: float = lay.ROBOT_RADIUS, cell: float = CELL
+) -> np.ndarray:
+    """[E] shortest path lengths (m) for a robot of `radius` from starts [E, 2] to goals [E, 2].
+
+    On the occupancy grid of `families.free_cells` (`cell` m, obstacles inflated by the radius),
+    8-connected (`grid_graph`), between the free cells nearest each start and goal; never less
+    than the straight line. inf where no path exists. Grid paths run up to 8 % longer than the
+    true shortest path (octile vs. Euclidean), the grid rounds inflated obstacles out by up to a
+    cell, and each end may be off by half a cell.
+    """
+    return ShortestPaths(layout, radius, cell)(starts, goals)

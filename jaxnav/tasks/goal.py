@@ -1,0 +1,178 @@
+"""`goal`: point-goal navigation. Reach a goal position in a room of static obstacles, touching none.
+
+Observation [num_sectors + 5]: the depth sectors (m, as `avoid`), the goal in the robot's frame
+(distance m, sin and cos of its bearing, positive = to the left) and the last command the policy
+sent (forward / forward_speed, yaw / turn_rate). The last command rather than the measured
+velocity: with the Kobuki's velocity smoother and command latency the robot's motion lags the
+command, and the policy needs to know what it already asked for; the command is exact on both
+sides, where a measured velocity would bring the odometry's noise and its own sim-to-real gap.
+
+Actions: the paper's three (default) or continuous (forward m/s, yaw rad/s), see `GoalConfig`.
+Reward per step (`GoalConfig`): progress_reward x (metres closer to the goal) + time_reward, plus
+success_reward on the step that reaches it or collision_reward on the step that collides. The
+episode ends on success (within success_radius of the goal), on a collision or at the time limit.
+Metrics (per step, summed per episode): `collision`, `success`, `path_length` (m travelled).
+Goals: a layout's own `goal`, else a reachable one drawn every episode (`jaxnav.core.goals`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from jaxnav.core.checks import require_finite
+from jaxnav.core.goals import sample_goal
+from jaxnav.core.randomize import sample
+from jaxnav.core.robot import RobotSpec
+from jaxnav.core.types import ActionSpec, EnvState
+from jaxnav.tasks.base import Actuator, NavTask, check_velocity_config, velocity_actions
+
+GOAL_FEATURES = 3  # distance, sin and cos of the bearing
+COMMAND_FEATURES = 2  # the last command, scaled by forward_speed and turn_rate
+
+
+@dataclasses.dataclass(frozen=True)
+class GoalConfig:
+    """The task: actions, goal placement, reward terms, episode length."""
+
+    actions: str = "discrete"
+    """'discrete': the paper's forward / left / right; 'continuous': (forward m/s, yaw rad/s) in
+    [0, forward_speed] x [-turn_rate, turn_rate]."""
+    forward_speed: float = 0.5
+    """Forward speed of the `forward` action (the top of the continuous range), m/s (Kobuki 0.7)."""
+    turn_rate: float = 1.5
+    """Yaw rate of the `left`/`right` actions (the continuous range's bound), rad/s (Kobuki 3.14)."""
+    success_radius: float = 0.3
+    """The goal is reached when the robot's centre is within this distance of it, m."""
+    goal_min_distance: float = 1.5
+    """A sampled goal lies at least this far from the spawn (straight line), m, where the room
+    allows; else as far as the draw found."""
+    path_clearance: float = 0.15
+    """Sampled rooms: obstacles are kept this far beyond the robot's radius from a cleared
+    L-shaped path spawn -> goal, m, so the goal is reachable (`jaxnav.core.goals`)."""
+    progress_reward: float = 1.0
+    """Reward per metre the step brought the robot closer to the goal (negative when farther)."""
+    success_reward: float = 10.0
+    """Added on the step that reaches the goal; the episode ends."""
+    collision_reward: float = -10.0
+    """Added on the step that collides; the episode ends."""
+    time_reward: float = -0.01
+    """Added on every step (a small cost of time)."""
+    max_steps: int = 500
+    """Time limit in control steps (500 = 50 s at 10 Hz); ends the episode without penalty."""
+
+    def __post_init__(self):
+        require_finite(self)
+        for name in ("success_radius", "goal_min_distance"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"GoalConfig.{name}: must be > 0 m, got {getattr(self, name)}")
+        if self.path_clearance < 0:
+            raise ValueError(
+                f"GoalConfig.path_clearance: must be >= 0 m, got {self.path_clearance}"
+            )
+        if self.max_steps < 1:
+            raise ValueError(f"GoalConfig.max_steps: must be >= 1, got {self.max_steps}")
+
+    @property
+    def action_spec(self) -> ActionSpec:
+        """The paper's three actions, or continuous commands within the same speeds."""
+        return velocity_actions(self.actions, self.forward_speed, self.turn_rate)
+
+    def check_robot(self, robot: RobotSpec) -> None:
+        """The actions are known and the commanded speeds within the robot's limits."""
+        check_velocity_config(self, robot)
+
+    @property
+    def extra_observations(self) -> int:
+        """Observation entries after the depth sectors: the goal and the last command."""
+        return GOAL_FEATURES + COMMAND_FEATURES
+
+
+def goal_features(qpos: jax.Array, goal: jax.Array) -> jax.Array:
+    """[3] the goal seen from pose qpos [3] (x, y, yaw): distance m, sin and cos of its bearing
+    (rad from the heading, positive = left). The same arithmetic as `robot_side.goal_features`."""
+    delta = goal - qpos[:2]
+    bearing = jnp.arctan2(delta[1], delta[0]) - qpos[2]
+    return jnp.stack([jnp.linalg.norm(delta), jnp.sin(bearing), jnp.cos(bearing)])
+
+
+class GoalEnv(NavTask):
+    """Point-goal navigation. `reset`/`step` are pure; vmap them for a batch. Its `LayoutBank`
+    needs goal data (`make_env("goal", ...)` builds it: `uses_goals`)."""
+
+    metric_names = ("collision", "success", "path_length")
+    uses_goals = True  # make_env adds `jaxnav.core.goals.GoalCells` to the bank
+
+    def __init__(self, bank, task: GoalConfig = GoalConfig(), **specs):
+        super().__init__(bank, task, **specs)
+        if bank.goals is None:
+            raise ValueError("GoalEnv: the layout bank has no goal data; build it with make_env")
+        task.check_robot(self.robot)
+        self.action_spec = task.action_spec
+        self.observation_size = self.sensor.num_sectors + task.extra_observations
+        self._command_scale = jnp.array([task.forward_speed, task.turn_rate])
+
+    def reset(self, key: jax.Array) -> EnvState:
+        """A new episode: fresh room, spawn, goal and parameters drawn from the randomisation."""
+        key, k_scene, k_goal, k_obs = jax.random.split(key, 4)
+        t, radius = self.task, self.robot.radius
+        params = sample(k_scene, self.randomize, self.bank, radius)
+        clearance = self.randomize.spawn_clearance
+        params, goal = sample_goal(
+            k_goal,
+            params,
+            self.bank.goals,
+            radius,
+            clearance,
+            t.goal_min_distance,
+            t.path_clearance,
+        )
+        data = self.place(params)
+        command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
+        info = {"params": params, "goal": goal, "steps": jnp.int32(0), "key": key}
+        return EnvState(
+            data=data,
+            obs=self._observe(params, data, goal, command, k_obs),
+            reward=f0,
+            done=b0,
+            truncated=b0,
+            metrics={"collision": f0, "success": f0, "path_length": f0},
+            info={**info, "actuator": Actuator.zero(), "command": command},
+        )
+
+    def step(self, state: EnvState, action: jax.Array) -> EnvState:
+        """Hold `action` for one control period; end on success, collision or time."""
+        t, info = self.task, state.info
+        params, goal = info["params"], info["goal"]
+        target = self.command(action)
+        command, actuator = self.actuate(params, info["actuator"], target)
+        data, hit = self.drive(params, state.data, command)
+        before = jnp.linalg.norm(goal - state.data.qpos[:2])
+        after = jnp.linalg.norm(goal - data.qpos[:2])
+        success = (after <= t.success_radius) & ~hit
+        steps = info["steps"] + 1
+        truncated = (steps >= t.max_steps) & ~hit & ~success
+        reward = t.progress_reward * (before - after) + t.time_reward
+        reward += jnp.where(success, t.success_reward, 0.0) + jnp.where(
+            hit, t.collision_reward, 0.0
+        )
+        key, k_obs = jax.random.split(info["key"])
+        moved = jnp.linalg.norm(data.qpos[:2] - state.data.qpos[:2])
+        f32 = lambda x: x.astype(jnp.float32)  # noqa: E731
+        return EnvState(
+            data=data,
+            obs=self._observe(params, data, goal, target, k_obs),
+            reward=f32(reward),
+            done=hit | success | truncated,
+            truncated=truncated,
+            metrics={"collision": f32(hit), "success": f32(success), "path_length": f32(moved)},
+            info={**info, "steps": steps, "key": key, "actuator": actuator, "command": target},
+        )
+
+    def _observe(self, params, data, goal, command, key) -> jax.Array:
+        """[observation_size]: sectors, goal features, the last command scaled to [-1, 1]."""
+        sectors = self.sense(params, data, key)
+        features = goal_features(data.qpos[:3], goal)
+        return jnp.concatenate([sectors, features, command / self._command_scale])

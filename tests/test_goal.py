@@ -1,0 +1,244 @@
+"""The `goal` task: reachable goal draws, SPL's shortest paths, reward terms, success, continuous
+actions within the limits, goals in layouts, and no recompilation when goals change."""
+
+import dataclasses
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import EXACT, start_in
+
+import jaxnav
+from jaxnav.core import families
+from jaxnav.core.goals import shortest_paths
+from jaxnav.core.randomize import TRAINING
+from jaxnav.core.robot import TURTLEBOT2I
+from jaxnav.evaluate import spl_values
+from jaxnav.io.layouts import Box, LayoutError, RoomLayout, parse_layouts
+from jaxnav.ppo.distributions import Gaussian
+
+R = TURTLEBOT2I.radius
+
+# A 6 x 4 m room whose east end is a closed-off pocket (a wall from wall to wall at x = 1.5):
+# spawns drawn there must move, and no goal may be drawn there.
+POCKET = RoomLayout(
+    name="pocket",
+    size=(6.0, 4.0),
+    obstacles=(Box(pos=(1.5, 0.0), size=(0.2, 4.0)), Box(pos=(-1.0, 0.8), size=(0.6, 0.6))),
+)
+OPEN = RoomLayout(name="open", size=(5.0, 5.0), robot_pos=(-1.5, -1.5))
+CORRIDOR = RoomLayout(
+    name="corridor", size=(8.0, 2.0), robot_pos=(-3.0, 0.0), robot_yaw=0.0, goal_pos=(2.0, 0.0)
+)
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    """Layouts with and without spawns, a pocket, and sampled rooms, with random spawns; reset and
+    step compile once for every room and goal (`chex.assert_max_traces`)."""
+    randomize = dataclasses.replace(TRAINING, random_spawn_prob=0.5)
+    env = jaxnav.make_env("goal", layouts=[POCKET, OPEN, CORRIDOR], randomize=randomize)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def reset(key):
+        return env.reset(key)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def step(state, action):
+        return env.step(state, action)
+
+    return env, reset, step
+
+
+def test_goal_draws_are_free_far_and_reachable(mixed):
+    env, reset, _ = mixed
+    states = [reset(jax.random.PRNGKey(seed)) for seed in range(120)]
+    state = jax.tree_util.tree_map(lambda *x: np.stack(x), *states)
+    params = state.info["params"]
+    goals, starts = np.asarray(state.info["goal"]), np.asarray(state.data.qpos[:, :2])
+    ids = np.asarray(params.layout_id)
+    assert (ids == -1).any() and all((ids == k).any() for k in range(3))
+    layouts = [POCKET, OPEN, CORRIDOR]
+    for e in range(len(ids)):
+        room = jax.tree_util.tree_map(lambda x, e=e: x[e], params)
+        layout = layouts[ids[e]] if ids[e] >= 0 else families.to_layout(room, "sampled")
+        # The goal and the start leave the robot's disc free, in the room the episode sees.
+        for point in (goals[e], starts[e]):
+            assert float(families.lay.clearance(layout, point)) > R
+        length = shortest_paths(layout, starts[e][None], goals[e][None])[0]
+        assert np.isfinite(length), (ids[e], starts[e], goals[e])
+        if ids[e] == 0:
+            assert goals[e][0] < 1.5 and starts[e][0] < 1.5  # never in the pocket
+        if ids[e] == 2:
+            np.testing.assert_allclose(goals[e], CORRIDOR.goal_pos)
+    far = np.linalg.norm(goals - starts, axis=-1) >= env.task.goal_min_distance
+    assert far[ids != 2].mean() > 0.95  # drawn goals (a few small rooms may not allow it)
+
+
+def test_shortest_path_by_hand():
+    """Straight and diagonal paths are exact; around a wall, within the grid's error of the hand
+    value; SPL from them."""
+    room = RoomLayout(name="empty", size=(3.0, 3.0))
+    straight = shortest_paths(room, [[-0.95, 0.05]], [[1.05, 0.05]])
+    np.testing.assert_allclose(straight, [2.0], atol=1e-9)
+    diagonal = shortest_paths(room, [[-0.95, -0.95]], [[0.05, 0.05]])
+    np.testing.assert_allclose(diagonal, [np.sqrt(2.0)], atol=1e-9)
+    # A wall across a 4 x 4 m room from the south wall to y = 1, 0.2 m thick: the robot
+    # (inflated wall: |x| <= 0.1 + R, y <= 1 + R) goes round its end.
+    wall = RoomLayout(
+        name="wall", size=(4.0, 4.0), obstacles=(Box(pos=(0.0, -0.5), size=(0.2, 3.0)),)
+    )
+    start, goal = np.array([-1.05, -1.05]), np.array([1.05, -1.05])
+    corner = np.array([0.1 + R, 1.0 + R])
+    hand = 2 * np.linalg.norm(corner * [-1, 1] - start) + 2 * corner[0]
+    got = shortest_paths(wall, [start], [goal])[0]
+    # 8-connected steps add up to 8 %; the grid rounds the inflated wall out by up to a cell.
+    assert hand <= got <= 1.08 * hand + 4 * 0.1
+    # SPL: success x l / max(driven, l), l the shortest path less the success radius.
+    reach = got - 0.3
+    track = {
+        "start": np.array([start] * 4),
+        "goal": np.array([goal] * 4),
+        "distance": np.array([reach, 2 * reach, reach, got]),
+        "metrics": {"success": np.array([1.0, 1.0, 0.0, 1.0])},
+    }
+    np.testing.assert_allclose(spl_values(wall, track, R, 0.3), [1.0, 0.5, 0.0, reach / got])
+    closed = RoomLayout(
+        name="closed", size=(4.0, 4.0), obstacles=(Box(pos=(0, 0), size=(0.4, 4.0)),)
+    )
+    assert np.isinf(shortest_paths(closed, [start], [goal])[0])
+
+
+# Facing east in the middle of a 3 x 3 m room, the goal behind it.
+WALL = RoomLayout(
+    name="wall", size=(3.0, 3.0), robot_pos=(0.0, 0.0), goal_pos=(-1.0, 0.0), robot_yaw=0.0
+)
+
+
+@pytest.fixture(scope="module")
+def exact_env():
+    env = jaxnav.make_env("goal", layouts=[CORRIDOR, WALL], randomize=EXACT, max_steps=100)
+    return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+def test_reward_terms_and_success_ends_the_episode(exact_env):
+    env, reset, step = exact_env
+    t = env.task
+    state = start_in(env, reset, 0)
+    np.testing.assert_allclose(state.obs[8:], [5.0, 0.0, 1.0, 0.0, 0.0], atol=1e-5)
+    steps = 0
+    while not bool(state.done):
+        nxt = step(state, jnp.int32(0))  # forward, straight at the goal
+        before = np.linalg.norm(np.asarray(state.info["goal"] - state.data.qpos[:2]))
+        after = np.linalg.norm(np.asarray(nxt.info["goal"] - nxt.data.qpos[:2]))
+        success = after <= t.success_radius
+        want = t.progress_reward * (before - after) + t.time_reward + success * t.success_reward
+        np.testing.assert_allclose(nxt.reward, want, rtol=1e-4, atol=1e-5)
+        assert float(nxt.metrics["success"]) == float(success)
+        np.testing.assert_allclose(nxt.obs[11:], [1.0, 0.0])  # the last command, scaled
+        state, steps = nxt, steps + 1
+    assert float(state.metrics["success"]) == 1.0 and not bool(state.truncated)
+    assert 94 <= steps <= 100  # 4.7 m at 0.5 m/s = 9.4 s
+    assert float(state.metrics["collision"]) == 0.0
+
+
+def test_collision_penalty_and_time_limit(exact_env):
+    env, reset, step = exact_env
+    state = start_in(env, reset, 1)
+    while not bool(state.done):
+        state = step(state, jnp.int32(0))  # away from the goal, into the east wall
+    assert float(state.metrics["collision"]) == 1.0 and float(state.metrics["success"]) == 0.0
+    assert float(state.reward) < env.task.collision_reward + 0.1
+    state = start_in(env, reset, 1)
+    for _ in range(100):
+        assert not bool(state.done)
+        state = step(state, jnp.int32(1))  # turning in place until the time limit
+    assert bool(state.done) and bool(state.truncated)
+
+
+def test_continuous_actions_respect_the_limits():
+    env = jaxnav.make_env("goal", layouts=[OPEN], randomize=EXACT, actions="continuous")
+    spec = env.action_spec
+    assert (spec.low, spec.high) == ((0.0, -1.5), (0.5, 1.5))
+    step = jax.jit(env.step)
+    state = env.reset(jax.random.PRNGKey(1))
+    for action in ([9.0, 9.0], [-3.0, -9.0], [np.nan, 0.7], [0.3, -0.4]):
+        state = step(state, jnp.array(action, jnp.float32))
+        command = np.asarray(state.info["command"])
+        assert spec.low[0] <= command[0] <= spec.high[0] and abs(command[1]) <= spec.high[1]
+        speed = np.hypot(*np.asarray(state.data.qvel[:2]))
+        assert speed <= spec.high[0] + 1e-3 and abs(float(state.data.qvel[2])) <= 1.5 + 1e-3
+    np.testing.assert_allclose(command, [0.3, -0.4])
+    # avoid has the option too; its reward interpolates Table I between forward and turning.
+    avoid = jaxnav.make_env("avoid", layouts=[OPEN], randomize=EXACT, actions="continuous")
+    s = avoid.reset(jax.random.PRNGKey(1))
+    rewards = [float(avoid.step(s, jnp.array([v, 0.0])).reward) for v in (0.0, 0.25, 0.5)]
+    np.testing.assert_allclose(rewards[1], 0.5 * (rewards[0] + rewards[2]), rtol=1e-5)
+
+
+def test_gaussian_policy_log_prob_and_entropy():
+    from scipy.stats import norm
+
+    dist = Gaussian(low=(0.0, -1.5), high=(0.5, 1.5))
+    out = jnp.array([0.2, -0.4, -0.5, 0.1])  # means (half-ranges), log-stds
+    mean = np.array([0.25 + 0.25 * 0.2, -0.4 * 1.5])
+    std = np.array([0.25 * np.exp(-0.5), 1.5 * np.exp(0.1)])
+    a = np.array([0.4, 0.3])
+    np.testing.assert_allclose(dist.log_prob(out, a), norm.logpdf(a, mean, std).sum(), rtol=1e-5)
+    np.testing.assert_allclose(dist.entropy(out), norm.entropy(mean, std).sum(), rtol=1e-5)
+    np.testing.assert_allclose(dist.mode(jnp.array([9.0, -9.0, 0.0, 0.0])), [0.5, -1.5])
+
+
+def test_goals_change_without_recompiling(mixed):
+    _, reset, step = mixed  # test_goal_draws_are_free_far_and_reachable ran 120 resets through it
+    seen = set()
+    for seed in range(10):
+        state = step(reset(jax.random.PRNGKey(seed)), jnp.int32(seed % 3))
+        seen.add(tuple(np.round(np.asarray(state.info["goal"]), 2)))
+    assert len(seen) >= 8  # fixed and drawn goals, layouts and sampled rooms: one compile
+
+
+def test_layout_goal_is_checked():
+    room = {"name": "r", "room": {"size": [4, 4]}, "robot": {"pos": [-1, -1]}}
+    assert parse_layouts({**room, "goal": {"pos": [1, 1]}})[0].goal_pos == (1.0, 1.0)
+    assert parse_layouts(room)[0].goal_pos is None  # optional; other tasks ignore it
+    box = [{"type": "box", "pos": [1, 1], "size": [0.5, 0.5]}]
+    cases = [
+        ({"goal": {"pos": [1, 1]}, "obstacles": box}, "room 'r' (#0): goal.pos: the robot"),
+        ({"goal": {"pos": [1]}}, "goal.pos: must be two numbers"),
+        ({"goal": {"position": [1, 1]}}, "goal.position: unknown key"),
+        ({"goal": [1, 1]}, "goal: must be an object"),
+    ]
+    for extra, message in cases:
+        with pytest.raises(LayoutError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            parse_layouts({**room, **extra}, "rooms.json")
+    walled = {**room, "goal": {"pos": [1.5, 0]}}
+    walled["obstacles"] = [{"type": "box", "pos": [0.5, 0], "size": [0.2, 4.0]}]
+    with pytest.raises(LayoutError, match="room 'r': goal.pos: not reachable from robot.pos"):
+        jaxnav.make_env("goal", layouts=parse_layouts(walled))
+
+
+@pytest.mark.slow
+def test_goal_success_rises_above_random(tmp_path):
+    """A short run in an open room: the success rate of its last updates is well above that of
+    its first (a near-uniform random policy's)."""
+    import csv
+
+    from jaxnav.io.layouts import save_layouts
+
+    rooms = tmp_path / "open.json"
+    save_layouts(rooms, RoomLayout(name="open", size=(4.0, 4.0)))
+    jaxnav.train(
+        out=tmp_path / "run", env="goal", layouts=[rooms], progress=False,
+        num_envs=64, rollout_length=32, minibatch_size=1024, num_epochs=4, learning_rate=3e-3,
+        total_steps=64 * 32 * 40, updates_per_chunk=10, checkpoint_every=40,
+        task={"max_steps": 100}, randomize={"sampled_room_prob": 0.0},
+    )  # fmt: skip
+    with open(tmp_path / "run" / "metrics.csv") as fh:
+        success = [float(r["success"]) for r in csv.DictReader(fh) if r["success"] != "nan"]
+    first, last = np.mean(success[:5]), np.mean(success[-5:])
+    assert last > first + 0.3 and last > 0.5, (first, last)
