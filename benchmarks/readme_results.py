@@ -6,7 +6,8 @@
 On this machine it (1) trains the quick start, `python -m jaxnav.train --out RUN` (timed, wall clock,
 compile included), unless `--run` names a finished run, (2) evaluates it on the held-out room of the
 paper's Fig. 6 (100 episodes) and on the benchmark suite (20 episodes a room) exactly as `python -m
-jaxnav.evaluate` does, and (3) with `--paper` trains the `paper` preset and evaluates it on the suite.
+jaxnav.evaluate` does, and (3) with `--paper` trains the `paper` preset and evaluates it on the suite
+(`--gather-only --paper`: only that, keeping the other CPU lines of the last run).
 The accelerator lines come from the JSON their own scripts wrote on the H200 (commands in
 `GATHERED`). Everything lands in `benchmarks/results/readme.json`; `--write-readme` puts `render()`
 of it between the README's results markers, and tests/test_readme_results.py checks that the README's
@@ -132,25 +133,26 @@ def cpu_lines(args) -> list[dict]:
             suite_text(suite),
         )
     )
-    if args.paper:
-        paper = run.with_name(run.name + "-paper")
-        seconds = train(paper, "--preset", "paper")
-        ev = evaluate(
-            paper,
-            RESULTS / "readme_cpu_paper_suite.json",
-            "--suite",
-            "benchmark",
-            "--episodes",
-            "20",
-        )
-        lines.append(
-            line(
-                "the `paper` preset (Table II: one robot, 150k steps) on the suite",
-                "python -m jaxnav.train --preset paper && python -m jaxnav.evaluate ... --suite benchmark --episodes 20",
-                f"{suite_text(ev)}; trained in {seconds / 60:.1f} min",
-            )
-        )
     return lines
+
+
+PAPER_WHAT = "the `paper` preset (Table II: one robot, 150k steps) on the suite"
+
+
+def paper_line(run: Path) -> dict:
+    """The paper preset trained (timed) next to `run` and evaluated on the suite."""
+    paper = run.with_name(run.name + "-paper")
+    seconds = train(paper, "--preset", "paper")
+    flags = ("--suite", "benchmark", "--episodes", "20")
+    ev = evaluate(paper, RESULTS / "readme_cpu_paper_suite.json", *flags)
+    return dict(
+        what=PAPER_WHAT,
+        command="python -m jaxnav.train --preset paper && python -m jaxnav.evaluate --checkpoint "
+        "runs/avoid-paper --suite benchmark --episodes 20",
+        machine=machine(),
+        date=datetime.date.today().isoformat(),
+        result=f"{suite_text(ev)}; trained in {seconds / 60:.1f} min wall",
+    )
 
 
 def gathered_lines() -> list[dict]:
@@ -232,9 +234,12 @@ def main() -> None:
     parser.add_argument("--write-readme", action="store_true")
     args = parser.parse_args()
     if args.gather_only and OUT.exists():
-        cpu = [ln for ln in json.loads(OUT.read_text())["lines"] if "CPU" in ln["machine"]]
+        old = json.loads(OUT.read_text())["lines"]
+        cpu = [ln for ln in old if "CPU" in ln["machine"] and ln["what"] != PAPER_WHAT]
     else:
         cpu = cpu_lines(args)
+    if args.paper:
+        cpu.append(paper_line(Path(args.run or RESULTS / "readme-run")))
     results = {"lines": cpu + gathered_lines()}
     OUT.write_text(json.dumps(results, indent=2) + "\n")
     print(render(results))
