@@ -2,11 +2,12 @@
 
     python benchmarks/env_rollout.py --num-envs 1024 --steps 100 --json benchmarks/env_rollout.json
     python benchmarks/env_rollout.py --fidelity rows,dynamics ...   # with sim-to-real pieces on
+    python benchmarks/env_rollout.py --physics wheeled ...          # the wheeled validation model
 
 `--fidelity` switches on pieces of the sim-to-real model, to time what each costs: `rows` (the
 5-row camera with the Astra's far-range invalid readings), `dynamics` (randomize.FIDELITY: velocity
 smoother, latency, wheel mismatch, noise model, dark obstacles, camera error, low obstacles and
-overhangs).
+overhangs). `--physics wheeled` runs the wheeled validation model instead of the fast drive.
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per batch size.
@@ -25,13 +26,14 @@ import jax.numpy as jnp
 
 import jaxnav
 from jaxnav.core.randomize import FIDELITY, TRAINING
+from jaxnav.core.scene import PHYSICS, SceneConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.wrappers import AutoReset
 
 
-def make(fidelity: tuple[str, ...]):
-    """The training env with the named fidelity pieces on."""
-    kwargs = {}
+def make(fidelity: tuple[str, ...], physics: str = "fast"):
+    """The training env with the named fidelity pieces on, under `physics`."""
+    kwargs = {"scene": SceneConfig(physics=physics)}
     if "rows" in fidelity:
         kwargs["sensor"] = SensorConfig(rows=5, far_invalid=True)
     if "dynamics" in fidelity:
@@ -39,8 +41,8 @@ def make(fidelity: tuple[str, ...]):
     return AutoReset(jaxnav.make_env("avoid", **kwargs))  # new episodes where they end
 
 
-def measure(num_envs: int, steps: int, repeats: int, fidelity=()) -> dict:
-    env = make(fidelity)
+def measure(num_envs: int, steps: int, repeats: int, fidelity=(), physics="fast") -> dict:
+    env = make(fidelity, physics)
     reset = jax.jit(jax.vmap(env.reset))
 
     @jax.jit
@@ -68,6 +70,7 @@ def measure(num_envs: int, steps: int, repeats: int, fidelity=()) -> dict:
     return {
         "num_envs": num_envs,
         "fidelity": ",".join(fidelity) or "off",
+        "physics": physics,
         "steps": steps,
         "compile_s": round(compile_s, 2),
         "seconds": round(best, 4),
@@ -82,10 +85,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", help="write the results here")
     parser.add_argument("--fidelity", default="", help="comma-separated: rows, dynamics")
+    parser.add_argument("--physics", default="fast", choices=PHYSICS, help="the robot's physics")
     args = parser.parse_args()
     fidelity = tuple(f for f in args.fidelity.split(",") if f)
     sizes = [int(n) for n in args.num_envs.split(",")]
-    rows = [measure(n, args.steps, args.repeats, fidelity) for n in sizes]
+    rows = [measure(n, args.steps, args.repeats, fidelity, args.physics) for n in sizes]
     device = jax.devices()[0]
     result = {
         "device": f"{device.platform}: {device.device_kind}",
@@ -96,7 +100,7 @@ def main() -> None:
     }
     print(
         f"{'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   ({result['device']}, "
-        f"fidelity: {args.fidelity or 'off'})"
+        f"fidelity: {args.fidelity or 'off'}, physics: {args.physics})"
     )
     for r in rows:
         print(
