@@ -10,7 +10,8 @@ For each policy (the checkpoint, else the `forward` and `random` baselines):
    rate and mean speed of each, and their difference in points (the issue's target: within 3);
 2. open loop: the fast model's action sequence of every episode, replayed unchanged through the
    wheeled model from the same reset; the distance between the two base positions after 1, 5 and
-   10 s (mean and max over the episodes that neither model has ended by then).
+   10 s (mean and max over the episodes that neither model has ended by then), and the mean speed
+   of each model over the same commands (each episode until either model ended it).
 
 Prints a table and writes JSON (default `benchmarks/results/wheeled_vs_fast_cpu.json`).
 """
@@ -87,6 +88,18 @@ def divergence(xy_fast, ran_fast, xy_wheel, ran_wheel, period) -> dict:
     return out
 
 
+def open_loop_speeds(xy_fast, ran_fast, xy_wheel, ran_wheel, period) -> dict:
+    """{"fast", "wheeled"}: mean speed (m/s) along each model's path for the same commands, each
+    episode over the steps that both models ran."""
+    both = np.minimum(ran_fast, ran_wheel)  # [E]
+    out = {}
+    for name, xy in (("fast", xy_fast), ("wheeled", xy_wheel)):
+        moved = np.linalg.norm(np.diff(xy, axis=1), axis=-1)  # [E, steps]
+        live = np.arange(moved.shape[1]) < both[:, None]
+        out[name] = float(np.mean((moved * live).sum(1) / (np.maximum(both, 1) * period)))
+    return out
+
+
 def compare(policy, args) -> dict:
     """Both physics' suite metrics and the open-loop divergence of one policy."""
     row = {"policy": policy.name}
@@ -118,17 +131,20 @@ def compare(policy, args) -> dict:
         stochastic_env=not args.deterministic_env,
     )
     row["open_loop_divergence"] = divergence(xy_fast, ran_fast, xy_wheel, ran_wheel, period)
+    row["open_loop_speed"] = open_loop_speeds(xy_fast, ran_fast, xy_wheel, ran_wheel, period)
     return row
 
 
 def format_table(rows: list[dict]) -> str:
     head = (
         f"{'policy':<10} {'cf fast %':>9} {'cf wheeled %':>12} {'gap pts':>7} {'speed fast':>10} "
-        f"{'speed wheeled':>13}  open-loop divergence mean / max m (episodes)"
+        f"{'speed wheeled':>13} {'open-loop speed f/w':>19}  "
+        "open-loop divergence mean / max m (episodes)"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
         fast, wheel = r["fast"]["overall"], r["wheeled"]["overall"]
+        speeds = f"{r['open_loop_speed']['fast']:.3f} / {r['open_loop_speed']['wheeled']:.3f}"
         div = "  ".join(
             f"{h}: {d['mean_m']:.3f} / {d['max_m']:.3f} ({d['episodes']})"
             if d["episodes"]
@@ -138,7 +154,7 @@ def format_table(rows: list[dict]) -> str:
         lines.append(
             f"{r['policy'][:10]:<10} {100 * fast['collision_free_rate']:>9.1f} "
             f"{100 * wheel['collision_free_rate']:>12.1f} {r['collision_free_gap_points']:>+7.1f} "
-            f"{fast['mean_speed']:>10.3f} {wheel['mean_speed']:>13.3f}  {div}"
+            f"{fast['mean_speed']:>10.3f} {wheel['mean_speed']:>13.3f} {speeds:>19}  {div}"
         )
     return "\n".join(lines)
 

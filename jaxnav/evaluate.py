@@ -422,7 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--physics",
         choices=PHYSICS,
         help="the robot's physics: fast (the training default) or wheeled (the validation model: "
-        "driven wheels, castors, friction contacts; about 10x slower); default: the policy's own",
+        "driven wheels, castors, friction contacts; about 18x slower); default: the policy's own",
     )
     p.add_argument("--json", metavar="OUT", help="write the metrics here")
     p.add_argument("--plots", metavar="DIR", help="top-down PNGs, one per layout")

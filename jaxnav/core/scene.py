@@ -277,7 +277,8 @@ class Scene:
             )
 
     def geom_fields(self, params) -> dict[str, jax.Array]:
-        """One env's `geom_pos` [G, 3], `geom_quat` [G, 4] and `geom_size` [G, 3] from its params."""
+        """One env's `geom_pos` [G, 3], `geom_quat` [G, 4] and `geom_size` [G, 3] from its params,
+        and under the wheeled physics `geom_friction` [G, 3] (the floor's traction)."""
         pos = jnp.asarray(self.model.geom_pos)
         quat = jnp.asarray(self.model.geom_quat)
         size = jnp.asarray(self.model.geom_size)

@@ -8,7 +8,8 @@ detection (the analytic signed distance of the bumper at the base's x/y, `jaxnav
 The drive has two physics (`SceneConfig.physics`) behind one command pipeline: "fast" pushes the
 base with forces that track the command; "wheeled" sets the two wheels' speed loops to it and lets
 MuJoCo roll the robot on the floor. Collision detection is the same analytic test in both, at the
-pose qpos[:3]: the wheeled base's small pitch, roll and bounce (mm, < 2 degrees) are not seen by it.
+pose qpos[:3]: the wheeled base's small pitch, roll and bounce (about 2 degrees and 1.3 mm at most,
+benchmarks/wheeled_model.py) are not seen by it.
 """
 
 from __future__ import annotations
