@@ -6,7 +6,8 @@
 Each variant is the default training env (5-row camera, sim-to-real ranges of randomize.FIDELITY,
 the auto-reset pool of the PPO default) with one thing changed, to time what each piece costs:
 `rows1`/`rows3` (a 1- or 3-row camera), `no_fidelity` (randomize.FIDELITY off), `families` (sampled
-rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step).
+rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step),
+`wheeled` (the wheeled validation model, `SceneConfig.physics`).
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size.
@@ -26,6 +27,7 @@ import jax.numpy as jnp
 
 import jaxnav
 from jaxnav.core.randomize import FIDELITY, TRAINING
+from jaxnav.core.scene import SceneConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.wrappers import AutoReset
@@ -38,6 +40,7 @@ VARIANTS = {
     "no_fidelity": {"randomize": dataclasses.replace(TRAINING, **NO_FIDELITY)},
     "families": {"randomize": dataclasses.replace(TRAINING, families="all")},
     "pool_all": {"reset_share": 1.0},
+    "wheeled": {"scene": SceneConfig(physics="wheeled")},
 }
 
 

@@ -8,6 +8,7 @@ collision or after `steps` control steps; after that it is frozen (masked), so n
     python -m jaxnav.evaluate --policy forward --episodes 100 --steps 600
     python -m jaxnav.evaluate --checkpoint runs/a --video videos/   # one GIF per layout
     python -m jaxnav.evaluate --policy forward --suite benchmark --episodes 20  # every family
+    python -m jaxnav.evaluate --checkpoint runs/a --physics wheeled  # the wheeled validation model
 
 All rooms run in one env and one compiled batch (`make_rollout(..., pinned=True)`): the rooms are
 data, so a 32-room suite compiles once. Coverage (`jaxnav.core.families.coverage`) is the share of
@@ -34,7 +35,7 @@ import jaxnav
 from jaxnav.cli import Parser, UsageError, make_callable, print_error
 from jaxnav.core import families, goals
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
-from jaxnav.core.scene import SCENES_DIR
+from jaxnav.core.scene import PHYSICS, SCENES_DIR, SceneConfig
 from jaxnav.io.assets import scenes_dir
 from jaxnav.io.files import check_writable, write_atomic
 from jaxnav.io.layouts import LayoutError, RoomLayout
@@ -122,7 +123,7 @@ def reset_in(env, key: jax.Array, room: jax.Array):
     return state.replace(info={**state.info, "params": params})
 
 
-def _first_state(env, key, episodes: int, pinned: bool):
+def first_state(env, key, episodes: int, pinned: bool):
     """The batch's reset: E = R * episodes envs, episode e in room e // episodes if `pinned`."""
     rooms = env.bank.size if pinned else 1
     keys = jax.random.split(key, rooms * episodes)
@@ -161,11 +162,11 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
             start=track.start,
             goal=track.goal,
         )
-        return (nxt, track), (track.xy[kept], nxt.data.qpos[firsts])
+        return (nxt, track), (track.xy[kept], nxt.data.qpos[firsts, :3])
 
     def rollout(key):
         k_reset, k_act = jax.random.split(key)
-        state = _first_state(env, k_reset, episodes, pinned)
+        state = first_state(env, k_reset, episodes, pinned)
         n = rooms * episodes
         xy0 = state.data.qpos[:, :2]  # [E, 2]
         false, zero = jnp.zeros(n, bool), jnp.zeros(n)
@@ -175,7 +176,7 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
         keys = jax.random.split(k_act, steps)
         (_, track), (path, qpos) = jax.lax.scan(body, (state, track), keys)  # [steps, R * K, 2]
         path = jnp.concatenate([xy0[None, kept], path])  # [steps + 1, R * K, 2]
-        qpos = jnp.concatenate([state.data.qpos[None, firsts], qpos])  # [steps + 1, R, 3]
+        qpos = jnp.concatenate([state.data.qpos[None, firsts, :3], qpos])  # [steps + 1, R, 3]
         first = jax.tree_util.tree_map(lambda x: x[firsts], state.info["params"])
         return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=jnp.swapaxes(qpos, 0, 1), params=first)
 
@@ -243,16 +244,23 @@ def spl_from(reach: np.ndarray, track_room: dict) -> np.ndarray:
     return np.where(np.isfinite(ratio), ratio, 0.0)
 
 
-def _env_kwargs(policy: Policy, steps: int, randomize: RandomizeConfig) -> dict:
-    """The policy's training env settings, with evaluation's own room, spawn and time limit."""
+def make_eval_env(policy: Policy, layouts, *, steps: int, randomize, physics: str | None = None):
+    """The env of evaluation: the policy's training settings (task, sensor, scene, robot) in
+    `layouts` with evaluation's own randomisation and time limit (`steps`), and `physics`
+    ("fast" or "wheeled", `SceneConfig.physics`) instead of the policy's own if given."""
     kwargs = {k: v for k, v in policy.env_kwargs.items() if k not in ("layouts", "randomize")}
-    return {**kwargs, "randomize": randomize, "max_steps": steps}
+    if physics is not None:
+        scene = kwargs.get("scene") or SceneConfig()
+        kwargs["scene"] = dataclasses.replace(scene, physics=physics)
+    return make_env(policy.env, layouts=layouts, randomize=randomize, max_steps=steps, **kwargs)
 
 
-def evaluate_rooms(policy: Policy, layouts, key, *, episodes, steps, randomize) -> list[dict]:
+def evaluate_rooms(
+    policy: Policy, layouts, key, *, episodes, steps, randomize, physics=None
+) -> list[dict]:
     """All layouts in one env and one compiled batch -> per room: its per-episode arrays (numpy)
     and what `evaluate` keeps for pictures (`paths`, `collided`, `qpos`, `params`, `env`)."""
-    env = make_env(policy.env, layouts=layouts, **_env_kwargs(policy, steps, randomize))
+    env = make_eval_env(policy, layouts, steps=steps, randomize=randomize, physics=physics)
     rollout = make_rollout(env, policy.act, episodes, steps, keep=episodes, pinned=True)
     track, kept = jax.device_get(rollout(key))
     with_goals = "success" in env.metric_names
@@ -324,6 +332,7 @@ def evaluate(
     seed: int = 0,
     spawn: str = "layout",
     stochastic_env: bool = True,
+    physics: str | None = None,
 ) -> dict:
     """Runs `episodes` episodes of at most `steps` control steps in each layout (or each room of
     `suite`, see `load_suite`), all rooms in one compiled batch.
@@ -335,6 +344,8 @@ def evaluate(
     `MAX_TRAJECTORIES` paths per layout are kept; `qpos` [T_0 + 1, 3] (x, y, yaw) and `params`
     (SceneParams) are the first episode's, and `env` the env of the batch, for `jaxnav.viz.render`.
     `_trajectories` is for pictures; `strip_private` removes it before writing JSON.
+    `physics` ("fast" or "wheeled") replaces the policy's own `SceneConfig.physics`; the results
+    name the one used under `"physics"`.
     """
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
@@ -354,6 +365,7 @@ def evaluate(
         episodes=episodes,
         steps=steps,
         randomize=randomize,
+        physics=physics,
     )
     names = unique_names(layouts)
     per_layout = {name: _pool([room]) for name, room in zip(names, rooms, strict=True)}
@@ -372,6 +384,7 @@ def evaluate(
         "layouts": per_layout,
         "overall": _pool(rooms),
         "policy": policy.name,
+        "physics": rooms[0]["env"].scene.cfg.physics,
         "steps": steps,
         "seed": seed,
         "_trajectories": trajectories,
@@ -460,6 +473,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--deterministic-env",
         action="store_true",
         help="exact physics and sensing: no randomised traction, gains, smoother, latency or noise",
+    )
+    p.add_argument(
+        "--physics",
+        choices=PHYSICS,
+        help="the robot's physics: fast (the training default) or wheeled (the validation model: "
+        "driven wheels, castors, friction contacts; about 18x slower); default: the policy's own",
     )
     p.add_argument("--json", metavar="OUT", help="write the metrics here")
     p.add_argument("--plots", metavar="DIR", help="top-down PNGs, one per layout")
@@ -669,6 +688,7 @@ def _run(argv) -> None:
         seed=args.seed,
         spawn=args.spawn,
         stochastic_env=not args.deterministic_env,
+        physics=args.physics,
     )
     print(format_table(results))
     _write_outputs(args, results, layouts)

@@ -50,7 +50,8 @@ def random_results(room):
 
 def test_results_schema_and_ranges(forward_results, room):
     r = forward_results
-    assert set(strip_private(r)) == {"layouts", "overall", "policy", "steps", "seed"}
+    assert set(strip_private(r)) == {"layouts", "overall", "policy", "physics", "steps", "seed"}
+    assert r["physics"] == "fast"  # the policy's own (SceneConfig default)
     assert r["policy"] == "forward" and r["steps"] == STEPS and r["seed"] == 0
     assert list(r["layouts"]) == [room[0].name]
     for m in [*r["layouts"].values(), r["overall"]]:

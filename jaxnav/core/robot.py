@@ -22,10 +22,16 @@ class RobotSpec:
     mjcf: str = "turtlebot2i.xml"
     """MJCF file of the robot, a file name in jaxnav's scenes or a path. It must define body
     `base` on slide joints x, y and hinge yaw, motors on them, and the collision geom `bumper`."""
+    wheeled_mjcf: str = "turtlebot2i_wheeled.xml"
+    """MJCF of the wheeled validation model (`SceneConfig.physics="wheeled"`): body `base` whose
+    first joints are the same x, y and yaw (more may follow), the same `bumper`, wheel geoms and
+    velocity actuators `wheel_left`/`wheel_right` `wheelbase` apart, and contype-2 geoms (wheels,
+    castors) that touch the floor."""
     radius: float = 0.177
     """Footprint radius, m (Kobuki diameter 0.354 m): spawns keep it clear of obstacles."""
     wheelbase: float = 0.230
-    """Distance between the drive wheels, m: bounds the yaw torque the wheels can apply."""
+    """Distance between the drive wheels, m: bounds the yaw torque the wheels can apply, and the
+    wheeled model's wheels must be this far apart."""
     max_linear_speed: float = 0.7
     """Top forward speed, m/s (Kobuki)."""
     max_angular_speed: float = math.pi

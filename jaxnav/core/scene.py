@@ -4,6 +4,12 @@ Every env of a batch shares one `mjx.Model` structure (geom types and collision 
 while the geometry that differs between rooms (wall positions, obstacle poses and sizes) lives in the
 `geom_pos`, `geom_quat` and `geom_size` fields, rebuilt from each env's `SceneParams`. Unused slots are
 parked under the floor, where neither the robot nor the depth rays can reach them.
+
+Two physics models of the robot (`SceneConfig.physics`): "fast", the base pushed along the floor by
+forces that track the command (`RobotSpec.mjcf`, one 0.1 s step per control step), and "wheeled",
+the validation model: the base on two driven wheels and castors with gravity and friction contacts
+(`RobotSpec.wheeled_mjcf`, its own timestep and solver). In both, qpos[:3] is the base's pose
+(x, y, yaw): the sensor, collision detection and evaluation read only that.
 """
 
 from __future__ import annotations
@@ -24,6 +30,9 @@ from jaxnav.io.assets import scenes_dir
 SCENES_DIR = scenes_dir()
 
 OBSTACLE_GROUP = 1  # geom group of walls and obstacles: the only geoms the depth rays see
+FLOOR_AFFINITY = 2  # the floor's conaffinity: robot geoms of contype 2 (wheels, castors) touch it
+PHYSICS = ("fast", "wheeled")
+WHEELS = ("wheel_left", "wheel_right")  # the wheeled model's wheel joints, geoms and actuators
 PARK_DEPTH = -10.0  # m; z of parked slots, far below the floor and the rays
 _WALL_NORMALS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]], np.float64)  # east, west, north, south
 
@@ -32,19 +41,31 @@ _WALL_NORMALS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]], np.float64)  # east
 class SceneConfig:
     """Static structure of the simulated room; changing it recompiles."""
 
+    physics: str = "fast"
+    """The robot's physics: 'fast' (forces on a planar base that track the command, within the
+    floor's traction) or 'wheeled' (the validation model: two driven wheels, castors, gravity and
+    friction contacts, `RobotSpec.wheeled_mjcf`; its MJCF sets its own timestep and solver, and
+    it runs control_period / timestep steps per control step)."""
     num_boxes: int = 8
     """Box obstacle slots per room."""
     num_cylinders: int = 4
     """Cylinder obstacle slots per room (capsules standing through the floor, see `build_mj_model`)."""
     timestep: float = 0.1
-    """Physics timestep in seconds; `substeps * timestep` is the control period. One 0.1 s step
-    moves the robot at most 7 cm, well under its 17.7 cm radius, so it cannot tunnel (tested)."""
+    """Physics timestep in seconds; `substeps * timestep` is the control period (both physics).
+    One 0.1 s step moves the robot at most 7 cm, well under its 17.7 cm radius, so it cannot
+    tunnel (tested)."""
     substeps: int = 1
-    """Physics steps per control step (measured: 1 x 0.1 s is 1.6x faster than 2 x 0.05 s)."""
+    """Physics steps per control step of the fast physics (measured: 1 x 0.1 s is 1.6x faster
+    than 2 x 0.05 s)."""
     solver_iterations: int = 1
-    """Constraint solver iterations; a contact ends the episode, so one Newton step suffices."""
+    """Constraint solver iterations of the fast physics; a contact ends the episode, so one Newton
+    step suffices."""
 
     def __post_init__(self):
+        if self.physics not in PHYSICS:
+            raise ValueError(
+                f"SceneConfig.physics: must be one of {', '.join(PHYSICS)}, got {self.physics!r}"
+            )
         for name in ("num_boxes", "num_cylinders"):
             if getattr(self, name) < 0:
                 raise ValueError(f"SceneConfig.{name}: must be >= 0, got {getattr(self, name)}")
@@ -73,13 +94,21 @@ def _z_to(normal: np.ndarray) -> list[float]:
     return [np.sqrt(0.5), *(np.sqrt(0.5) * axis)]
 
 
-def robot_mjcf(robot: RobotSpec) -> Path:
-    """The robot's MJCF file: a path, or a file name among jaxnav's scenes."""
-    path = Path(robot.mjcf)
+def mjcf_field(physics: str) -> str:
+    """The `RobotSpec` field naming the MJCF of `physics`."""
+    return "mjcf" if physics == "fast" else "wheeled_mjcf"
+
+
+def robot_mjcf(robot: RobotSpec, physics: str = "fast") -> Path:
+    """The robot's MJCF file of `physics` (`RobotSpec.mjcf` or `.wheeled_mjcf`): a path, or a
+    file name among jaxnav's scenes."""
+    field = mjcf_field(physics)
+    name = getattr(robot, field)
+    path = Path(name)
     if not path.is_absolute() and not path.exists():
-        path = SCENES_DIR / robot.mjcf
+        path = SCENES_DIR / name
     if not path.is_file():
-        raise ValueError(f"RobotSpec.mjcf: no such file: {robot.mjcf}")
+        raise ValueError(f"RobotSpec.{field}: no such file: {name}")
     return path
 
 
@@ -88,12 +117,14 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
 
     Cylinders are capsules whose round part spans z in [0, height]: MJX has no cylinder ray and no
     cylinder-box collision, while capsules have both, and below the robot's and camera's heights the two
-    shapes are identical.
+    shapes are identical. The fast physics takes its timestep and solver iterations from `cfg`; the
+    wheeled model keeps its MJCF's own.
     """
-    spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot)))
-    spec.option.timestep = cfg.timestep
-    spec.option.iterations = cfg.solver_iterations
-    spec.option.ls_iterations = cfg.solver_iterations
+    spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot, cfg.physics)))
+    if cfg.physics == "fast":
+        spec.option.timestep = cfg.timestep
+        spec.option.iterations = cfg.solver_iterations
+        spec.option.ls_iterations = cfg.solver_iterations
     spec.add_material(name="floor", rgba=[0.85, 0.85, 0.8, 1])
     spec.add_material(name="wall", rgba=[0.7, 0.6, 0.5, 1])
     spec.add_material(name="obstacle", rgba=[0.3, 0.5, 0.8, 1])
@@ -106,7 +137,7 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
         material="floor",
         group=2,
         contype=0,
-        conaffinity=0,
+        conaffinity=FLOOR_AFFINITY,
     )
     solid = dict(contype=0, conaffinity=1, condim=1, group=OBSTACLE_GROUP)
     for i, normal in enumerate(_WALL_NORMALS):
@@ -153,10 +184,60 @@ def _bumper_span(m: mujoco.MjModel, bumper: int, source: str) -> tuple[tuple[flo
         half = None
     if half is None or np.abs(pos[:2]).max() > 1e-9:
         raise ValueError(
-            f"RobotSpec.mjcf: {source}: geom 'bumper' must be a sphere or an upright capsule "
-            "on the base's axis"
+            f"{source}: geom 'bumper' must be a sphere or an upright capsule on the base's axis"
         )
     return (float(pos[2]) - half, float(pos[2]) + half), float(size[0])
+
+
+def _check_pose_joints(m: mujoco.MjModel, body: int, source: str) -> None:
+    """Body `base` must start with slides along x and y and a hinge about z, so that qpos[:3] is
+    its pose (x, y, yaw), whatever joints follow."""
+    first, count = int(m.body_jntadr[body]), int(m.body_jntnum[body])
+    slide, hinge = mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE
+    want = ((slide, (1, 0, 0)), (slide, (0, 1, 0)), (hinge, (0, 0, 1)))
+    ok = count >= 3 and all(
+        m.jnt_type[first + i] == kind
+        and np.allclose(m.jnt_axis[first + i], axis)
+        and m.jnt_qposadr[first + i] == i
+        for i, (kind, axis) in enumerate(want)
+    )
+    if not ok:
+        raise ValueError(
+            f"{source}: body 'base' must start with a slide along x, a slide "
+            "along y and a hinge about z (qpos[:3] = x, y, yaw)"
+        )
+
+
+def _physics_substeps(cfg: SceneConfig, timestep: float, source: str) -> int:
+    """Physics steps of `timestep` per control period; the wheeled model's must divide it."""
+    if cfg.physics == "fast":
+        return cfg.substeps
+    steps = round(cfg.control_period / timestep)
+    if steps < 1 or abs(steps * timestep - cfg.control_period) > 1e-9:
+        raise ValueError(
+            f"SceneConfig.physics: the timestep of {source} ({timestep} s) does not divide the "
+            f"control period {cfg.control_period} s (SceneConfig.timestep x substeps)"
+        )
+    return steps
+
+
+def _wheel_radius(m: mujoco.MjModel, robot: RobotSpec, source: str) -> float:
+    """The radius of the wheeled model's wheels (geoms `WHEELS`), checked against the robot's
+    wheelbase (what `NavTask.actuate` splits the command with) and the actuators' presence."""
+    ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, w) for w in WHEELS]
+    acts = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, w) for w in WHEELS]
+    if min(ids + acts) < 0:
+        raise ValueError(f"{source}: needs geoms and actuators named {', '.join(WHEELS)}")
+    radius = m.geom_size[ids, 0]
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    apart = float(np.linalg.norm(d.geom_xpos[ids[0]] - d.geom_xpos[ids[1]]))
+    if abs(apart - robot.wheelbase) > 1e-6 or abs(radius[0] - radius[1]) > 1e-9:
+        raise ValueError(
+            f"RobotSpec.wheelbase: {robot.wheelbase} m, but the wheels of {source} are "
+            f"{apart:.4f} m apart (radii {radius[0]}, {radius[1]})"
+        )
+    return float(radius[0])
 
 
 class Scene:
@@ -165,6 +246,8 @@ class Scene:
     def __init__(self, cfg: SceneConfig = SceneConfig(), robot: RobotSpec = TURTLEBOT2I):
         self.cfg, self.robot = cfg, robot
         self.mj_model = build_mj_model(cfg, robot)
+        field = mjcf_field(cfg.physics)
+        source = f"RobotSpec.{field}: {getattr(robot, field)}"  # for error messages
         self.model = mjx.put_model(self.mj_model)
         name = lambda n: mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
         self.wall_ids = np.array([name(f"wall{i}") for i in range(4)])
@@ -179,12 +262,23 @@ class Scene:
         self.bumper = name("bumper")
         # The bumper sphere's centre height and radius: what collision detection tests (see
         # geometry.signed_distance); the MJCF places it on the base's axis.
-        self.bumper_z, self.bumper_radius = _bumper_span(self.mj_model, self.bumper, robot.mjcf)
+        self.bumper_z, self.bumper_radius = _bumper_span(self.mj_model, self.bumper, source)
+        _check_pose_joints(self.mj_model, self.robot_body, source)
         self.mass = float(self.mj_model.body_mass[self.robot_body])
         self.yaw_inertia = float(self.mj_model.body_inertia[self.robot_body, 2])
+        self.wheeled = cfg.physics == "wheeled"
+        self.timestep = float(self.mj_model.opt.timestep)  # s per physics step
+        self.substeps = _physics_substeps(cfg, self.timestep, source)  # physics steps per control
+        self.floor = name("floor")
+        if self.wheeled:
+            self.wheel_radius = _wheel_radius(self.mj_model, robot, source)
+            self.wheel_actuators = np.array(
+                [mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_ACTUATOR, w) for w in WHEELS]
+            )
 
     def geom_fields(self, params) -> dict[str, jax.Array]:
-        """One env's `geom_pos` [G, 3], `geom_quat` [G, 4] and `geom_size` [G, 3] from its params."""
+        """One env's `geom_pos` [G, 3], `geom_quat` [G, 4] and `geom_size` [G, 3] from its params,
+        and under the wheeled physics `geom_friction` [G, 3] (the floor's traction)."""
         pos = jnp.asarray(self.model.geom_pos)
         quat = jnp.asarray(self.model.geom_quat)
         size = jnp.asarray(self.model.geom_size)
@@ -204,7 +298,14 @@ class Scene:
             size = size.at[self.cyl_ids].set(
                 jnp.column_stack([radius, half_h, jnp.zeros_like(radius)])
             )
-        return {"geom_pos": pos, "geom_quat": quat, "geom_size": size}
+        fields = {"geom_pos": pos, "geom_quat": quat, "geom_size": size}
+        if self.wheeled:
+            # The episode's floor traction; a contact takes the larger friction of its two geoms,
+            # and the tyres' is 0, so the floor's is the wheels' (the fast drive bounds its force
+            # with the same coefficient).
+            friction = jnp.asarray(self.model.geom_friction)
+            fields["geom_friction"] = friction.at[self.floor, 0].set(params.friction)
+        return fields
 
     def model_for(self, params) -> mjx.Model:
         """The `mjx.Model` of one env (use under `jax.vmap` for a batch)."""

@@ -27,6 +27,10 @@ GROUPS = (
 )
 
 
+# Short forms of a few flags, the names the documentation and the issues use.
+ALIASES = {"scene.physics": "--physics"}
+
+
 def group_class(attr: str, cls, env: str):
     """The config class of group `attr` for task `env`."""
     return task_entry(env).config_cls if attr == "task" else cls
@@ -151,7 +155,8 @@ def add_flags(parser: argparse.ArgumentParser, env: str = "avoid") -> None:
     """One flag per config field: `--num-envs` for PPO, `--task.near-threshold` etc. for the rest
     (the task's flags are those of `env`'s config class).
 
-    Defaults are None so that only flags the user gave override the preset.
+    Defaults are None so that only flags the user gave override the preset. `ALIASES` adds a
+    second name to some (`--physics` for `--scene.physics`).
     """
     for attr, cls, prefix in GROUPS:
         cls = group_class(attr, cls, env)
@@ -161,9 +166,10 @@ def add_flags(parser: argparse.ArgumentParser, env: str = "avoid") -> None:
             flag = "--" + prefix + f.name.replace("_", "-")
             kind, nargs = _flag_type(hints[f.name])
             help_text = (_field_doc(cls, f.name) + f" (default: {f.default})").replace("%", "%%")
+            dest = f"{attr}.{f.name}"
             group.add_argument(
-                flag,
-                dest=f"{attr}.{f.name}",
+                *([flag, ALIASES[dest]] if dest in ALIASES else [flag]),
+                dest=dest,
                 type=kind,
                 nargs=nargs,
                 default=None,

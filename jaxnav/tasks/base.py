@@ -2,8 +2,14 @@
 
 A task subclasses `NavTask` and adds its observation, reward, termination and metrics (see
 `jaxnav.tasks.avoid`). `NavTask` owns the scene, the per-episode draw of room, spawn and parameters
-(`new_episode`), the differential drive (`drive`), the depth sensor (`sense`) and collision detection
-(the analytic signed distance of the bumper sphere, `jaxnav.core.geometry`).
+(`new_episode`), the differential drive (`actuate`, `drive`), the depth sensor (`sense`) and collision
+detection (the analytic signed distance of the bumper at the base's x/y, `jaxnav.core.geometry`).
+
+The drive has two physics (`SceneConfig.physics`) behind one command pipeline: "fast" pushes the
+base with forces that track the command; "wheeled" sets the two wheels' speed loops to it and lets
+MuJoCo roll the robot on the floor. Collision detection is the same analytic test in both, at the
+pose qpos[:3]: the wheeled base's small pitch, roll and bounce (about 2 degrees and 1.3 mm at most,
+benchmarks/wheeled_model.py) are not seen by it.
 """
 
 from __future__ import annotations
@@ -98,7 +104,7 @@ class NavTask:
 
     def place(self, params: SceneParams) -> mjx.Data:
         """The physics state of the robot at `params.spawn` in the room of `params`."""
-        data = self._data0.replace(qpos=params.spawn)
+        data = self._data0.replace(qpos=self._data0.qpos.at[:3].set(params.spawn))
         # Kinematics places the new room's geoms for the rays; contacts come with the first step.
         return mjx.kinematics(self.scene.model_for(params), data)
 
@@ -142,27 +148,38 @@ class NavTask:
         return command * params.speed_gain, Actuator(queue, velocity)
 
     def drive(self, params: SceneParams, data: mjx.Data, command: jax.Array):
-        """Holds `command` [2] (forward m/s, yaw rad/s, as `actuate` passes it) for one period.
-
-        Each physics step, the motors push the base towards the commanded forward speed along its
-        heading (zero sideways) and the commanded yaw rate, with forces bounded by the floor's
-        traction. Returns the new data and whether the bumper touched anything on the way.
-        """
+        """Holds `command` [2] (forward m/s, yaw rad/s, as `actuate` passes it) for one period of
+        the scene's physics steps. Returns the new data and whether the bumper touched anything
+        after any of them."""
         m = self.scene.model_for(params)
-        dt = self.scene.cfg.timestep
-        mass, inertia = self.scene.mass, self.scene.yaw_inertia
-        force_max = params.friction * mass * GRAVITY
-        torque_max = force_max * 0.5 * self.robot.wheelbase
+        control = self._wheel_speeds if self.scene.wheeled else self._base_forces
 
         def substep(carry, _):
             d, hit = carry
-            heading = jnp.stack([jnp.cos(d.qpos[2]), jnp.sin(d.qpos[2])])
-            force = mass * (command[0] * heading - d.qvel[:2]) / dt
-            force = force * jnp.minimum(1.0, force_max / (jnp.linalg.norm(force) + 1e-9))
-            torque = jnp.clip(inertia * (command[1] - d.qvel[2]) / dt, -torque_max, torque_max)
-            d = mjx.step(m, d.replace(ctrl=jnp.append(force, torque)))
+            d = mjx.step(m, d.replace(ctrl=control(params, d, command)))
             return (d, hit | self.touching(params, d)), None
 
         init = (data, jnp.bool_(False))
-        (data, hit), _ = jax.lax.scan(substep, init, None, self.scene.cfg.substeps)
+        (data, hit), _ = jax.lax.scan(substep, init, None, self.scene.substeps)
         return data, hit
+
+    def _base_forces(self, params: SceneParams, d: mjx.Data, command: jax.Array) -> jax.Array:
+        """Fast physics: [3] forces (x, y) and yaw torque that push the base towards the commanded
+        forward speed along its heading (zero sideways) and yaw rate within one step, bounded by
+        the floor's traction."""
+        dt, mass, inertia = self.scene.timestep, self.scene.mass, self.scene.yaw_inertia
+        force_max = params.friction * mass * GRAVITY
+        torque_max = force_max * 0.5 * self.robot.wheelbase
+        heading = jnp.stack([jnp.cos(d.qpos[2]), jnp.sin(d.qpos[2])])
+        force = mass * (command[0] * heading - d.qvel[:2]) / dt
+        force = force * jnp.minimum(1.0, force_max / (jnp.linalg.norm(force) + 1e-9))
+        torque = jnp.clip(inertia * (command[1] - d.qvel[2]) / dt, -torque_max, torque_max)
+        return jnp.append(force, torque)
+
+    def _wheel_speeds(self, params: SceneParams, d: mjx.Data, command: jax.Array) -> jax.Array:
+        """Wheeled physics: [nu] the left and right wheel speed targets (rad/s) of a differential
+        drive, for the wheels' velocity loops; the floor's friction does the rest."""
+        half_track = 0.5 * self.robot.wheelbase
+        rim = command[0] + jnp.array([-1.0, 1.0]) * command[1] * half_track  # [2] m/s
+        ctrl = jnp.zeros(self.scene.model.nu)
+        return ctrl.at[self.scene.wheel_actuators].set(rim / self.scene.wheel_radius)

@@ -137,7 +137,7 @@ def render_episode(
     frames = []
     with renderer:
         for i in range(len(qpos)):
-            data.qpos[:] = qpos[i]
+            data.qpos[:3] = qpos[i]  # the pose; a wheeled model's other joints stay at rest
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera)
             _add_walls(renderer.scene, shapes.walls, wall_height)
