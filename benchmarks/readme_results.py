@@ -144,7 +144,9 @@ def paper_line(run: Path) -> dict:
     paper = run.with_name(run.name + "-paper")
     seconds = train(paper, "--preset", "paper")
     flags = ("--suite", "benchmark", "--episodes", "20")
-    ev = evaluate(paper, RESULTS / "readme_cpu_paper_suite.json", *flags)
+    ev = evaluate(
+        paper, RESULTS / "readme_cpu_paper_suite.json", *flags, pictures="readme_pictures/paper"
+    )
     return dict(
         what=PAPER_WHAT,
         command="python -m jaxnav.train --preset paper && python -m jaxnav.evaluate --checkpoint "
