@@ -237,7 +237,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.gather_only and OUT.exists():
         old = json.loads(OUT.read_text())["lines"]
-        cpu = [ln for ln in old if "CPU" in ln["machine"] and ln["what"] != PAPER_WHAT]
+        cpu = [ln for ln in old if "CPU" in ln["machine"]]
+        cpu = [ln for ln in cpu if not (args.paper and ln["what"] == PAPER_WHAT)]
     else:
         cpu = cpu_lines(args)
     if args.paper:
