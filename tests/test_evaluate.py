@@ -72,10 +72,11 @@ def test_forward_baseline_drives_straight_into_obstacles(forward_results):
     # The layout spawn faces a cylinder 1.6 m ahead: every episode should end there.
     assert m["collision_free_rate"] <= 0.5
     assert m["mean_steps"] < STEPS
-    # Speed over the steps actually run is the commanded one (speed gain 0.8-1.2 averages out;
-    # the start from rest and the last, partial step before contact cost a few percent).
+    # Speed over the steps actually run: from rest, the Kobuki's velocity smoother (0.25-0.35
+    # m/s^2) needs 1.4-2 s of the ~4 s to the cylinder to reach the commanded speed, and the
+    # latency 0-0.2 s more, so the mean is 65-90 % of it (speed gain 0.8-1.2 averages out).
     speed = jaxnav.tasks.registry.AvoidConfig().forward_speed
-    assert m["mean_speed"] == pytest.approx(speed, rel=0.15)
+    assert 0.6 * speed < m["mean_speed"] < 0.95 * speed
     # Frozen after the collision: distance is speed x time up to then, not over all STEPS steps.
     assert m["mean_distance"] == pytest.approx(m["mean_speed"] * m["mean_steps"] * 0.1, rel=0.15)
 
