@@ -10,12 +10,14 @@ import tempfile
 # of several tests compile the same programs.
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", tempfile.mkdtemp(prefix="jaxnav-xla-cache-"))
 
+import chex  # noqa: E402
 import jax  # noqa: E402
 import pytest
 
 import jaxnav
 from jaxnav.core.randomize import RandomizeConfig
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout
+from jaxnav.viz import render
 
 # Deterministic physics and sensing: no randomisation of gain, traction or noise.
 EXACT = RandomizeConfig(
@@ -56,6 +58,33 @@ def probe_env():
     ]
     env = jaxnav.make_env("avoid", layouts=layouts, randomize=EXACT)
     return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+@pytest.fixture(scope="session")
+def needs_gl():
+    """Skips, saying what to install, where MuJoCo's renderer has no OpenGL backend."""
+    tried = os.environ.get("MUJOCO_GL") or "/".join(render.GL_BACKENDS)
+    if render.gl_backend() is None:
+        pytest.skip(
+            f"no OpenGL backend for MuJoCo's renderer (tried MUJOCO_GL={tried}; "
+            "install libegl1 and libgl1-mesa-dri, or libosmesa6)"
+        )
+
+
+def traced_once(env):
+    """(jitted reset, jitted step) of `env`, each failing if traced more than once."""
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def reset(key):
+        return env.reset(key)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def step(state, action):
+        return env.step(state, action)
+
+    return reset, step
 
 
 def start_in(env, reset, layout_id):

@@ -1,11 +1,10 @@
 """The `avoid` environment: shapes, sensing, collisions, Table I rewards, spawns, no recompilation."""
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import start_in
+from conftest import start_in, traced_once
 
 import jaxnav
 from jaxnav.core.randomize import TRAINING, RandomizeConfig, clearance, sample
@@ -114,15 +113,7 @@ def test_spawn_never_overlaps(mixed_env):
 
 
 def test_layout_change_does_not_recompile(mixed_env):
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def reset(key):
-        return mixed_env.reset(key)
-
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def step(state, action):
-        return mixed_env.step(state, action)
+    reset, step = traced_once(mixed_env)
 
     rooms = set()
     for seed in range(12):

@@ -3,12 +3,11 @@ actions within the limits, goals in layouts, and no recompilation when goals cha
 
 import dataclasses
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import EXACT, start_in
+from conftest import EXACT, start_in, traced_once
 
 import jaxnav
 from jaxnav.core import families
@@ -41,17 +40,7 @@ def mixed():
     randomize = dataclasses.replace(TRAINING, random_spawn_prob=0.5)
     env = jaxnav.make_env("goal", layouts=[POCKET, OPEN, CORRIDOR], randomize=randomize)
 
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def reset(key):
-        return env.reset(key)
-
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def step(state, action):
-        return env.step(state, action)
-
-    return env, reset, step
+    return env, *traced_once(env)
 
 
 def test_goal_draws_are_free_far_and_reachable(mixed):

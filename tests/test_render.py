@@ -5,8 +5,6 @@ One short evaluation (one rollout compile) feeds every test; the CLI tests reuse
 
 from __future__ import annotations
 
-import os
-
 import jax
 import numpy as np
 import pytest
@@ -36,16 +34,6 @@ def results(room):
 @pytest.fixture(scope="module")
 def episode(results, room):
     return results["_trajectories"][room[0].name]
-
-
-@pytest.fixture
-def needs_gl():
-    tried = os.environ.get("MUJOCO_GL") or "/".join(render.GL_BACKENDS)
-    if render.gl_backend() is None:
-        pytest.skip(
-            f"no OpenGL backend for MuJoCo's renderer (tried MUJOCO_GL={tried}; "
-            "install libegl1 and libgl1-mesa-dri, or libosmesa6)"
-        )
 
 
 def test_evaluate_keeps_the_first_episode(episode):

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 
 import jax
 import jax.numpy as jnp
@@ -68,16 +67,6 @@ BLIND_WALL = RoomLayout(
     name="blind", size=(3.0, 3.0), robot_pos=(0.0, 0.0), robot_yaw=0.0,
     obstacles=(Box(pos=(0.5, 0.0), size=(0.2, 2.0)),),  # face 0.4 m ahead: inside 0.6 m
 )  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def needs_gl():
-    tried = os.environ.get("MUJOCO_GL") or "/".join(render.GL_BACKENDS)
-    if render.gl_backend() is None:
-        pytest.skip(
-            f"no OpenGL backend for MuJoCo's renderer (tried MUJOCO_GL={tried}; "
-            "install libegl1 and libgl1-mesa-dri, or libosmesa6)"
-        )
 
 
 def _place_near_obstacle(params, rng):

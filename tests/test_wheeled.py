@@ -7,12 +7,11 @@ import subprocess
 import sys
 from subprocess import PIPE
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import EXACT, corridor, start_in
+from conftest import EXACT, corridor, start_in, traced_once
 
 import jaxnav
 from jaxnav.cli import Parser
@@ -45,17 +44,7 @@ def wheeled():
     """The wheeled env in ROOM and OPEN, its reset and step each allowed one trace."""
     env = jaxnav.make_env("avoid", [ROOM, OPEN], randomize=EXACT, scene=WHEELED, max_steps=100)
 
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def reset(key):
-        return env.reset(key)
-
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def step(state, action):
-        return env.step(state, action)
-
-    return env, reset, step
+    return env, *traced_once(env)
 
 
 def drive(step, state, action, n):

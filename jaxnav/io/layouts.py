@@ -425,29 +425,32 @@ def _check_spawn(layout: RoomLayout) -> None:
         return
     if is_free(layout, layout.robot_pos, ROBOT_RADIUS):
         return
-    dist = _distances(layout, np.asarray(layout.robot_pos))
-    names = [f"the {w} wall" for w in _WALLS]
-    names += [f"obstacles[{i}] ({ob.kind})" for i, ob in enumerate(layout.obstacles)]
-    k = int(dist.argmin())
+    name, gap = _nearest(layout, layout.robot_pos)
     raise LayoutError(
         "robot.pos",
         f"the robot (radius {ROBOT_RADIUS} m) at {_show(list(layout.robot_pos))} overlaps "
-        f"{names[k]}: clearance {dist[k]:.3f} m",
+        f"{name}: clearance {gap:.3f} m",
     )
+
+
+def _nearest(layout: RoomLayout, pos) -> tuple[str, float]:
+    """The wall or obstacle nearest `pos` [2] (as an error names it) and its clearance, m."""
+    dist = _distances(layout, np.asarray(pos))
+    names = [f"the {w} wall" for w in _WALLS]
+    names += [f"obstacles[{i}] ({ob.kind})" for i, ob in enumerate(layout.obstacles)]
+    k = int(dist.argmin())
+    return names[k], float(dist[k])
 
 
 def _check_goal(layout: RoomLayout) -> None:
     """A goal position leaves the robot's disc clear of every wall and obstacle."""
     if layout.goal_pos is None or is_free(layout, layout.goal_pos, ROBOT_RADIUS):
         return
-    dist = _distances(layout, np.asarray(layout.goal_pos))
-    names = [f"the {w} wall" for w in _WALLS]
-    names += [f"obstacles[{i}] ({ob.kind})" for i, ob in enumerate(layout.obstacles)]
-    k = int(dist.argmin())
+    name, gap = _nearest(layout, layout.goal_pos)
     raise LayoutError(
         "goal.pos",
         f"the robot (radius {ROBOT_RADIUS} m) at the goal {_show(list(layout.goal_pos))} would "
-        f"overlap {names[k]}: clearance {dist[k]:.3f} m",
+        f"overlap {name}: clearance {gap:.3f} m",
     )
 
 
