@@ -11,7 +11,7 @@ from conftest import EXACT, start_in, traced_once
 
 import jaxnav
 from jaxnav.core import families
-from jaxnav.core.goals import shortest_paths
+from jaxnav.core.goals import GRID_CELL, grid_steps, shortest_paths
 from jaxnav.core.randomize import TRAINING
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.evaluate import spl_values
@@ -110,7 +110,9 @@ WALL = RoomLayout(
 
 @pytest.fixture(scope="module")
 def exact_env():
-    env = jaxnav.make_env("goal", layouts=[CORRIDOR, WALL], randomize=EXACT, max_steps=100)
+    env = jaxnav.make_env(
+        "goal", layouts=[CORRIDOR, WALL], randomize=EXACT, max_steps=100, progress="straight"
+    )
     return env, jax.jit(env.reset), jax.jit(env.step)
 
 
@@ -231,3 +233,93 @@ def test_goal_success_rises_above_random(tmp_path):
         success = [float(r["success"]) for r in csv.DictReader(fh) if r["success"] != "nan"]
     first, last = np.mean(success[:5]), np.mean(success[-5:])
     assert last > first + 0.3 and last > 0.5, (first, last)
+
+
+def _bfs(free: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
+    """4-connected breadth-first steps from `seed` over `free` (inf where unreached)."""
+    steps = np.full(free.shape, np.inf)
+    steps[seed], frontier = 0, [seed]
+    while frontier:
+        nxt = []
+        for r, c in frontier:
+            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+                i, j = r + dr, c + dc
+                inside = 0 <= i < free.shape[0] and 0 <= j < free.shape[1]
+                if inside and free[i, j] and steps[i, j] == np.inf:
+                    steps[i, j] = steps[r, c] + 1
+                    nxt.append((i, j))
+        frontier = nxt
+    return steps
+
+
+def test_traced_flood_matches_breadth_first_search():
+    rng = np.random.default_rng(0)
+    free = rng.random((5, 30, 30)) > 0.3
+    free[:, 5, 5] = True
+    seed = np.zeros_like(free)
+    seed[:, 5, 5] = True
+    got = np.asarray(jax.vmap(lambda f, s: grid_steps(f, s, sweeps=40))(free, seed))
+    for f, g in zip(free, got, strict=True):
+        np.testing.assert_array_equal(g, _bfs(f, (5, 5)))
+    # Fewer rounds never claim a path that is not there, nor a shorter one.
+    few = np.asarray(grid_steps(jnp.asarray(free[0]), jnp.asarray(seed[0]), sweeps=2))
+    assert (few >= _bfs(free[0], (5, 5))).all()
+
+
+def test_family_goals_are_reachable_and_often_behind_walls():
+    """Corridors, L/T/U rooms and joined rooms keep their walls; the goal is drawn reachable."""
+    randomize = dataclasses.replace(TRAINING, families="corridor,ltu,joined", sampled_room_prob=1.0)
+    env = jaxnav.make_env("goal", randomize=randomize)
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 24))
+    params, goals = state.info["params"], np.asarray(state.info["goal"])
+    detours, geodesics = (
+        [],
+        np.asarray(
+            jax.vmap(jaxnav.core.goals.geodesic)(
+                state.info["field"], state.info["goal"], params.spawn[:, :2]
+            )
+        ),
+    )
+    for e in range(len(goals)):
+        room = jax.tree_util.tree_map(lambda x, e=e: x[e], params)
+        layout = families.to_layout(room, "family")
+        start = np.asarray(room.spawn[:2])
+        assert float(families.lay.clearance(layout, goals[e])) > R
+        length = shortest_paths(layout, start[None], goals[e][None])[0]
+        assert np.isfinite(length)
+        straight = np.linalg.norm(goals[e] - start)
+        assert straight >= env.task.goal_min_distance - 1e-5
+        # The reward's geodesic: 4-connected grid steps, at most sqrt(2) x the 8-connected path
+        # (plus a cell either end), never shorter than the straight line.
+        assert straight - 1e-4 <= geodesics[e] <= np.sqrt(2) * length + 2 * GRID_CELL
+        detours.append(length / straight)
+    assert max(detours) > 1.5  # some goals lie behind a wall
+
+
+def test_geodesic_progress_pays_for_a_detour():
+    """Behind a wall, driving around it gains geodesic progress; the straight line would punish
+    the first leg. Summed over the path the progress is the geodesic distance covered."""
+    wall = RoomLayout(
+        name="detour",
+        size=(6.0, 4.0),
+        obstacles=(Box(pos=(0.0, -0.5), size=(0.2, 3.0)),),  # open 1 m at the north end
+        robot_pos=(-1.5, -1.0),
+        robot_yaw=np.pi / 2,
+        goal_pos=(1.5, -1.0),
+    )
+    env = jaxnav.make_env("goal", layouts=[wall], randomize=EXACT)
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    state = start_in(env, reset, 0)
+    start_geo = float(
+        jaxnav.core.goals.geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2])
+    )
+    assert start_geo > 5.0  # 1.9 m north, 3 m east, 1.9 m south (the straight line is 3 m)
+    total = 0.0
+    for _ in range(15):  # 0.75 m north, away from the goal in a straight line
+        state = step(state, jnp.int32(0))
+        total += float(state.reward) - env.task.time_reward
+    assert total > 0.6  # the geodesic shrank by about the distance driven
+    geo = float(
+        jaxnav.core.goals.geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2])
+    )
+    np.testing.assert_allclose(total, start_geo - geo, atol=1e-4)

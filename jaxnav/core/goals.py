@@ -10,10 +10,14 @@ two ways:
   its spawn, else the largest. A random spawn that lands off it (in a closed-off pocket) is moved
   onto one of its cells, and a sampled goal is one of its cells: spawn and goal are connected, to
   the grid's resolution. A layout whose fixed spawn and goal lie in different components is refused.
-- Sampled rooms (`randomize.sample_room`): the goal is drawn in the open interior, then every
-  obstacle that would block an L-shaped path spawn -> corner -> goal (a corridor of half-width
-  robot radius + `path_clearance`) is removed, as the spawn's surroundings already are. The path
-  exists by construction; the straight line to the goal is often blocked all the same.
+- Sampled rooms (`randomize.sample_room` and the room families): a traced grid of `GRID_CELL`
+  cells, free where the robot's disc clears everything by half a cell (so the segment between two
+  free neighbours is clear: clearance is 1-Lipschitz), is flooded from the spawn's cell by
+  `SWEEPS` rounds of four directional min-plus scans (`grid_steps`); the goal is a uniform
+  reachable cell at least the minimum distance from the spawn that keeps `clearance`. Corridors,
+  doorways and U-shapes keep their walls and the goal is often behind them. Where the flood finds
+  no such cell (a spawn boxed in), every obstacle that would block an L-shaped path spawn ->
+  corner -> goal (half-width robot radius + `path_clearance`) is removed instead.
 
 `shortest_paths` measures the geodesic distance for SPL on the same grid, 8-connected (diagonal
 steps only where both cells beside them are free, so no corner is cut).
@@ -37,6 +41,9 @@ from jaxnav.io import layouts as lay
 CELL = families.CELL  # m, occupancy grid cell for goals and shortest paths
 TRIES = 32  # uniform candidates per draw of a spawn or a goal
 PATH_POINTS = 64  # points per leg of a sampled room's cleared L-shaped path
+GRID_CELL = 0.2  # m, cell of the traced reachability grid of sampled rooms
+GRID_HALF = 5.25  # m, half extent the traced grid covers at least (the largest family room)
+SWEEPS = 8  # rounds of the traced flood; each follows a path through two turns, so 16 turns
 
 
 @struct.dataclass
@@ -157,6 +164,73 @@ def _layout_goal(key, params: SceneParams, goals: GoalCells, radius, clearance, 
     return params.replace(spawn=params.spawn.at[:2].set(spawn_xy)), goal
 
 
+def grid_steps(free: jax.Array, seed: jax.Array, sweeps: int = SWEEPS) -> jax.Array:
+    """[H, W] float32 4-connected steps from the `seed` cells to every `free` cell (inf where
+    unreached). Each round scans east, west, north and south: along a scan a free cell takes
+    min(its own, its predecessor's + 1), a min-plus recurrence that `associative_scan` solves in
+    log(length) passes (a blocked cell has infinite cost and stops it)."""
+    step = jnp.where(free, 1.0, jnp.inf)
+
+    def combine(earlier, later):  # compose x -> min(a, x + b) maps, earlier cells first
+        (a1, b1), (a2, b2) = earlier, later
+        return jnp.minimum(a2, a1 + b2), b1 + b2
+
+    def sweep(steps, axis, reverse):
+        steps = jnp.where(free, steps, jnp.inf)
+        return jax.lax.associative_scan(combine, (steps, step), reverse, axis)[0]
+
+    def round_(_, steps):
+        for axis in (1, 0):
+            steps = sweep(sweep(steps, axis, False), axis, True)
+        return steps
+
+    return jax.lax.fori_loop(0, sweeps, round_, jnp.where(seed & free, 0.0, jnp.inf))
+
+
+def _grid(half_extent: float):
+    """[n, n, 2] centres of the traced grid's cells covering +-half_extent m (n even)."""
+    n = 2 * int(np.ceil(half_extent / GRID_CELL))
+    axis = (np.arange(n) - 0.5 * (n - 1)) * GRID_CELL
+    return jnp.asarray(np.stack(np.meshgrid(axis, axis), -1), jnp.float32)
+
+
+def _flood_goal(key, params: SceneParams, radius, clearance, min_distance, half_extent):
+    """([2] goal, [] bool found) in a sampled room: a uniform reachable cell (module doc)."""
+    centres = _grid(half_extent)  # [n, n, 2]
+    gap = signed_distance(params, centres) - radius  # [n, n]
+    free = gap >= 0.5 * GRID_CELL
+    straight = jnp.linalg.norm(centres - params.spawn[:2], axis=-1)  # [n, n]
+    steps = grid_steps(free, straight == straight.min())  # seeded at the spawn's cell
+    ok = jnp.isfinite(steps) & (straight >= min_distance) & (gap >= clearance)
+    # Goal: uniform over the reachable cells far enough away that keep `clearance`.
+    pick = jnp.argmax(jnp.where(ok, jax.random.gumbel(key, ok.shape), -jnp.inf))
+    return centres.reshape(-1, 2)[pick], ok.any()
+
+
+def goal_field(params: SceneParams, goal: jax.Array, radius: float, half_extent: float):
+    """[n, n] float32 grid steps from every cell of the traced grid to the goal's cell (inf
+    where the robot cannot reach it): the geodesic distance `geodesic` reads."""
+    centres = _grid(half_extent)
+    free = signed_distance(params, centres) - radius >= 0.5 * GRID_CELL
+    straight = jnp.linalg.norm(centres - goal, axis=-1)
+    return grid_steps(free, straight == straight.min())
+
+
+def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array) -> jax.Array:
+    """[] m from `xy` [2] to the goal along the grid of `goal_field`: the least of (a cell's
+    steps x GRID_CELL + the straight line to its centre) over the 3 x 3 cells around `xy`;
+    the straight line where none of them reaches the goal (a robot pressed against a wall)."""
+    n = field.shape[0]
+    half = 0.5 * n * GRID_CELL  # the grid's half extent (`_grid`)
+    ij = jnp.round((xy + half) / GRID_CELL - 0.5).astype(jnp.int32)  # [2] col, row
+    offsets = jnp.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])  # [9, 2]
+    cells = jnp.clip(ij + offsets, 0, n - 1)  # [9, 2]
+    centres = (cells + 0.5) * GRID_CELL - half
+    via = field[cells[:, 1], cells[:, 0]] * GRID_CELL + jnp.linalg.norm(centres - xy, axis=-1)
+    best = via.min()
+    return jnp.where(jnp.isfinite(best), best, jnp.linalg.norm(goal - xy))
+
+
 def _room_goal(key, params: SceneParams, radius, clearance, min_distance, path_clearance):
     """(params with an L-shaped path to the goal cleared, [2] goal) in a sampled room."""
     k_goal, k_corner = jax.random.split(key)
@@ -190,17 +264,21 @@ def sample_goal(
     clearance: float,
     min_distance: float,
     path_clearance: float,
+    half_extent: float = GRID_HALF,
 ) -> tuple[SceneParams, jax.Array]:
     """(the episode's params, [2] goal m) for the room `params` drew (`randomize.sample`).
 
-    Layout rooms (layout_id >= 0) take their goal data from `goals`; sampled rooms get a cleared
-    path (module doc). `clearance` is the spawn clearance of a moved spawn and the margin of a
-    sampled room's goal from the walls, m; goals are at least `min_distance` m from the spawn
-    where the room allows (else as far as TRIES draws found).
+    Layout rooms (layout_id >= 0) take their goal data from `goals`; sampled rooms flood a traced
+    grid covering +-`half_extent` m (static: at least half the largest sampled room), else get a
+    cleared path (module doc). `clearance` is the spawn clearance of a moved spawn and the margin
+    of a goal from everything, m; goals are at least `min_distance` m from the spawn where the
+    room allows (else as far as TRIES draws found).
     """
-    k_layout, k_room = jax.random.split(key)
+    k_layout, k_flood, k_room = jax.random.split(key, 3)
     in_layout = _layout_goal(k_layout, params, goals, radius, clearance, min_distance)
-    in_room = _room_goal(k_room, params, radius, clearance, min_distance, path_clearance)
+    flood, found = _flood_goal(k_flood, params, radius, clearance, min_distance, half_extent)
+    cleared = _room_goal(k_room, params, radius, clearance, min_distance, path_clearance)
+    in_room = jax.tree_util.tree_map(lambda a, b: jnp.where(found, a, b), (params, flood), cleared)
     sampled = params.layout_id < 0
     return jax.tree_util.tree_map(lambda a, b: jnp.where(sampled, a, b), in_room, in_layout)
 

@@ -9,7 +9,10 @@ sides, where a measured velocity would bring the odometry's noise and its own si
 
 Actions: the paper's three (default) or continuous (forward m/s, yaw rad/s), see `GoalConfig`.
 Reward per step (`GoalConfig`): progress_reward x (metres closer to the goal) + time_reward, plus
-success_reward on the step that reaches it or collision_reward on the step that collides. The
+success_reward on the step that reaches it or collision_reward on the step that collides. Closer
+is measured along the room's free space by default (`progress="geodesic"`: the traced grid of
+`jaxnav.core.goals.goal_field`), so a detour around a wall is not punished; a potential-based
+term, it sums to the geodesic distance covered whatever the path. The
 episode ends on success (within success_radius of the goal), on a collision or at the time limit.
 Metrics (per step, summed per episode): `collision`, `success`, `path_length` (m travelled).
 Goals: a layout's own `goal`, else a reachable one drawn every episode (`jaxnav.core.goals`).
@@ -23,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxnav.core.checks import require_finite
-from jaxnav.core.goals import sample_goal
+from jaxnav.core.goals import GRID_HALF, geodesic, goal_field, sample_goal
 from jaxnav.core.randomize import sample
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
@@ -54,6 +57,9 @@ class GoalConfig:
     L-shaped path spawn -> goal, m, so the goal is reachable (`jaxnav.core.goals`)."""
     progress_reward: float = 1.0
     """Reward per metre the step brought the robot closer to the goal (negative when farther)."""
+    progress: str = "geodesic"
+    """How `progress_reward` measures closer: 'geodesic', along the free space (around walls and
+    obstacles, on a 0.2 m grid); 'straight', the straight line (a detour is punished)."""
     success_reward: float = 10.0
     """Added on the step that reaches the goal; the episode ends."""
     collision_reward: float = -10.0
@@ -74,6 +80,10 @@ class GoalConfig:
             )
         if self.max_steps < 1:
             raise ValueError(f"GoalConfig.max_steps: must be >= 1, got {self.max_steps}")
+        if self.progress not in ("geodesic", "straight"):
+            raise ValueError(
+                f"GoalConfig.progress: must be 'geodesic' or 'straight', got {self.progress!r}"
+            )
 
     @property
     def action_spec(self) -> ActionSpec:
@@ -113,6 +123,9 @@ class GoalEnv(NavTask):
         self.action_spec = task.action_spec
         self.observation_size = self.sensor.num_sectors + task.extra_observations
         self._command_scale = jnp.array([task.forward_speed, task.turn_rate])
+        # The traced goal grid covers the largest room (the families fit in GRID_HALF).
+        largest = [0.5 * max(self.randomize.room_size_max), float(bank.rooms.room_half.max())]
+        self._grid_half = max(GRID_HALF, *largest)
 
     def reset(self, key: jax.Array) -> EnvState:
         """A new episode: fresh room, spawn, goal and parameters drawn from the randomisation."""
@@ -128,10 +141,13 @@ class GoalEnv(NavTask):
             clearance,
             t.goal_min_distance,
             t.path_clearance,
+            self._grid_half,
         )
         data = self.place(params)
         command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
         info = {"params": params, "goal": goal, "steps": jnp.int32(0), "key": key}
+        if t.progress == "geodesic":
+            info["field"] = goal_field(params, goal, radius, self._grid_half)  # [n, n]
         return EnvState(
             data=data,
             obs=self._observe(params, data, goal, command, k_obs),
@@ -149,9 +165,8 @@ class GoalEnv(NavTask):
         target = self.command(action)
         command, actuator = self.actuate(params, info["actuator"], target)
         data, hit = self.drive(params, state.data, command)
-        before = jnp.linalg.norm(goal - state.data.qpos[:2])
-        after = jnp.linalg.norm(goal - data.qpos[:2])
-        success = (after <= t.success_radius) & ~hit
+        before, after = (self._to_go(info, d.qpos[:2]) for d in (state.data, data))
+        success = (jnp.linalg.norm(goal - data.qpos[:2]) <= t.success_radius) & ~hit
         steps = info["steps"] + 1
         truncated = (steps >= t.max_steps) & ~hit & ~success
         reward = t.progress_reward * (before - after) + t.time_reward
@@ -170,6 +185,12 @@ class GoalEnv(NavTask):
             metrics={"collision": f32(hit), "success": f32(success), "path_length": f32(moved)},
             info={**info, "steps": steps, "key": key, "actuator": actuator, "command": target},
         )
+
+    def _to_go(self, info, xy) -> jax.Array:
+        """[] m from `xy` to the goal, as `GoalConfig.progress` measures it."""
+        if self.task.progress == "geodesic":
+            return geodesic(info["field"], info["goal"], xy)
+        return jnp.linalg.norm(info["goal"] - xy)
 
     def _observe(self, params, data, goal, command, key) -> jax.Array:
         """[observation_size]: sectors, goal features, the last command scaled to [-1, 1]."""
