@@ -156,7 +156,7 @@ def test_continuous_actions_respect_the_limits():
     spec = env.action_spec
     assert (spec.low, spec.high) == ((0.0, -1.5), (0.5, 1.5))
     step = jax.jit(env.step)
-    state = env.reset(jax.random.PRNGKey(1))
+    state = jax.jit(env.reset)(jax.random.PRNGKey(1))
     for action in ([9.0, 9.0], [-3.0, -9.0], [np.nan, 0.7], [0.3, -0.4]):
         state = step(state, jnp.array(action, jnp.float32))
         command = np.asarray(state.info["command"])
@@ -166,8 +166,9 @@ def test_continuous_actions_respect_the_limits():
     np.testing.assert_allclose(command, [0.3, -0.4])
     # avoid has the option too; its reward interpolates Table I between forward and turning.
     avoid = jaxnav.make_env("avoid", layouts=[OPEN], randomize=EXACT, actions="continuous")
-    s = avoid.reset(jax.random.PRNGKey(1))
-    rewards = [float(avoid.step(s, jnp.array([v, 0.0])).reward) for v in (0.0, 0.25, 0.5)]
+    s = jax.jit(avoid.reset)(jax.random.PRNGKey(1))
+    step = jax.jit(jax.vmap(avoid.step, in_axes=(None, 0)))
+    rewards = step(s, jnp.array([[0.0, 0.0], [0.25, 0.0], [0.5, 0.0]])).reward
     np.testing.assert_allclose(rewards[1], 0.5 * (rewards[0] + rewards[2]), rtol=1e-5)
 
 
