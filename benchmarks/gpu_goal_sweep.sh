@@ -5,10 +5,10 @@ out=${OUT:-/tmp}
 run() { name=$1; shift; python benchmarks/time_to_solve_goal.py --preset gpu --eval-every 2 \
   --max-seconds ${MAXS:-90} --json $out/goal_$name.json --set randomize.families=all "$@" \
   > $out/goal_$name.log 2>&1 & }
-run h256 --set "ppo.hidden=[256,256]" --set ppo.anneal_lr=true
-run g995 --set ppo.gamma=0.995 --set ppo.anneal_lr=true
-run h256_g995 --set "ppo.hidden=[256,256]" --set ppo.gamma=0.995 --set ppo.anneal_lr=true
-run h256_g995_sample --set "ppo.hidden=[256,256]" --set ppo.gamma=0.995 --set ppo.anneal_lr=true --sample
+run hist0
+run hist2 --set task.history=2
+run hist4 --set task.history=4
+run hist8 --set task.history=8
 wait
 for f in $out/goal_*.log; do echo "== $f"; grep -v "^{" $f | tail -n 3; python - $f <<'PY'
 import json,sys

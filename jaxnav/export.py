@@ -115,7 +115,10 @@ def _format3(config, spec, size: int) -> dict:
     if isinstance(spec, ContinuousActions):
         out["action_low"] = np.asarray(spec.low, np.float32)
         out["action_high"] = np.asarray(spec.high, np.float32)
-    extra = size - config.sensor.num_sectors
+    history = getattr(config.task, "history", 0)
+    extra = size // (1 + history) - config.sensor.num_sectors
+    if history:
+        out["history"] = np.int32(history)
     if extra:
         out["extra_observations"] = np.int32(extra)
         out["command_scale"] = np.array(
@@ -190,7 +193,7 @@ def onnx_model(arrays: dict[str, np.ndarray]):
     for key in ("action_low", "action_high", "command_scale"):  # format-3 entries, where given
         if key in arrays:
             meta[key] = json.dumps(np.asarray(arrays[key]).tolist())
-    for key in ("extra_observations", "success_radius"):
+    for key in ("extra_observations", "success_radius", "history"):
         if key in arrays:
             meta[key] = float(arrays[key])
     helper.set_model_props(model, {k: str(v) for k, v in meta.items()})

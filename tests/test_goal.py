@@ -17,6 +17,7 @@ from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.evaluate import spl_values
 from jaxnav.io.layouts import Box, LayoutError, RoomLayout, parse_layouts
 from jaxnav.ppo.distributions import Gaussian
+from jaxnav.robot_side.policy import FrameStack
 
 R = TURTLEBOT2I.radius
 
@@ -120,7 +121,10 @@ def test_reward_terms_and_success_ends_the_episode(exact_env):
     env, reset, step = exact_env
     t = env.task
     state = start_in(env, reset, 0)
-    np.testing.assert_allclose(state.obs[8:], [5.0, 0.0, 1.0, 0.0, 0.0], atol=1e-5)
+    frame = env.observation_size // (1 + t.history)  # 13: 8 sectors, goal [3], command [2]
+    np.testing.assert_allclose(state.obs[8:frame], [5.0, 0.0, 1.0, 0.0, 0.0], atol=1e-5)
+    stack = FrameStack(t.history)  # the robot side's stacking, fed the simulator's frames
+    np.testing.assert_array_equal(stack(state.obs[:frame]), state.obs)
     steps = 0
     while not bool(state.done):
         nxt = step(state, jnp.int32(0))  # forward, straight at the goal
@@ -130,7 +134,8 @@ def test_reward_terms_and_success_ends_the_episode(exact_env):
         want = t.progress_reward * (before - after) + t.time_reward + success * t.success_reward
         np.testing.assert_allclose(nxt.reward, want, rtol=1e-4, atol=1e-5)
         assert float(nxt.metrics["success"]) == float(success)
-        np.testing.assert_allclose(nxt.obs[11:], [1.0, 0.0])  # the last command, scaled
+        np.testing.assert_allclose(nxt.obs[11:frame], [1.0, 0.0])  # the last command, scaled
+        np.testing.assert_array_equal(stack(nxt.obs[:frame]), nxt.obs)  # newest frame first
         state, steps = nxt, steps + 1
     assert float(state.metrics["success"]) == 1.0 and not bool(state.truncated)
     assert 94 <= steps <= 100  # 4.7 m at 0.5 m/s = 9.4 s

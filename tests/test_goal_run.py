@@ -18,7 +18,7 @@ from jaxnav.export import export
 from jaxnav.io.layouts import RoomLayout, save_layouts
 from jaxnav.robot_side import ros_node
 from jaxnav.robot_side.observation import Controller
-from jaxnav.robot_side.policy import NumpyPolicy, goal_features, goal_observation
+from jaxnav.robot_side.policy import FrameStack, NumpyPolicy, goal_features, goal_observation
 from jaxnav.robot_side.ros_node import STOP, ControlLoop, GoalInput, MessageReader
 from jaxnav.tasks.goal import goal_features as sim_goal_features
 
@@ -70,21 +70,24 @@ def test_export_and_robot_side_take_the_goal_observation(goal_run, tmp_path):
     numpy_file = export(out, "numpy", tmp_path / "policy.npz")
     onnx_file = export(out, "onnx", tmp_path / "policy.onnx")
     robot = NumpyPolicy.from_npz(numpy_file)
-    assert robot.continuous and robot.observation_size == 13 and robot.success_radius == 0.3
+    assert robot.continuous and robot.success_radius == 0.3
+    assert robot.observation_size == 13 * (1 + robot.history) and robot.history == 8
     rng = np.random.default_rng(0)
     sectors = rng.uniform(0.6, 8.0, (50, 8)).astype(np.float32)
     poses = rng.uniform(-2, 2, (50, 3)).astype(np.float32)
     goal, last = np.array([1.0, -0.5], np.float32), np.array([0.3, -0.7], np.float32)
+    stack = FrameStack(robot.history)
     obs = np.stack(
         [
-            goal_observation(s, p, goal, last, robot.command_scale)
+            stack(goal_observation(s, p, goal, last, robot.command_scale)).copy()
             for s, p in zip(sectors, poses, strict=True)
         ]
     )
+    np.testing.assert_array_equal(obs[1:, 13:26], obs[:-1, :13])  # the previous frame follows
     # The robot's goal features are the simulator's.
     sim = jax.vmap(sim_goal_features, (0, None))(poses, goal)
     np.testing.assert_allclose(obs[:, 8:11], sim, atol=1e-5)
-    np.testing.assert_allclose(obs[:, 11:], np.tile(last / [0.5, 1.5], (50, 1)), rtol=1e-6)
+    np.testing.assert_allclose(obs[:, 11:13], np.tile(last / [0.5, 1.5], (50, 1)), rtol=1e-6)
     want = np.asarray(policy.act(obs, jax.random.PRNGKey(0)))
     np.testing.assert_allclose(robot(obs), want, atol=1e-5)
     assert (robot(obs) >= robot.action_low).all() and (robot(obs) <= robot.action_high).all()
@@ -111,10 +114,12 @@ def test_control_loop_goal_inputs(goal_run, tmp_path):
     twist = loop.tick(0.1)
     sectors = Controller(robot).scan_obs(*ros_node.scan_msg_to_arrays(*vars(scan(3.0)).values()))
     obs = goal_observation(sectors, (0.0, 0.0, 0.5), (2.0, 1.0), np.zeros(2), robot.command_scale)
+    obs = np.tile(obs, 1 + robot.history)  # the first frame stands in for the earlier ones
     np.testing.assert_allclose(loop.obs, obs)
     assert twist == pytest.approx(tuple(robot(obs))) and loop.state == "policy"
     loop.tick(0.15)  # the next observation carries the command just sent
-    np.testing.assert_allclose(loop.obs[11:], np.asarray(twist) / robot.command_scale, rtol=1e-6)
+    np.testing.assert_allclose(loop.obs[11:13], np.asarray(twist) / robot.command_scale, rtol=1e-6)
+    np.testing.assert_allclose(loop.obs[13:], obs[:-13])  # and the frames before it
     assert loop.tick(0.5) == STOP and loop.state == "no sensor message for over 0.25 s"
     loop.on_observation(scan(3.0), 0.5)
     assert loop.tick(0.5) == STOP and loop.state == "no odometry for over 0.25 s"

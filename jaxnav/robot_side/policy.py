@@ -23,7 +23,8 @@ action_low, action_high float32 [2] (continuous actions: the actor's A = 2 outpu
 half-ranges, the command is centre + half * mean clipped to the bounds; action_names are then the
 two dimensions and commands is [2, 2] of the bounds), and goal inputs: extra_observations (5: the
 observation is the sectors, then `goal_features` [3], then the last command / command_scale [2]),
-command_scale float32 [2] and success_radius (m).
+command_scale float32 [2], success_radius (m) and history (int: that many earlier observations
+follow the newest, newest first; `FrameStack`).
 """
 
 from __future__ import annotations
@@ -85,6 +86,8 @@ class NumpyPolicy:
     """[2] the last command is divided by this in the goal task's observation."""
     success_radius: float | None = None
     """m: the goal task's goal counts as reached within this distance."""
+    history: int = 0
+    """Earlier observations the goal task stacks after the newest (`FrameStack`); 0 = none."""
 
     @property
     def continuous(self) -> bool:
@@ -93,8 +96,8 @@ class NumpyPolicy:
 
     @property
     def observation_size(self) -> int:
-        """D: sectors plus the task's extra entries."""
-        return self.sensor.num_sectors + self.extra_observations
+        """D: sectors plus the task's extra entries, times the stacked frames."""
+        return (self.sensor.num_sectors + self.extra_observations) * (1 + self.history)
 
     @classmethod
     def from_arrays(cls, arrays: dict, source: str = "policy") -> NumpyPolicy:
@@ -130,6 +133,7 @@ class NumpyPolicy:
             extra_observations=int(arrays.get("extra_observations", 0)),
             command_scale=_optional(arrays, "command_scale"),
             success_radius=float(arrays["success_radius"]) if "success_radius" in arrays else None,
+            history=int(arrays.get("history", 0)),
         )
         policy.check(source)
         return policy
@@ -194,6 +198,29 @@ class NumpyPolicy:
         """[2] float32 (forward m/s, yaw rad/s) the policy sends for one observation [D]."""
         action = self(obs)
         return np.asarray(action if self.continuous else self.commands[action], np.float32)
+
+
+class FrameStack:
+    """The stacked observation of a policy with `history` > 0: the newest frame, then the
+    `history` frames before it, newest first; the first frame after `reset` stands in for the
+    earlier ones (the simulator's `GoalEnv` does the same at an episode's start)."""
+
+    def __init__(self, history: int):
+        self.history = history
+        self._obs: np.ndarray | None = None
+
+    def reset(self) -> None:
+        """Forget the earlier frames (a new goal, or the robot was stopped)."""
+        self._obs = None
+
+    def __call__(self, frame) -> np.ndarray:
+        """[(1 + history) x F] float32 after adding `frame` [F]."""
+        frame = np.asarray(frame, np.float32)
+        if self._obs is None:
+            self._obs = np.tile(frame, 1 + self.history)
+        else:
+            self._obs = np.concatenate([frame, self._obs[: self._obs.size - frame.size]])
+        return self._obs
 
 
 def _optional(arrays: dict, key: str):

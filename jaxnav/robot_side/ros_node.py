@@ -67,7 +67,7 @@ from .observation import (
     depth_image_to_sectors,
     horizon_rows,
 )
-from .policy import NumpyPolicy, goal_observation
+from .policy import FrameStack, NumpyPolicy, goal_observation
 
 STOP = Twist(0.0, 0.0)
 DEFAULT_RATE_HZ = 10.0  # the paper's ~10 Hz, where the policy file does not give its control period
@@ -245,6 +245,8 @@ class ControlLoop:
         self.controller, self.reader, self.max_age, self.log = controller, reader, max_age, log
         self.goal = goal  # the goal task's inputs; None for policies without them
         self._last = np.zeros(2, np.float32)  # the last command sent, in the policy's units
+        self._frames = FrameStack(getattr(controller.policy, "history", 0))
+        self._goal_seen = None  # the goal the stacked frames belong to
         self.obs: np.ndarray | None = None
         self.state = "no sensor message yet"
         self._msg, self._stamp, self._result = None, -math.inf, None
@@ -258,7 +260,8 @@ class ControlLoop:
         """The command to send at time `now` (s)."""
         obs, twist, state = self._decide(now)
         if obs is None:  # the robot is told to stop: the goal task's last command is zero
-            self._last = np.zeros(2, np.float32)
+            self._last = np.zeros(2, np.float32)  # and its next frame starts a fresh stack
+            self._frames.reset()
         if state != self.state:
             self.log(f"{state}: {'driving' if obs is not None else 'sending zero velocity'}")
         self.obs, self.state = obs, state
@@ -289,8 +292,13 @@ class ControlLoop:
             obs = np.asarray(self.reader(msg, self.controller), np.float32)
             if self.goal is not None:
                 policy = self.controller.policy
-                obs = goal_observation(
-                    obs, self.goal.pose, self.goal.goal, self._last, policy.command_scale
+                if self.goal.goal != self._goal_seen:  # a new goal: a new episode
+                    self._frames.reset()
+                    self._goal_seen = self.goal.goal
+                obs = self._frames(
+                    goal_observation(
+                        obs, self.goal.pose, self.goal.goal, self._last, policy.command_scale
+                    )
                 )
                 self._last = policy.command(obs)
             return obs, self.controller.act(obs), "policy"

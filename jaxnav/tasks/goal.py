@@ -1,8 +1,11 @@
 """`goal`: point-goal navigation. Reach a goal position in a room of static obstacles, touching none.
 
-Observation [num_sectors + 5]: the depth sectors (m, as `avoid`), the goal in the robot's frame
-(distance m, sin and cos of its bearing, positive = to the left) and the last command the policy
-sent (forward / forward_speed, yaw / turn_rate). The last command rather than the measured
+Observation [(1 + history) x (num_sectors + 5)]: a frame is the depth sectors (m, as `avoid`), the
+goal in the robot's frame (distance m, sin and cos of its bearing, positive = to the left) and the
+last command the policy sent (forward / forward_speed, yaw / turn_rate); the newest frame comes
+first, then the `history` (8) before it, newest first. The stacked frames are a short memory: a
+policy that remembers where it has just been gets round walls a memoryless one stalls at
+(benchmarks/RESULTS.md). The last command rather than the measured
 velocity: with the Kobuki's velocity smoother and command latency the robot's motion lags the
 command, and the policy needs to know what it already asked for; the command is exact on both
 sides, where a measured velocity would bring the odometry's noise and its own sim-to-real gap.
@@ -68,6 +71,9 @@ class GoalConfig:
     """Added on every step (a small cost of time)."""
     max_steps: int = 500
     """Time limit in control steps (500 = 50 s at 10 Hz); ends the episode without penalty."""
+    history: int = 8
+    """Earlier observations appended to the current one, newest first (stacked frames: a short
+    memory); 0 = none. The observation grows to (1 + history) x (sectors + 5)."""
 
     def __post_init__(self):
         require_finite(self)
@@ -80,6 +86,8 @@ class GoalConfig:
             )
         if self.max_steps < 1:
             raise ValueError(f"GoalConfig.max_steps: must be >= 1, got {self.max_steps}")
+        if self.history < 0:
+            raise ValueError(f"GoalConfig.history: must be >= 0, got {self.history}")
         if self.progress not in ("geodesic", "straight"):
             raise ValueError(
                 f"GoalConfig.progress: must be 'geodesic' or 'straight', got {self.progress!r}"
@@ -96,7 +104,8 @@ class GoalConfig:
 
     @property
     def extra_observations(self) -> int:
-        """Observation entries after the depth sectors: the goal and the last command."""
+        """Observation entries after the depth sectors: the goal and the last command (and the
+        stacked earlier observations, sectors included: `num_sectors` is the sensor's)."""
         return GOAL_FEATURES + COMMAND_FEATURES
 
 
@@ -121,7 +130,8 @@ class GoalEnv(NavTask):
             raise ValueError("GoalEnv: the layout bank has no goal data; build it with make_env")
         task.check_robot(self.robot)
         self.action_spec = task.action_spec
-        self.observation_size = self.sensor.num_sectors + task.extra_observations
+        self._frame = self.sensor.num_sectors + task.extra_observations  # one observation
+        self.observation_size = self._frame * (1 + task.history)
         self._command_scale = jnp.array([task.forward_speed, task.turn_rate])
         # The traced goal grid covers the largest room (the families fit in GRID_HALF).
         largest = [0.5 * max(self.randomize.room_size_max), float(bank.rooms.room_half.max())]
@@ -148,9 +158,10 @@ class GoalEnv(NavTask):
         info = {"params": params, "goal": goal, "steps": jnp.int32(0), "key": key}
         if t.progress == "geodesic":
             info["field"] = goal_field(params, goal, radius, self._grid_half)  # [n, n]
+        frame = self._observe(params, data, goal, command, k_obs)
         return EnvState(
             data=data,
-            obs=self._observe(params, data, goal, command, k_obs),
+            obs=jnp.tile(frame, 1 + t.history),  # the first frame stands in for the earlier ones
             reward=f0,
             done=b0,
             truncated=b0,
@@ -178,13 +189,17 @@ class GoalEnv(NavTask):
         f32 = lambda x: x.astype(jnp.float32)  # noqa: E731
         return EnvState(
             data=data,
-            obs=self._observe(params, data, goal, target, k_obs),
+            obs=self._stack(self._observe(params, data, goal, target, k_obs), state.obs),
             reward=f32(reward),
             done=hit | success | truncated,
             truncated=truncated,
             metrics={"collision": f32(hit), "success": f32(success), "path_length": f32(moved)},
             info={**info, "steps": steps, "key": key, "actuator": actuator, "command": target},
         )
+
+    def _stack(self, frame: jax.Array, obs: jax.Array) -> jax.Array:
+        """[observation_size]: the new frame, then the newest `history` frames of `obs`."""
+        return jnp.concatenate([frame, obs[: self.observation_size - self._frame]])
 
     def _to_go(self, info, xy) -> jax.Array:
         """[] m from `xy` to the goal, as `GoalConfig.progress` measures it."""

@@ -48,8 +48,10 @@ def task_entry(name: str) -> TaskEntry:
 
 def observation_size(task, sensor: SensorConfig) -> int:
     """The observation length of a task config with `sensor`: the depth sectors, then the task's
-    `extra_observations` (the goal task's goal and last command)."""
-    return sensor.num_sectors + getattr(task, "extra_observations", 0)
+    `extra_observations` (the goal task's goal and last command), times the frames a task stacks
+    (`history`: the goal task's earlier observations)."""
+    frame = sensor.num_sectors + getattr(task, "extra_observations", 0)
+    return frame * (1 + getattr(task, "history", 0))
 
 
 def default_layouts(name: str = "avoid") -> list[RoomLayout]:
