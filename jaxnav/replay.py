@@ -12,6 +12,14 @@ goes stale. No ROS install is needed: the bag is read with the `rosbags` library
 (pip install "jaxnav[ros]"). The plot shows the observation (the 8 sector distances) and the
 commanded (v, w) over time, with the ticks that sent zero velocity shaded; `--csv` writes one row
 per tick. numpy, matplotlib and rosbags only: no jax.
+
+A goal policy (exported from the `goal` task) also needs the goal (geometry_msgs/PoseStamped on
+`--goal-topic`) and the odometry (nav_msgs/Odometry on `--odom-topic`), the node's flags and
+defaults (a relative name resolves in the root namespace: `goal_pose` is /goal_pose). The messages
+of the three topics go to the loop in their recorded order, each as the node handles it
+(`GoalInput.on_goal_msg`, `on_odom_msg`); the plot and the CSV add the goal's distance and bearing
+the policy saw, and the shading tells the reasons for zero velocity apart (no goal yet, goal
+reached, stale odometry, ...).
 """
 
 from __future__ import annotations
@@ -24,11 +32,15 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 
 from jaxnav.cli import Parser, UsageError, print_error
-from jaxnav.robot_side.ros_node import ControlLoop, add_loop_flags, make_loop
+from jaxnav.robot_side.ros_node import ControlLoop, add_goal_flags, add_loop_flags, make_loop
 
 IMAGE, SCAN = "sensor_msgs/msg/Image", "sensor_msgs/msg/LaserScan"
+POSE, ODOM = "geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry"
+# A goal policy's inputs besides the sensor: (flag, its key in the node's settings, message type).
+GOAL_INPUTS = (("--goal-topic", "goal_topic", POSE), ("--odom-topic", "odom_topic", ODOM))
 
 
 class ReplayError(UsageError):
@@ -50,7 +62,13 @@ class Replay:
     twist: np.ndarray
     """[T, 2] the command sent: forward m/s, yaw rad/s (positive = left)."""
     state: tuple[str, ...]
-    """[T] "policy", or why the tick sent zero velocity (no data, stale data, an error)."""
+    """[T] "policy", or why the tick sent zero velocity (no data, stale data, an error; goal
+    policies: whatever `GoalInput.problem` reports, e.g. "no goal yet", "goal reached")."""
+    goal: np.ndarray | None = None
+    """[T, 2] goal policies: the goal the policy saw, distance m and bearing rad from the heading
+    (positive = left); NaN where the tick sent zero velocity. None for other policies."""
+    inputs: tuple[tuple[str, int], ...] = ()
+    """Goal policies: (topic, messages in the bag) of the goal and odometry topics."""
 
 
 def _rosbags():
@@ -66,6 +84,11 @@ def _rosbags():
     return Reader, get_typestore(Stores.ROS2_HUMBLE)
 
 
+def _listing(topics: dict[str, str]) -> str:
+    """The bag's topics, "name (type)", for error messages."""
+    return ", ".join(f"{n} ({t})" for n, t in sorted(topics.items())) or "none"
+
+
 def pick_topic(bag: Path, topics: dict[str, str], topic: str | None) -> str:
     """The topic to replay among `topics` (name -> message type); errors name the bag."""
     fits = {n: t for n, t in topics.items() if t == SCAN or (t == IMAGE and "depth" in n)}
@@ -79,14 +102,31 @@ def pick_topic(bag: Path, topics: dict[str, str], topic: str | None) -> str:
     if len(fits) != 1:
         what = f"several fit ({', '.join(sorted(fits))})" if fits else "none fits"
         raise ReplayError(
-            f"{bag}: no single depth image or LaserScan topic, {what}; topics: "
-            f"{', '.join(f'{n} ({t})' for n, t in sorted(topics.items())) or 'none'}; use --topic"
+            f"{bag}: no single depth image or LaserScan topic, {what}; topics: {_listing(topics)}; "
+            "use --topic"
         )
     return next(iter(fits))
 
 
+def goal_topics(topics: dict[str, str], get: dict) -> tuple[str, str]:
+    """The bag's (goal, odometry) topics for a goal policy, named by the node's settings
+    `goal_topic` and `odom_topic` (relative names in the root namespace, where the node runs)."""
+    found = []
+    for flag, key, msgtype in GOAL_INPUTS:
+        name = get[key] if get[key].startswith("/") else f"/{get[key]}"
+        if topics.get(name) != msgtype:
+            what = f"of type {topics[name]}" if name in topics else "not in the bag"
+            raise ReplayError(
+                f"{flag} {get[key]}: {name} is {what}, and the goal policy needs its {msgtype} "
+                f"there; topics: {_listing(topics)}"
+            )
+        found.append(name)
+    return found[0], found[1]
+
+
 def replay(bag, get: dict, topic: str | None = None, log=None) -> Replay:
-    """Runs the node's loop over the bag's topic. `get`: the node's settings (`make_loop`)."""
+    """Runs the node's loop over the bag's topic (and, for a goal policy, its goal and odometry
+    topics). `get`: the node's settings (`make_loop`'s, and `goal_topic`, `odom_topic`)."""
     bag = Path(bag)
     if not (bag / "metadata.yaml").is_file():
         raise ReplayError(f"{bag}: no such rosbag2 (a folder holding metadata.yaml)")
@@ -102,20 +142,26 @@ def replay(bag, get: dict, topic: str | None = None, log=None) -> Replay:
         clock = [0.0]
         say = log or (lambda text: print(f"{clock[0]:8.2f} s  {text}"))
         loop, rate = make_loop(dict(get, scan=topics[topic] == SCAN), say)
-        connections = [c for c in reader.connections if c.topic == topic]
-        stamped = (
-            (ns, typestore.deserialize_cdr(raw, c.msgtype))
+        inputs = {topic: loop.on_observation}  # topic -> what the node calls with (msg, stamp s)
+        if loop.goal is not None:
+            goal_topic, odom_topic = goal_topics(topics, get)
+            inputs[goal_topic] = lambda msg, stamp: loop.goal.on_goal_msg(msg)
+            inputs[odom_topic] = loop.goal.on_odom_msg
+        connections = [c for c in reader.connections if c.topic in inputs]
+        stamped = (  # in recorded time order across the topics
+            (ns, c.topic, typestore.deserialize_cdr(raw, c.msgtype))
             for c, ns, raw in reader.messages(connections)
         )
-        return _run(loop, rate, stamped, topic, clock)
+        return _run(loop, rate, stamped, inputs, topic, clock)
     finally:
         reader.close()
 
 
-def _run(loop: ControlLoop, rate: float, stamped, topic: str, clock: list) -> Replay:
-    """Ticks `loop` every 1/rate s from the first message of `stamped` ((ns, msg), in time order)
-    until the last has gone stale; a message at a tick's time arrives before that tick."""
-    rows, count, t0, last, k = [], 0, None, 0, 0
+def _run(loop: ControlLoop, rate: float, stamped, inputs: dict, topic: str, clock: list) -> Replay:
+    """Ticks `loop` every 1/rate s from the first message of `stamped` ((ns, topic, msg), in time
+    order; each goes to inputs[topic](msg, s)) until the last has gone stale; a message at a tick's
+    time arrives before that tick. `topic`: the sensor's."""
+    rows, counts, t0, last, k = [], dict.fromkeys(inputs, 0), None, 0, 0
     period = round(1e9 / rate)  # ns, as rclpy's create_timer converts it
 
     def tick_until(end_ns: int, inclusive: bool) -> None:
@@ -126,57 +172,113 @@ def _run(loop: ControlLoop, rate: float, stamped, topic: str, clock: list) -> Re
             rows.append((t, loop.obs, twist, loop.state))
             k += 1
 
-    for ns, msg in stamped:  # times in integer ns since the first message: ties are exact
+    for ns, name, msg in stamped:  # times in integer ns since the first message: ties are exact
         t0 = ns if t0 is None else t0
         last = ns - t0
         tick_until(last, inclusive=False)
-        loop.on_observation(msg, last * 1e-9)
-        count += 1
-    if count == 0:
+        inputs[name](msg, last * 1e-9)
+        counts[name] += 1
+    if counts[topic] == 0:
         raise ReplayError(f"--topic {topic}: no messages in the bag")
     tick_until(last + round(loop.max_age * 1e9) + period, inclusive=True)  # the final stop
-    n = loop.controller.policy.sensor.num_sectors
-    obs = np.array([np.full(n, np.nan) if o is None else o for _, o, _, _ in rows], np.float32)
+    return _collect(loop, rows, topic, counts)
+
+
+def _collect(loop: ControlLoop, rows: list, topic: str, counts: dict) -> Replay:
+    """The Replay of `rows` ((s, obs or None, twist, state) per tick) and `counts` (topic ->
+    messages delivered)."""
+    policy = loop.controller.policy
+    d, n = policy.observation_size, policy.sensor.num_sectors
+    obs = np.array([np.full(d, np.nan) if o is None else o for _, o, _, _ in rows], np.float32)
+    goal = None  # [T, 2] distance, bearing from the goal features (distance, sin, cos)
+    if loop.goal is not None:
+        goal = np.stack([obs[:, n], np.arctan2(obs[:, n + 1], obs[:, n + 2])], axis=1)
     return Replay(
         topic=topic,
-        messages=count,
+        messages=counts.pop(topic),
         time=np.array([r[0] for r in rows]),
-        obs=obs,
+        obs=obs[:, :n],
         twist=np.array([tuple(r[2]) for r in rows], np.float64),
         state=tuple(r[3] for r in rows),
+        goal=goal,
+        inputs=tuple(counts.items()),
     )
 
 
 def write_csv(result: Replay, path: Path) -> None:
-    """One row per tick: time_s, state, obs_0 (rightmost) ..., linear_m_s, angular_rad_s."""
+    """One row per tick: time_s, state, obs_0 (rightmost) ..., (goal policies: goal_distance m,
+    goal_bearing rad,) linear m/s, angular rad/s."""
     n = result.obs.shape[1]
+    goal = np.zeros((len(result.time), 0)) if result.goal is None else result.goal
+    names = [] if result.goal is None else ["goal_distance", "goal_bearing"]
     with open(path, "w", newline="") as fh:
         out = csv.writer(fh)
-        out.writerow(["time_s", "state", *(f"obs_{i}" for i in range(n)), "linear", "angular"])
-        for t, state, obs, twist in zip(
-            result.time, result.state, result.obs, result.twist, strict=True
+        out.writerow(
+            ["time_s", "state", *(f"obs_{i}" for i in range(n)), *names, "linear", "angular"]
+        )
+        for t, state, obs, g, twist in zip(
+            result.time, result.state, result.obs, goal, result.twist, strict=True
         ):
-            out.writerow([f"{t:.4f}", state, *(f"{x:.4f}" for x in obs), *twist.tolist()])
+            values = (f"{x:.4f}" for x in (*obs, *g))
+            out.writerow([f"{t:.4f}", state, *values, *twist.tolist()])
 
 
-def _stopped_spans(result: Replay) -> list[tuple[float, float]]:
-    """(start, end) s of each run of ticks that sent zero velocity, each tick lasting a period."""
+def _stopped_spans(result: Replay, by_state: bool = False) -> list[tuple[float, float, str]]:
+    """(start, end) s of each run of ticks that sent zero velocity, each tick lasting a period, and
+    the run's first state; `by_state`: a change of state starts a new run."""
     period = result.time[1] - result.time[0] if len(result.time) > 1 else 0.1
     spans = []
     for t, state in zip(result.time, result.state, strict=True):
         if state == "policy":
             continue
-        if spans and np.isclose(spans[-1][1], t):
-            spans[-1] = (spans[-1][0], t + period)
+        if spans and np.isclose(spans[-1][1], t) and not (by_state and spans[-1][2] != state):
+            spans[-1] = (spans[-1][0], t + period, spans[-1][2])
         else:
-            spans.append((t, t + period))
+            spans.append((t, t + period, state))
     return spans
 
 
+def _shade_stops(axes, result: Replay) -> None:
+    """Shades the ticks that sent zero velocity: grey, or (goal policies) a colour per reason, with
+    a legend of the reasons beside the v panel."""
+    if result.goal is None:
+        for start, end, _ in _stopped_spans(result):
+            for ax in axes:
+                ax.axvspan(start, end, color="0.85", lw=0)
+        return
+    colors = {}  # state -> colour, in order of first appearance
+    for start, end, state in _stopped_spans(result, by_state=True):
+        color = colors.setdefault(state, f"C{len(colors) % 10}")
+        for ax in axes:
+            ax.axvspan(start, end, color=color, alpha=0.2, lw=0)
+    handles = [Patch(color=c, alpha=0.2, label=_short(s)) for s, c in colors.items()]
+    if handles:
+        axes[-2].legend(
+            handles=handles, title="zero velocity", fontsize="small", loc="upper left",
+            bbox_to_anchor=(1.0, 1.0),
+        )  # fmt: skip
+
+
+def _short(text: str, most: int = 40) -> str:
+    return text if len(text) <= most else text[: most - 3] + "..."
+
+
+def _plot_goal(ax, result: Replay) -> None:
+    """The goal's distance (m, left axis) and bearing (deg, right axis) the policy saw."""
+    ax.step(result.time, result.goal[:, 0], where="post", color="k")
+    ax.set_ylabel("goal distance (m)")
+    bearing = ax.twinx()
+    bearing.step(result.time, np.degrees(result.goal[:, 1]), where="post", color="C3")
+    bearing.set_ylabel("goal bearing (deg), + left", color="C3")
+
+
 def plot(result: Replay, path: Path, title: str) -> None:
-    """The observations and (v, w) over time, ticks that sent zero velocity shaded."""
-    fig = Figure(figsize=(10, 7), constrained_layout=True)
-    ax_obs, ax_v, ax_w = fig.subplots(3, 1, sharex=True, height_ratios=[2, 1, 1])
+    """The observations, (goal policies: the goal seen,) and (v, w) over time, ticks that sent zero
+    velocity shaded."""
+    ratios = [2, 1, 1] if result.goal is None else [2, 1, 1, 1]
+    fig = Figure(figsize=(10, 7 if result.goal is None else 9), constrained_layout=True)
+    axes = fig.subplots(len(ratios), 1, sharex=True, height_ratios=ratios)
+    ax_obs, ax_v, ax_w = axes[0], axes[-2], axes[-1]
     n = result.obs.shape[1]
     colors = [f"C{i % 10}" for i in range(n)]
     for i in range(n):
@@ -186,15 +288,15 @@ def plot(result: Replay, path: Path, title: str) -> None:
         )
     ax_obs.set_ylabel("sector distance (m)")
     ax_obs.legend(title="sector", fontsize="small", loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    if result.goal is not None:
+        _plot_goal(axes[1], result)
     ax_v.step(result.time, result.twist[:, 0], where="post", color="k")
     ax_v.set_ylabel("v (m/s)")
     ax_w.step(result.time, result.twist[:, 1], where="post", color="k")
     ax_w.set_ylabel("w (rad/s), + left")
     ax_w.set_xlabel(f"time since the first message (s); {result.topic}")
-    for start, end in _stopped_spans(result):
-        for ax in (ax_obs, ax_v, ax_w):
-            ax.axvspan(start, end, color="0.85", lw=0)
-    for ax in (ax_obs, ax_v, ax_w):
+    _shade_stops(axes, result)
+    for ax in axes:
         ax.grid(alpha=0.3)
     ax_obs.set_title(title)
     fig.savefig(path, dpi=110)
@@ -207,6 +309,7 @@ def parse_args(argv=None):
     p.add_argument("--topic", help="depth image or LaserScan topic (default: the one that fits)")
     p.add_argument("--plot", type=Path, help="PNG to write (default: BAG.replay.png beside it)")
     p.add_argument("--csv", type=Path, help="also write one row per tick here")
+    add_goal_flags(p)
     add_loop_flags(p)
     return p.parse_args(argv)
 
@@ -233,9 +336,11 @@ def main(argv=None) -> int:
         write_csv(result, csv_path)
     driving = sum(s == "policy" for s in result.state)
     span = result.time[-1] if len(result.time) else math.nan
+    inputs = ", ".join(f"{count} on {t}" for t, count in result.inputs)
+    inputs = f"; goal inputs: {inputs}" if inputs else ""
     print(
         f"{result.topic}: {result.messages} messages, {len(result.time)} ticks over {span:.2f} s; "
-        f"{driving} driving, {len(result.time) - driving} at zero velocity; wrote {out}"
+        f"{driving} driving, {len(result.time) - driving} at zero velocity{inputs}; wrote {out}"
         + (f" and {csv_path}" if csv_path is not None else "")
     )
     return 0

@@ -1,6 +1,7 @@
 """`python -m jaxnav.replay`: a real rosbag2, written with rosbags, replayed through the node's loop."""
 
 import csv
+import math
 
 import numpy as np
 import pytest
@@ -20,9 +21,9 @@ T0 = 1_700_000_000_000_000_000  # ns: the bag's clock
 DEPTH, SCAN, RGB = "/camera/depth/image_raw", "/scan", "/camera/rgb/image_raw"
 
 
-def header(ns: int):
+def header(ns: int, frame: str = "camera"):
     stamp = TS.types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
-    return TS.types["std_msgs/msg/Header"](stamp=stamp, frame_id="camera")
+    return TS.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
 
 
 def image(ns: int, pixels: np.ndarray, encoding: str = "32FC1"):
@@ -184,3 +185,168 @@ def test_no_fitting_topic(tmp_path, capsys):
     assert replay.main([str(bag), "--policy", str(npz)]) == 2
     err = capsys.readouterr().err
     assert "none fits; topics: /camera/rgb/image_raw (sensor_msgs/msg/Image); use --topic" in err
+
+
+GOAL, ODOM, START, TARGET = "/goal_pose", "/odom", (-0.5, -0.4), (1.2, 0.6)
+NO_GOAL = [(DEPTH, "sensor_msgs/msg/Image"), (ODOM, "nav_msgs/msg/Odometry")]
+
+
+def write_goal_policy_npz(path):
+    """A continuous goal policy in export format 3: 8 sectors, goal features, last command."""
+    rng = np.random.default_rng(2)
+    scale, low, high = [0.5, 1.5], [0.0, -1.5], [0.5, 1.5]
+    return write_policy_npz(
+        path, W0=rng.normal(size=(13, 16)).astype(np.float32), b1=np.zeros(2, np.float32),
+        W1=rng.normal(scale=0.2, size=(16, 2)).astype(np.float32),
+        obs_mean=np.array([3.0] * 8 + [1.0, 0, 0, 0.25, 0], np.float32),
+        obs_var=np.full(13, 4.0, np.float32), obs_std=np.full(13, 2.0, np.float32),
+        action_names=np.array(["forward", "yaw"]), commands=np.array([low, high], np.float32),
+        action_low=np.array(low, np.float32), action_high=np.array(high, np.float32),
+        extra_observations=np.int32(5), command_scale=np.array(scale, np.float32),
+        success_radius=np.float64(0.3), format_version=np.int32(3),
+    )  # fmt: skip
+
+
+def pose_at(t: float):
+    """The recorded robot's (x, y, yaw) at t s: a straight line to the goal, reached at 1.8 s,
+    turning from side to side (yaw beyond pi: the bearing wraps)."""
+    f = min(t / 1.8, 1.0)
+    x, y = (a + f * (b - a) for a, b in zip(START, TARGET, strict=True))
+    return x, y, 0.3 + 3.0 * math.sin(2.0 * t)
+
+
+def pose_msg(x: float, y: float, yaw: float):
+    t = TS.types
+    q = t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    return t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=x, y=y, z=0.0), orientation=q)  # fmt: skip
+
+
+def odometry(ns: int, x: float, y: float, yaw: float):
+    t, cov = TS.types, np.zeros(36)
+    zero = t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    return t["nav_msgs/msg/Odometry"](
+        header=header(ns, "odom"), child_frame_id="base_footprint",
+        pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose_msg(x, y, yaw), covariance=cov),
+        twist=t["geometry_msgs/msg/TwistWithCovariance"](
+            twist=t["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=cov
+        ),
+    )  # fmt: skip
+
+
+def goal_frames():
+    """topic -> [(t_ns, message)]: 15 Hz depth, 20 Hz odometry with a 0.4 s gap after 1.0 s
+    (times on the ticks' 0.1 s grid: a message at a tick's time comes first), one goal at 0.45 s."""
+    rng = np.random.default_rng(3)
+    depth = []
+    for j in range(30):
+        ns = round(j / 15 * 1e9)
+        depth.append((ns, image(T0 + ns, rng.uniform(0.8, 5.0, (24, 32)).astype(np.float32))))
+    odom = [(j * 50_000_000, pose_at(j * 0.05)) for j in range(41)]
+    odom = [(ns, odometry(T0 + ns, *pose)) for ns, pose in odom if not 1.0e9 < ns < 1.4e9]
+    goal = TS.types["geometry_msgs/msg/PoseStamped"](
+        header=header(T0 + 450_000_000, "odom"), pose=pose_msg(*TARGET, 0.0)
+    )
+    return {DEPTH: depth, ODOM: odom, GOAL: [(450_000_000, goal)]}
+
+
+@pytest.fixture(scope="module")
+def goal_bag(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("goal")
+    return write_bag(folder / "rec", goal_frames()), write_goal_policy_npz(folder / "policy.npz")
+
+
+def newest(frames, now: int):
+    """The last (t_ns, message) of `frames` at or before `now` ns, or (None, None)."""
+    return max((f for f in frames if f[0] <= now), default=(None, None), key=lambda f: f[0])
+
+
+def expected_goal_ticks(policy, frames, ticks):
+    """(state, twist, goal distance, bearing) per tick time (ns), from the recorded messages: the
+    newest of each topic at or before the tick, the goal turned into the frame of the recorded
+    pose of the newest odometry; the command sent is fed back (zero after a stop)."""
+    controller, last, out = Controller(policy), np.zeros(2), []
+    for now in ticks:
+        (t_img, img), (t_goal, _), (t_odom, _) = (
+            newest(frames[k], now) for k in (DEPTH, GOAL, ODOM)
+        )
+        x, y, yaw = pose_at(t_odom * 1e-9)
+        dx, dy = TARGET[0] - x, TARGET[1] - y
+        ahead, left = (
+            math.cos(yaw) * dx + math.sin(yaw) * dy,
+            math.cos(yaw) * dy - math.sin(yaw) * dx,
+        )
+        distance, bearing = math.hypot(ahead, left), math.atan2(left, ahead)
+        state = "goal reached" if distance <= 0.3 else "policy"
+        if now - t_img > 250_000_000:
+            state = "no sensor message for over 0.25 s"
+        elif t_goal is None:
+            state = "no goal yet"
+        elif now - t_odom > 250_000_000:
+            state = "no odometry for over 0.25 s"
+        if state != "policy":
+            last = np.zeros(2)
+            out.append((state, (0.0, 0.0), math.nan, math.nan))
+            continue
+        features = [distance, math.sin(bearing), math.cos(bearing)]
+        obs = np.concatenate([MessageReader()(img, controller), features, last / [0.5, 1.5]])
+        last = np.array(controller.act(obs))
+        out.append((state, tuple(last), distance, bearing))
+    return out
+
+
+def test_goal_policy_replays_goal_and_odometry(goal_bag, tmp_path, capsys):
+    """Depth, odometry and the goal reach the loop in recorded order: the goal features the policy
+    saw are the goal in the frame of the newest odometry pose, and it stops before the goal, on
+    stale odometry and at the goal."""
+    (bag, npz), table = goal_bag, tmp_path / "goal.csv"
+    args = [
+        str(bag),
+        "--policy",
+        str(npz),
+        "--plot",
+        str(tmp_path / "goal.png"),
+        "--csv",
+        str(table),
+    ]
+    assert replay.main(args) == 0
+    with open(table) as fh:
+        rows = list(csv.DictReader(fh))
+    ticks = [k * 100_000_000 for k in range(len(rows))]
+    want = expected_goal_ticks(NumpyPolicy.from_npz(npz), goal_frames(), ticks)
+    states = [w[0] for w in want]
+    assert [float(r["time_s"]) for r in rows] == pytest.approx([t * 1e-9 for t in ticks], abs=1e-4)
+    assert [r["state"] for r in rows] == states
+    got = np.array([[float(r[k]) for k in ("goal_distance", "goal_bearing", "linear", "angular")] for r in rows])  # fmt: skip
+    distance, bearing = np.array([w[2:] for w in want]).T
+    np.testing.assert_allclose(got[:, 0], distance, atol=2e-4)  # NaN where it stopped, in both
+    np.testing.assert_allclose(np.angle(np.exp(1j * (got[:, 1] - bearing))), 0 * bearing, atol=2e-4)
+    np.testing.assert_allclose(got[:, 2:], [w[1] for w in want], atol=1e-4)
+    assert (
+        states[:5] == ["no goal yet"] * 5 and (got[:5, 2:] == 0).all()
+    )  # the goal comes at 0.45 s
+    assert {"no odometry for over 0.25 s", "goal reached"} <= set(states) and states[-1] != "policy"
+    assert states.count("policy") >= 8 and (np.abs(bearing) > 2.5).any()  # bearings wrap past pi
+    assert len({w[1] for w in want if w[0] == "policy"}) >= 4  # the commands vary
+    out = capsys.readouterr().out
+    assert "goal reached: sending zero velocity" in out
+    assert f"; goal inputs: 1 on {GOAL}, 34 on {ODOM}; wrote" in out
+
+
+@pytest.mark.parametrize(
+    "drop, flags, message",
+    [
+        (GOAL, [], f"--goal-topic goal_pose: {GOAL} is not in the bag, and the goal policy needs its geometry_msgs/msg/PoseStamped there; topics: {', '.join(f'{n} ({t})' for n, t in NO_GOAL)}"),
+        (None, ["--odom-topic", "/robot/odom"], "--odom-topic /robot/odom: /robot/odom is not in the bag, and the goal policy needs its nav_msgs/msg/Odometry there; topics: "),
+        (None, ["--goal-topic", "odom"], f"--goal-topic odom: {ODOM} is of type nav_msgs/msg/Odometry, and the goal policy needs its geometry_msgs/msg/PoseStamped"),
+    ],
+)  # fmt: skip
+def test_goal_policy_needs_goal_and_odometry_topics(
+    goal_bag, tmp_path, capsys, drop, flags, message
+):
+    bag, npz = goal_bag
+    if drop is not None:
+        bag = write_bag(tmp_path / "rec", {k: v for k, v in goal_frames().items() if k != drop})
+    args = [str(bag), "--policy", str(npz), "--plot", str(tmp_path / "p.png"), *flags]
+    assert replay.main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1, err

@@ -180,6 +180,11 @@ def _stderr(text: str) -> None:
     print(text, file=sys.stderr)
 
 
+def yaw_of(q) -> float:
+    """Yaw (rad) of a geometry_msgs/Quaternion."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
 class GoalInput:
     """The goal task's inputs on the robot: the newest goal and odometry pose, in one frame."""
 
@@ -198,6 +203,17 @@ class GoalInput:
         """The robot's pose (m, rad) in `frame`, received at `stamp` (s)."""
         self.pose, self.pose_frame, self.pose_stamp = (float(x), float(y), float(yaw)), frame, stamp
 
+    def on_goal_msg(self, msg) -> None:
+        """A geometry_msgs/PoseStamped goal (its position; the orientation is not used)."""
+        p = msg.pose.position
+        self.on_goal(p.x, p.y, msg.header.frame_id)
+
+    def on_odom_msg(self, msg, stamp: float) -> None:
+        """A nav_msgs/Odometry message received at `stamp` (s): the robot's pose."""
+        pose = msg.pose.pose
+        x, y, yaw = pose.position.x, pose.position.y, yaw_of(pose.orientation)
+        self.on_pose(x, y, yaw, stamp, msg.header.frame_id)
+
     def problem(self, now: float, max_age: float, success_radius: float) -> str | None:
         """Why the robot must not drive now (None: it may)."""
         if self.goal is None:
@@ -211,11 +227,6 @@ class GoalInput:
         if math.dist(self.goal, self.pose[:2]) <= success_radius:
             return "goal reached"
         return None
-
-
-def yaw_of(q) -> float:
-    """Yaw (rad) of a geometry_msgs/Quaternion."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
 class ControlLoop:
@@ -328,6 +339,14 @@ def add_loop_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera-height", type=float, default=nan, help=f"camera, m ({file})")
 
 
+def add_goal_flags(p: argparse.ArgumentParser) -> None:
+    """The goal policies' input topics (shared with `python -m jaxnav.replay`)."""
+    p.add_argument(
+        "--goal-topic", default="goal_pose", help="goal policies: geometry_msgs/PoseStamped goal"
+    )
+    p.add_argument("--odom-topic", default="odom", help="goal policies: nav_msgs/Odometry")
+
+
 def parse_args(argv=None):
     """Flags (defaults of the node's ROS parameters) and the rest (for rclpy: --ros-args ...)."""
     p = argparse.ArgumentParser(prog="ros_node", description=__doc__.splitlines()[0])
@@ -335,10 +354,7 @@ def parse_args(argv=None):
     p.add_argument("--topic", default="/camera/depth/image_raw", help="depth image or scan topic")
     p.add_argument("--scan", action="store_true", help="the topic is a sensor_msgs/LaserScan")
     p.add_argument("--cmd-vel", default="cmd_vel", help="geometry_msgs/Twist output topic")
-    p.add_argument(
-        "--goal-topic", default="goal_pose", help="goal policies: geometry_msgs/PoseStamped goal"
-    )
-    p.add_argument("--odom-topic", default="odom", help="goal policies: nav_msgs/Odometry")
+    add_goal_flags(p)
     add_loop_flags(p)
     return p.parse_known_args(argv)
 
@@ -395,14 +411,10 @@ def _make_node(args):
             self.loop.on_observation(msg, self.now())
 
         def on_goal(self, msg):
-            p = msg.pose.position
-            self.loop.goal.on_goal(p.x, p.y, msg.header.frame_id)
+            self.loop.goal.on_goal_msg(msg)
 
         def on_odom(self, msg):
-            pose = msg.pose.pose
-            yaw = yaw_of(pose.orientation)
-            goal = self.loop.goal
-            goal.on_pose(pose.position.x, pose.position.y, yaw, self.now(), msg.header.frame_id)
+            self.loop.goal.on_odom_msg(msg, self.now())
 
         def on_timer(self):
             self.pub.publish(twist_msg(self.loop.tick(self.now()), TwistMsg))
