@@ -45,7 +45,7 @@ def run(policy, args, moving: dict | None) -> dict:
     return {
         "families": {f: pick(m) for f, m in results["families"].items()},
         "overall": pick(results["overall"]),
-        "moving": results["moving"],
+        "moving": results.get("moving"),
         "seconds": round(time.perf_counter() - tick, 1),
     }
 

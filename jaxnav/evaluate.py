@@ -360,7 +360,7 @@ def evaluate(
     `physics` ("fast" or "wheeled") replaces the policy's own `SceneConfig.physics`; the results
     name the one used under `"physics"`. `moving` adds moving obstacles to every room (the
     `RandomizeConfig` fields of `MOVING_FIELDS`, e.g. {"moving_count": (1, 3)}); the results
-    give the evaluation's under `"moving"`.
+    then give them under `"moving"`.
     """
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
@@ -402,9 +402,10 @@ def evaluate(
         "physics": rooms[0]["env"].scene.cfg.physics,
         "steps": steps,
         "seed": seed,
-        "moving": {k: getattr(randomize, k) for k in MOVING_FIELDS},
         "_trajectories": trajectories,
     }
+    if randomize.moving_count[1]:
+        results["moving"] = {k: getattr(randomize, k) for k in MOVING_FIELDS}
     if suite is not None:
         sizes = np.cumsum([0] + [len(v) for v in groups.values()])
         results["suite"] = suite

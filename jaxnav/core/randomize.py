@@ -53,6 +53,7 @@ class SceneParams:
     motion: Any = None  # `motion.MotionState` of the moving obstacles; None: nothing moves
 
 
+MAX_MOVERS = 16  # most moving obstacles added per room (each is placed by its own draw)
 RANDOM = "random"  # the family of `RandomizeConfig.families` that is `sample_room` with that config
 FAMILY_NAMES = (
     RANDOM,
@@ -193,6 +194,10 @@ class RandomizeConfig:
                 raise ValueError(
                     f"RandomizeConfig.{name}: must be >= 0 m, got {getattr(self, name)}"
                 )
+        if self.moving_count[1] > MAX_MOVERS:
+            raise ValueError(
+                f"RandomizeConfig.moving_count: at most {MAX_MOVERS} per room, got {self.moving_count}"
+            )
         if not 0 < self.moving_speed[0] <= self.moving_speed[1] <= MAX_OBSTACLE_SPEED:
             raise ValueError(
                 f"RandomizeConfig.moving_speed: need 0 < low <= high <= {MAX_OBSTACLE_SPEED:g} "
