@@ -213,3 +213,23 @@ def test_movers_that_cannot_be_placed_change_nothing():
         runs.append(jax.device_get(jax.jit(rollout)(keys)))
     for a, b in zip(*runs, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_pictures_draw_the_movers(tmp_path):
+    from matplotlib.figure import Figure
+
+    from jaxnav.viz.plots import draw_movers, plot_trajectories
+
+    layout = _room(
+        Cylinder(pos=(1.0, 0.0), radius=0.25, motion=Motion(velocity=(0.0, 0.4))),
+        Box(pos=(-2.0, 1.5), size=(0.6, 0.4), motion=Motion(path=((2.0, 1.5),), speed=0.3)),
+        Box(pos=(0.0, -1.0), size=(0.5, 0.5)),
+    )
+    ax = Figure().add_subplot()
+    assert draw_movers(ax, _bank_params(layout))
+    outlines = [p for p in ax.patches if p.get_linestyle() == "--"]
+    assert len(outlines) == 2  # the two movers, not the still box
+    assert len(ax.lines) == 1  # the path (the arrow is a patch)
+    assert not draw_movers(Figure().add_subplot(), _bank_params(_room(Box((0, 0), (1, 1)))))
+    plot_trajectories(layout, [], [], tmp_path / "m.png", movers=_bank_params(layout))
+    assert (tmp_path / "m.png").stat().st_size > 0
