@@ -7,7 +7,8 @@ Each variant is the default training env (5-row camera, sim-to-real ranges of ra
 the auto-reset pool of the PPO default) with one thing changed, to time what each piece costs:
 `rows1`/`rows3` (a 1- or 3-row camera), `no_fidelity` (randomize.FIDELITY off), `families` (sampled
 rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step),
-`wheeled` (the wheeled validation model, `SceneConfig.physics`).
+`wheeled` (the wheeled validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles
+per room, `RandomizeConfig.moving_count`).
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size.
@@ -41,6 +42,7 @@ VARIANTS = {
     "families": {"randomize": dataclasses.replace(TRAINING, families="all")},
     "pool_all": {"reset_share": 1.0},
     "wheeled": {"scene": SceneConfig(physics="wheeled")},
+    "movers": {"randomize": dataclasses.replace(TRAINING, moving_count=(0, 3))},
 }
 
 

@@ -9,6 +9,7 @@ collision or after `steps` control steps; after that it is frozen (masked), so n
     python -m jaxnav.evaluate --checkpoint runs/a --video videos/   # one GIF per layout
     python -m jaxnav.evaluate --policy forward --suite benchmark --episodes 20  # every family
     python -m jaxnav.evaluate --checkpoint runs/a --physics wheeled  # the wheeled validation model
+    python -m jaxnav.evaluate --checkpoint runs/a --suite benchmark --randomize.moving-count 1 3
 
 All rooms run in one env and one compiled batch (`make_rollout(..., pinned=True)`): the rooms are
 data, so a 32-room suite compiles once. Coverage (`jaxnav.core.families.coverage`) is the share of
@@ -39,6 +40,7 @@ from jaxnav.core.scene import PHYSICS, SCENES_DIR, SceneConfig
 from jaxnav.io.assets import scenes_dir
 from jaxnav.io.files import check_writable, write_atomic
 from jaxnav.io.layouts import LayoutError, RoomLayout
+from jaxnav.io.runconfig import add_field_flags, overrides_from_args
 from jaxnav.policy import BASELINES, Policy
 from jaxnav.tasks.registry import make_env, observation_size, task_entry
 
@@ -54,6 +56,9 @@ METRIC_KEYS = (
     "coverage",
 )
 GOAL_KEYS = ("success_rate", "spl", "time_to_goal")  # added for tasks with a `success` metric
+MOVING_FIELDS = ("moving_count", "moving_speed", "moving_radius", "moving_clearance")
+"""The `RandomizeConfig` fields evaluation takes (`--randomize.moving-count` ...): moving
+obstacles added to every room."""
 
 
 @struct.dataclass
@@ -86,8 +91,11 @@ class Kept:
 # Rollouts
 
 
-def eval_randomize(spawn: str = "layout", stochastic_env: bool = True) -> RandomizeConfig:
-    """Layouts only (no sampled rooms); the layout's spawn or a random free one.
+def eval_randomize(
+    spawn: str = "layout", stochastic_env: bool = True, moving: dict | None = None
+) -> RandomizeConfig:
+    """Layouts only (no sampled rooms); the layout's spawn or a random free one; `moving`: the
+    `MOVING_FIELDS` that add moving obstacles to every room ({"moving_count": (1, 3)}).
 
     `stochastic_env`: the robot as it really is, drawn per episode from the training ranges and
     the sim-to-real ranges of `randomize.FIDELITY` (traction, speed gain, the Kobuki's velocity
@@ -97,7 +105,11 @@ def eval_randomize(spawn: str = "layout", stochastic_env: bool = True) -> Random
     """
     if spawn not in ("layout", "random"):
         raise ValueError(f"spawn: must be 'layout' or 'random', got {spawn!r}")
+    unknown = sorted(set(moving or {}) - set(MOVING_FIELDS))
+    if unknown:
+        raise ValueError(f"moving: unknown fields {unknown}; valid: {', '.join(MOVING_FIELDS)}")
     rooms = dict(sampled_room_prob=0.0, random_spawn_prob=0.0 if spawn == "layout" else 1.0)
+    rooms.update(moving or {})
     if stochastic_env:
         return RandomizeConfig(**rooms, **FIDELITY)
     return RandomizeConfig(
@@ -333,6 +345,7 @@ def evaluate(
     spawn: str = "layout",
     stochastic_env: bool = True,
     physics: str | None = None,
+    moving: dict | None = None,
 ) -> dict:
     """Runs `episodes` episodes of at most `steps` control steps in each layout (or each room of
     `suite`, see `load_suite`), all rooms in one compiled batch.
@@ -345,7 +358,9 @@ def evaluate(
     (SceneParams) are the first episode's, and `env` the env of the batch, for `jaxnav.viz.render`.
     `_trajectories` is for pictures; `strip_private` removes it before writing JSON.
     `physics` ("fast" or "wheeled") replaces the policy's own `SceneConfig.physics`; the results
-    name the one used under `"physics"`.
+    name the one used under `"physics"`. `moving` adds moving obstacles to every room (the
+    `RandomizeConfig` fields of `MOVING_FIELDS`, e.g. {"moving_count": (1, 3)}); the results
+    then give them under `"moving"`.
     """
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
@@ -357,7 +372,7 @@ def evaluate(
     layouts = [room for rooms in groups.values() for room in rooms] if suite else list(layouts)
     if not layouts:
         raise ValueError("layouts: need at least one layout")
-    randomize = eval_randomize(spawn, stochastic_env)
+    randomize = eval_randomize(spawn, stochastic_env, moving)
     rooms = evaluate_rooms(
         policy,
         layouts,
@@ -389,6 +404,8 @@ def evaluate(
         "seed": seed,
         "_trajectories": trajectories,
     }
+    if randomize.moving_count[1]:
+        results["moving"] = {k: getattr(randomize, k) for k in MOVING_FIELDS}
     if suite is not None:
         sizes = np.cumsum([0] + [len(v) for v in groups.values()])
         results["suite"] = suite
@@ -480,6 +497,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="the robot's physics: fast (the training default) or wheeled (the validation model: "
         "driven wheels, castors, friction contacts; about 18x slower); default: the policy's own",
     )
+    moving = p.add_argument_group("moving obstacles (added to every room; default: none)")
+    add_field_flags(moving, "randomize", RandomizeConfig, "randomize.", MOVING_FIELDS)
     p.add_argument("--json", metavar="OUT", help="write the metrics here")
     p.add_argument("--plots", metavar="DIR", help="top-down PNGs, one per layout")
     p.add_argument(
@@ -617,7 +636,13 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
             )
         path = out / f"{_file_name(label)}.png"
         plot_trajectories(
-            by_name[name], traj["paths"], traj["collided"], path, title, goals=traj["goals"]
+            by_name[name],
+            traj["paths"],
+            traj["collided"],
+            path,
+            title,
+            goals=traj["goals"],
+            movers=traj["params"],
         )
     print(f"plots: {out}/ ({len(shown)} PNG)")
 
@@ -689,6 +714,7 @@ def _run(argv) -> None:
         spawn=args.spawn,
         stochastic_env=not args.deterministic_env,
         physics=args.physics,
+        moving=overrides_from_args(args)["randomize"],
     )
     print(format_table(results))
     _write_outputs(args, results, layouts)

@@ -16,9 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxnav.core import motion
 from jaxnav.core.checks import require_finite
 from jaxnav.core.geometry import signed_distance
-from jaxnav.io.layouts import RoomLayout
+from jaxnav.io.layouts import MAX_OBSTACLE_SPEED, RoomLayout
 
 
 @struct.dataclass
@@ -49,8 +50,10 @@ class SceneParams:
     accel: jax.Array  # [2] acceleration limits of the velocity smoother: m/s^2, rad/s^2
     latency: jax.Array  # [] int32 control steps between a command and the motors
     wheel_gain: jax.Array  # [2] actual / commanded speed of the left and right wheels
+    motion: Any = None  # `motion.MotionState` of the moving obstacles; None: nothing moves
 
 
+MAX_MOVERS = 16  # most moving obstacles added per room (each is placed by its own draw)
 RANDOM = "random"  # the family of `RandomizeConfig.families` that is `sample_room` with that config
 FAMILY_NAMES = (
     RANDOM,
@@ -117,6 +120,19 @@ class RandomizeConfig:
     `jaxnav.core.families.FAMILIES` (open, clutter, pillars, corridor, ltu, joined, furniture,
     low_overhang) and 'random' (the sampler configured by the fields below); 'all' is every one,
     equally weighted. Empty: 'random' only."""
+    moving_count: tuple[int, int] = (0, 0)
+    """Moving obstacles added to every room, sampled or layout, count uniform over the range:
+    cylinders bouncing off the walls and the other obstacles at a constant speed, in cylinder
+    slots of their own (`jaxnav.core.motion`); a layout's own `motion`s come on top. (0, 0):
+    none, at no cost."""
+    moving_speed: tuple[float, float] = (0.2, 0.5)
+    """Speed of an added moving obstacle, m/s, uniform (at most 1); its heading is uniform."""
+    moving_radius: tuple[float, float] = (0.15, 0.3)
+    """Radius of an added moving obstacle, m, uniform (a person, a trolley); its height is
+    drawn from obstacle_height."""
+    moving_clearance: float = 1.0
+    """Least gap between an added moving obstacle and the robot's edge at the reset, m, so that
+    the first steps are fair."""
     obstacle_height: tuple[float, float] = (0.4, 1.0)
     """Height of a sampled obstacle, m; the TurtleBot 2i's camera sits at 0.30 m."""
     low_prob: float = 0.0
@@ -173,9 +189,19 @@ class RandomizeConfig:
                 raise ValueError(
                     f"RandomizeConfig.{name}: must be in [0, 1], got {getattr(self, name)}"
                 )
-        if self.spawn_clearance < 0:
+        for name in ("spawn_clearance", "moving_clearance"):
+            if getattr(self, name) < 0:
+                raise ValueError(
+                    f"RandomizeConfig.{name}: must be >= 0 m, got {getattr(self, name)}"
+                )
+        if self.moving_count[1] > MAX_MOVERS:
             raise ValueError(
-                f"RandomizeConfig.spawn_clearance: must be >= 0 m, got {self.spawn_clearance}"
+                f"RandomizeConfig.moving_count: at most {MAX_MOVERS} per room, got {self.moving_count}"
+            )
+        if not 0 < self.moving_speed[0] <= self.moving_speed[1] <= MAX_OBSTACLE_SPEED:
+            raise ValueError(
+                f"RandomizeConfig.moving_speed: need 0 < low <= high <= {MAX_OBSTACLE_SPEED:g} "
+                f"m/s, got {self.moving_speed}"
             )
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
@@ -193,7 +219,13 @@ class RandomizeConfig:
                 f"RandomizeConfig.low_prob: low_prob + overhang_prob must be <= 1, got "
                 f"{self.low_prob} + {self.overhang_prob}"
             )
-        for name in ("box_size", "cylinder_radius", "obstacle_height", "low_height"):
+        for name in (
+            "box_size",
+            "cylinder_radius",
+            "obstacle_height",
+            "low_height",
+            "moving_radius",
+        ):
             if getattr(self, name)[0] <= 0:
                 raise ValueError(
                     f"RandomizeConfig.{name}: low must be > 0 m, got {getattr(self, name)}"
@@ -258,8 +290,15 @@ class LayoutBank:
 
 
 def make_bank(layouts: Sequence[RoomLayout], num_boxes: int, num_cylinders: int) -> LayoutBank:
-    """Stacks layouts into a bank with `num_boxes`/`num_cylinders` slots (inactive beyond their own)."""
-    rooms = [_layout_params(lay, num_boxes, num_cylinders) for lay in layouts]
+    """Stacks layouts into a bank with `num_boxes`/`num_cylinders` slots (inactive beyond their own).
+
+    Where an obstacle of some layout moves, every room gets a `motion.MotionState` (its paths
+    padded to the longest); otherwise `rooms.motion` is None."""
+    points = None
+    if any(ob.motion is not None for lay in layouts for ob in lay.obstacles):
+        paths = [ob.motion.path for lay in layouts for ob in lay.obstacles if ob.motion]
+        points = max([1 + len(p) for p in paths if p] or [0])
+    rooms = [_layout_params(lay, num_boxes, num_cylinders, points) for lay in layouts]
     if not rooms:  # an empty bank keeps shapes static: one dummy room, never drawn
         rooms = [_layout_params(RoomLayout(name="none", size=(4.0, 4.0)), num_boxes, num_cylinders)]
     stacked = jax.tree_util.tree_map(lambda *x: np.stack(x), *rooms)
@@ -269,7 +308,26 @@ def make_bank(layouts: Sequence[RoomLayout], num_boxes: int, num_cylinders: int)
     )
 
 
-def _layout_params(layout: RoomLayout, nb: int, nc: int) -> SceneParams:
+def _layout_motion(layout: RoomLayout, nb: int, nc: int, points: int) -> motion.MotionState:
+    """The layout's obstacle motions in slots (boxes, then cylinders from slot `nb`), paths of
+    `points` points: the obstacle's `pos`, its waypoints, then its last one repeated."""
+    state = motion.still(nb + nc, points)
+    slots = [(i, b) for i, b in enumerate(layout.boxes)]
+    slots += [(nb + i, c) for i, c in enumerate(layout.cylinders)]
+    for slot, ob in slots:
+        move = ob.motion
+        if move is None:
+            continue
+        if move.velocity is not None:
+            state.velocity[slot] = move.velocity
+        else:
+            line = [ob.pos, *move.path]
+            state.path[slot] = line + [line[-1]] * (points - len(line))
+            state.speed[slot] = move.speed
+    return state
+
+
+def _layout_params(layout: RoomLayout, nb: int, nc: int, points: int | None = None) -> SceneParams:
     boxes, cyls = layout.boxes, layout.cylinders
     if len(boxes) > nb or len(cyls) > nc:
         raise ValueError(
@@ -303,6 +361,7 @@ def _layout_params(layout: RoomLayout, nb: int, nc: int) -> SceneParams:
         noise_std=f32(0),
         dropout=f32(0),
         **_episode_placeholders(nb, nc),
+        motion=None if points is None else _layout_motion(layout, nb, nc, points),
     )
 
 
@@ -422,18 +481,30 @@ def free_spawn(key, room: SceneParams, radius: float, clearance_margin: float, t
 
 
 def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float) -> SceneParams:
-    """One episode's scene for a robot of `radius`: a room, a free spawn, physics and sensing."""
+    """One episode's scene for a robot of `radius`: a room, a free spawn, physics and sensing.
+
+    With moving obstacles (`cfg.moving_count`, or a layout's `motion`s) it has a `motion` in
+    which nothing moves yet, and its last moving_count[1] cylinder slots are left empty for
+    `motion.add_movers`."""
     k_pick, k_room, k_layout, k_spawn, k_rand, k_phys = jax.random.split(key, 6)
     nb, nc = bank.rooms.box_pos.shape[1], bank.rooms.cyl_pos.shape[1]
+    reserved = cfg.moving_count[1]
     # Room: a sampled room with probability sampled_room_prob, otherwise a uniform pick of the layouts.
     if cfg.families:
         from jaxnav.core.families import sample_weighted  # families builds on this module
 
-        sampled = sample_weighted(k_room, cfg, nb, nc, radius)
+        sampled = sample_weighted(k_room, cfg, nb, nc - reserved, radius)
     else:
-        sampled = sample_room(k_room, cfg, nb, nc, radius)
+        sampled = sample_room(k_room, cfg, nb, nc - reserved, radius)
     idx = jax.random.randint(k_layout, (), 0, bank.size)
     layout = jax.tree_util.tree_map(lambda x: x[idx], bank.rooms).replace(layout_id=idx)
+    if reserved or layout.motion is not None:
+        if reserved:
+            sampled = motion.reserve(sampled, reserved)
+        points = 0 if layout.motion is None else layout.motion.path.shape[-2]
+        still = jax.tree_util.tree_map(jnp.asarray, motion.still(nb + nc, points))
+        sampled = sampled.replace(motion=still)
+        layout = layout.replace(motion=still if layout.motion is None else layout.motion)
     # Spawn in a layout: its own pose, or with probability random_spawn_prob (always if it has none)
     # a uniform free pose.
     use_random = ~bank.has_spawn[idx] | jax.random.bernoulli(k_rand, cfg.random_spawn_prob)

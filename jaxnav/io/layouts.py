@@ -17,7 +17,10 @@ interior is centred on the origin, x to the east, y to the north, and walls are 
 optional. Without `robot` the spawn is sampled in free space every episode; with it, `robot.pos` is
 required. `"goal": {"pos": [x, y]}` fixes the target of goal-reaching tasks (`jaxnav.tasks.goal`;
 other tasks ignore it); without it a reachable goal is sampled every episode.
-`box.size` is the full extent along the box's own axes. Every mistake raises
+`box.size` is the full extent along the box's own axes. An obstacle may move (`motion`, see
+`Motion`): `{"velocity": [vx, vy]}` bounces off the walls and the other obstacles, and
+`{"path": [[x, y], ...], "speed": s}` goes back and forth from its `pos` through the waypoints.
+Every mistake raises
 `LayoutError`, whose one-line message names the file, the room and the field in JSON path style
 (`obstacles[2].size`).
 
@@ -31,6 +34,8 @@ Bounds (what the float32 simulator handles exactly enough; anything else is refu
 - A room with `robot` must have the robot's disc (`ROBOT_RADIUS`) clear of every wall and obstacle
   at `robot.pos`; a room without it must have some free spawn, found at load time by a grid search
   over the interior (`SPAWN_GRID`), else it is refused: every episode would start in a collision.
+- `motion`: a velocity or a speed above 0 and at most `MAX_OBSTACLE_SPEED`; a path of 1 to
+  `MAX_WAYPOINTS` waypoints, at each of which the footprint lies inside the room.
 - A `goal.pos` must have the robot's disc clear of every wall and obstacle too (a goal inside an
   obstacle could never be reached). That it is reachable from the spawn (not in a closed-off part)
   is checked where the goal task builds its rooms (`jaxnav.core.goals`), on the occupancy grid.
@@ -67,6 +72,8 @@ ROBOT_RADIUS = TURTLEBOT2I.radius  # m; spawns in layout files must fit the defa
 ROOM_SIZE = (0.5, 100.0)  # m, smallest and largest side of a room's interior
 MAX_HEIGHT = 10.0  # m, tallest wall or obstacle
 MIN_OBSTACLE = 0.01  # m, thinnest box side or cylinder radius
+MAX_WAYPOINTS = 8  # waypoints of a path motion (after the obstacle's own `pos`)
+MAX_OBSTACLE_SPEED = 1.0  # m/s: 0.1 m per control step, so a moving obstacle cannot skip the robot
 SPAWN_GRID = (
     0.05  # m between points of the free-spawn search (coarser in rooms over 20 m: 400 a side)
 )
@@ -215,6 +222,75 @@ def _angle(value, field: str) -> float:
 # The dataclasses
 
 
+_MOTION_KEYS = ("velocity", "path", "speed")
+
+
+def _speed(value, field: str, what: str = "must be") -> float:
+    """A speed above 0 and at most MAX_OBSTACLE_SPEED, m/s."""
+    out = _number(value, field)
+    if not 0 < out <= MAX_OBSTACLE_SPEED:
+        detail = f"{what} > 0 and <= {MAX_OBSTACLE_SPEED:g} m/s, got {out:.4g}"
+        raise LayoutError(field, detail)
+    return out
+
+
+@dataclass(frozen=True)
+class Motion:
+    """How an obstacle moves: either `velocity` (it bounces off the walls and the other obstacles)
+    or back and forth along `path` at `speed` (its own `pos`, then the waypoints, and back)."""
+
+    velocity: tuple[float, float] | None = None  # [vx, vy] m/s at the start
+    path: tuple[tuple[float, float], ...] | None = None  # 1 to MAX_WAYPOINTS waypoints [x, y], m
+    speed: float | None = None  # m/s along the path; only with `path`
+
+    def __post_init__(self):
+        if (self.velocity is None) == (self.path is None):
+            raise LayoutError(None, 'must have either "velocity" or "path" (with "speed")')
+        if self.velocity is not None:
+            vx, vy = _pair(self.velocity, "velocity")
+            _speed(math.hypot(vx, vy), "velocity", "its speed (length) must be")
+            if self.speed is not None:
+                raise LayoutError("speed", 'only with "path" (a velocity carries its speed)')
+            object.__setattr__(self, "velocity", (vx, vy))
+            return
+        path = self.path
+        if not isinstance(path, (list, tuple)) or not 1 <= len(path) <= MAX_WAYPOINTS:
+            raise LayoutError(
+                "path",
+                f"must be a list of 1 to {MAX_WAYPOINTS} waypoints [x, y], got {_show(path)}",
+            )
+        object.__setattr__(self, "path", tuple(_pair(p, f"path[{i}]") for i, p in enumerate(path)))
+        if self.speed is None:
+            raise LayoutError("speed", 'missing required field (m/s along the "path")')
+        object.__setattr__(self, "speed", _speed(self.speed, "speed"))
+
+    @classmethod
+    def parse(cls, value) -> Motion | None:
+        """A `Motion` from itself, None or its JSON object (keys checked)."""
+        if value is None or isinstance(value, Motion):
+            return value
+        if not isinstance(value, dict):
+            raise LayoutError(
+                None, f'must be an object with "velocity" or "path" and "speed", got {_kind(value)}'
+            )
+        _check_keys(value, _MOTION_KEYS, "")
+        return cls(**value)
+
+    def to_dict(self) -> dict:
+        """The JSON object of this motion."""
+        if self.velocity is not None:
+            return {"velocity": list(self.velocity)}
+        return {"path": [list(p) for p in self.path], "speed": self.speed}
+
+
+def _set_motion(ob) -> None:
+    """Checks and stores the obstacle's `motion` (None: it stands still)."""
+    try:
+        object.__setattr__(ob, "motion", Motion.parse(ob.motion))
+    except LayoutError as err:
+        raise err.under("motion") from None
+
+
 def _set_span(ob) -> None:
     """Checks and stores the obstacle's vertical span [bottom, height]."""
     object.__setattr__(ob, "height", _height(ob.height, "height"))
@@ -234,6 +310,7 @@ class Box:
     yaw: float = 0.0  # rad, counter-clockwise from the room's x axis
     height: float = 0.5  # m, of its top above the floor
     bottom: float = 0.0  # m, of its underside above the floor (tables, shelves); below `height`
+    motion: Motion | None = None  # None: it stands still
 
     def __post_init__(self):
         object.__setattr__(self, "pos", _pair(self.pos, "pos"))
@@ -241,6 +318,7 @@ class Box:
         object.__setattr__(self, "size", size)
         object.__setattr__(self, "yaw", _angle(self.yaw, "yaw"))
         _set_span(self)
+        _set_motion(self)
 
 
 @dataclass(frozen=True)
@@ -253,12 +331,14 @@ class Cylinder:
     radius: float  # m
     height: float = 0.5  # m, of its top above the floor
     bottom: float = 0.0  # m, of its underside above the floor; below `height`
+    motion: Motion | None = None  # None: it stands still
 
     def __post_init__(self):
         object.__setattr__(self, "pos", _pair(self.pos, "pos"))
         radius = _number(self.radius, "radius", positive=True, bounds=(MIN_OBSTACLE, ROOM_SIZE[1]))
         object.__setattr__(self, "radius", radius)
         _set_span(self)
+        _set_motion(self)
 
 
 Obstacle = Box | Cylinder
@@ -379,19 +459,26 @@ def _footprint_bounds(ob: Obstacle) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _check_inside(layout: RoomLayout) -> None:
-    """Every obstacle's footprint (yawed box corners, cylinder disc) lies within the interior."""
+    """Every obstacle's footprint (yawed box corners, cylinder disc) lies within the interior, at
+    its `pos` and at every waypoint of its path."""
     half = 0.5 * np.asarray(layout.size)
     for i, ob in enumerate(layout.obstacles):
         lo, hi = _footprint_bounds(ob)
-        beyond = np.array([hi[0] - half[0], -half[0] - lo[0], hi[1] - half[1], -half[1] - lo[1]])
-        k = int(beyond.argmax())
-        if beyond[k] > _TOL:
-            raise LayoutError(
-                f"obstacles[{i}]",
-                f"{ob.kind} at {_show(list(ob.pos))} reaches {beyond[k]:.3f} m beyond the "
-                f"{_WALLS[k]} wall (interior x in [{-half[0]:g}, {half[0]:g}], "
-                f"y in [{-half[1]:g}, {half[1]:g}])",
-            )
+        path = ob.motion.path if ob.motion is not None and ob.motion.path else ()
+        stops = [(f"obstacles[{i}]", ob.pos)]
+        stops += [(f"obstacles[{i}].motion.path[{j}]", p) for j, p in enumerate(path)]
+        for field, at in stops:
+            shift = np.asarray(at) - np.asarray(ob.pos)
+            a, b = lo + shift, hi + shift
+            beyond = np.array([b[0] - half[0], -half[0] - a[0], b[1] - half[1], -half[1] - a[1]])
+            k = int(beyond.argmax())
+            if beyond[k] > _TOL:
+                raise LayoutError(
+                    field,
+                    f"{ob.kind} at {_show(list(at))} reaches {beyond[k]:.3f} m beyond the "
+                    f"{_WALLS[k]} wall (interior x in [{-half[0]:g}, {half[0]:g}], "
+                    f"y in [{-half[1]:g}, {half[1]:g}])",
+                )
 
 
 def free_spawn(layout: RoomLayout, radius: float = ROBOT_RADIUS) -> tuple[float, float] | None:
@@ -603,7 +690,11 @@ def _obstacle_to_dict(ob: Obstacle) -> dict:
     out: dict = {"type": ob.kind}
     for f in dataclasses.fields(ob):
         value = getattr(ob, f.name)
-        out[f.name] = list(value) if isinstance(value, tuple) else value
+        if f.name == "motion":
+            if value is not None:  # a still obstacle is written as before motions existed
+                out["motion"] = value.to_dict()
+        else:
+            out[f.name] = list(value) if isinstance(value, tuple) else value
     return out
 
 

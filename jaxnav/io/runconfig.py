@@ -161,21 +161,29 @@ def add_flags(parser: argparse.ArgumentParser, env: str = "avoid") -> None:
     for attr, cls, prefix in GROUPS:
         cls = group_class(attr, cls, env)
         group = parser.add_argument_group(f"{attr} settings" if prefix else "PPO settings")
-        hints = typing.get_type_hints(cls)
-        for f in dataclasses.fields(cls):
-            flag = "--" + prefix + f.name.replace("_", "-")
-            kind, nargs = _flag_type(hints[f.name])
-            help_text = (_field_doc(cls, f.name) + f" (default: {f.default})").replace("%", "%%")
-            dest = f"{attr}.{f.name}"
-            group.add_argument(
-                *([flag, ALIASES[dest]] if dest in ALIASES else [flag]),
-                dest=dest,
-                type=kind,
-                nargs=nargs,
-                default=None,
-                help=help_text,
-                metavar=f.name.upper(),
-            )
+        add_field_flags(group, attr, cls, prefix)
+
+
+def add_field_flags(group, attr: str, cls, prefix: str, names=None) -> None:
+    """The flags of the fields `names` (default: all) of config class `cls` in group `attr`, as
+    `add_flags` makes them (dest `attr.field`, default None; `overrides_from_args` reads them)."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if names is not None and f.name not in names:
+            continue
+        flag = "--" + prefix + f.name.replace("_", "-")
+        kind, nargs = _flag_type(hints[f.name])
+        help_text = (_field_doc(cls, f.name) + f" (default: {f.default})").replace("%", "%%")
+        dest = f"{attr}.{f.name}"
+        group.add_argument(
+            *([flag, ALIASES[dest]] if dest in ALIASES else [flag]),
+            dest=dest,
+            type=kind,
+            nargs=nargs,
+            default=None,
+            help=help_text,
+            metavar=f.name.upper(),
+        )
 
 
 def _flag_type(hint):

@@ -1,4 +1,4 @@
-"""`avoid`: the paper's task. Drive around a room full of static obstacles without touching any.
+"""`avoid`: the paper's task. Drive around a room full of obstacles without touching any.
 
 Observation: the 8 shortest depth-camera distances (m). Actions: 0 forward, 1 turn left, 2 turn right,
 held for one control period; or (`actions="continuous"`) any command (forward m/s, yaw rad/s) within
@@ -100,7 +100,7 @@ class AvoidEnv(NavTask):
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; reward per Table I; end on collision or time."""
-        params = state.info["params"]
+        params = self.move(state.info["params"])
         target = self.command(action)
         command, actuator = self.actuate(params, state.info["actuator"], target)
         data, hit = self.drive(params, state.data, command)

@@ -3,7 +3,9 @@
 A task subclasses `NavTask` and adds its observation, reward, termination and metrics (see
 `jaxnav.tasks.avoid`). `NavTask` owns the scene, the per-episode draw of room, spawn and parameters
 (`new_episode`), the differential drive (`actuate`, `drive`), the depth sensor (`sense`) and collision
-detection (the analytic signed distance of the bumper at the base's x/y, `jaxnav.core.geometry`).
+detection (the analytic signed distance of the bumper at the base's x/y, `jaxnav.core.geometry`)
+and the moving obstacles (`with_movers` at the reset, `move` once per control step before the
+physics, `jaxnav.core.motion`; both do nothing in an env where nothing can move).
 
 The drive has two physics (`SceneConfig.physics`) behind one command pipeline: "fast" pushes the
 base with forces that track the command; "wheeled" sets the two wheels' speed loops to it and lets
@@ -19,6 +21,7 @@ import jax.numpy as jnp
 from flax import struct
 from mujoco import mjx
 
+from jaxnav.core import motion
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams, sample
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
@@ -91,6 +94,8 @@ class NavTask:
         self.bank = bank
         self.scene = Scene(scene, robot)
         self._data0 = mjx.make_data(self.scene.model)
+        # Static: obstacles move in this env (added movers, or a layout's motions).
+        self.moving = randomize.moving_count[1] > 0 or bank.rooms.motion is not None
 
     @property
     def control_period(self) -> float:
@@ -98,9 +103,26 @@ class NavTask:
         return self.scene.cfg.control_period
 
     def new_episode(self, key: jax.Array) -> tuple[SceneParams, mjx.Data]:
-        """A fresh room, spawn and parameters, and the physics state at the spawn."""
+        """A fresh room, spawn, moving obstacles and parameters, and the physics state at the
+        spawn."""
         params = sample(key, self.randomize, self.bank, self.robot.radius)
+        params = self.with_movers(key, params)
         return params, self.place(params)
+
+    def with_movers(self, key: jax.Array, params: SceneParams, goal=None) -> SceneParams:
+        """`params` with the randomisation's moving obstacles added (`motion.add_movers`), clear
+        of the spawn and of the robot's disc at `goal` [2] if given; `key` is the one `sample`
+        drew `params` with (a key of its own is folded from it, so that an env without movers
+        draws exactly what it drew before they existed)."""
+        if not self.randomize.moving_count[1]:
+            return params
+        k_move = jax.random.fold_in(key, 1)
+        return motion.add_movers(k_move, params, self.randomize, self.robot.radius, goal)
+
+    def move(self, params: SceneParams) -> SceneParams:
+        """`params` after the obstacles' motion over one control period (`motion.advance`);
+        unchanged in an env where nothing moves."""
+        return motion.advance(params, self.control_period) if self.moving else params
 
     def place(self, params: SceneParams) -> mjx.Data:
         """The physics state of the robot at `params.spawn` in the room of `params`."""

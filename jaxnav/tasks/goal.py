@@ -1,4 +1,4 @@
-"""`goal`: point-goal navigation. Reach a goal position in a room of static obstacles, touching none.
+"""`goal`: point-goal navigation. Reach a goal position in a room of obstacles, touching none.
 
 Observation [(1 + history) x (num_sectors + 5)]: a frame is the depth sectors (m, as `avoid`), the
 goal in the robot's frame (distance m, sin and cos of its bearing, positive = to the left) and the
@@ -153,11 +153,13 @@ class GoalEnv(NavTask):
             t.path_clearance,
             self._grid_half,
         )
+        info = {"goal": goal, "steps": jnp.int32(0), "key": key}
+        if t.progress == "geodesic":  # the still room's: movers do not stay where they start
+            info["field"] = goal_field(params, goal, radius, self._grid_half)  # [n, n]
+        params = self.with_movers(k_scene, params, goal)
         data = self.place(params)
         command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
-        info = {"params": params, "goal": goal, "steps": jnp.int32(0), "key": key}
-        if t.progress == "geodesic":
-            info["field"] = goal_field(params, goal, radius, self._grid_half)  # [n, n]
+        info["params"] = params
         frame = self._observe(params, data, goal, command, k_obs)
         return EnvState(
             data=data,
@@ -172,7 +174,7 @@ class GoalEnv(NavTask):
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; end on success, collision or time."""
         t, info = self.task, state.info
-        params, goal = info["params"], info["goal"]
+        params, goal = self.move(info["params"]), info["goal"]
         target = self.command(action)
         command, actuator = self.actuate(params, info["actuator"], target)
         data, hit = self.drive(params, state.data, command)
@@ -194,7 +196,14 @@ class GoalEnv(NavTask):
             done=hit | success | truncated,
             truncated=truncated,
             metrics={"collision": f32(hit), "success": f32(success), "path_length": f32(moved)},
-            info={**info, "steps": steps, "key": key, "actuator": actuator, "command": target},
+            info={
+                **info,
+                "params": params,
+                "steps": steps,
+                "key": key,
+                "actuator": actuator,
+                "command": target,
+            },
         )
 
     def _stack(self, frame: jax.Array, obs: jax.Array) -> jax.Array:

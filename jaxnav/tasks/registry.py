@@ -77,7 +77,8 @@ def make_env(
     room has none), unless `randomize` says otherwise. `layouts=None`: the task's default rooms
     with the training distribution `randomize.TRAINING` (sampled rooms and spawns mixed in).
     `layouts=[]`: sampled rooms only. `overrides` are fields of the task config
-    (e.g. `near_threshold=0.8`). Slot counts grow to fit the largest layout and the sampler.
+    (e.g. `near_threshold=0.8`). Slot counts grow to fit the largest layout and the sampler, and
+    by `randomize.moving_count[1]` cylinder slots for the moving obstacles it adds.
     """
     entry = task_entry(name)
     fields = [f.name for f in dataclasses.fields(entry.config_cls)]
@@ -98,6 +99,7 @@ def make_env(
     nc = max(
         [scene.num_cylinders, randomize.num_cylinders[1]] + [len(lay.cylinders) for lay in layouts]
     )
+    nc += randomize.moving_count[1]  # the last slots: `motion.add_movers`
     scene = dataclasses.replace(scene, num_boxes=nb, num_cylinders=nc)
     bank = make_bank(layouts, nb, nc)
     if getattr(entry.env_cls, "uses_goals", False):  # goal tasks: goals and free cells per layout

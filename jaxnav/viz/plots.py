@@ -32,6 +32,8 @@ FLOOR_MARGIN = 0.2  # m of floor shown beyond the walls
 METRICS_HEADER = ("update", "env_steps", "episode_reward", "episode_length")  # always present
 
 _OBSTACLE = {"facecolor": "0.55", "edgecolor": "0.25", "linewidth": 0.8, "zorder": 2}
+_MOVER = {"facecolor": "none", "edgecolor": "tab:orange", "linewidth": 1.2, "linestyle": "--"}
+ARROW_SECONDS = 2.0  # a bouncing obstacle's arrow shows where it heads in this many seconds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,6 +125,33 @@ def draw_robot(ax: Axes, xy, yaw: float, color="tab:blue", radius: float = ROBOT
     ax.plot([xy[0], tip[0]], [xy[1], tip[1]], color=color, linewidth=1.5, zorder=4)
 
 
+def draw_movers(ax: Axes, params: SceneParams) -> bool:
+    """The moving obstacles of one env's `params` at their positions there (dashed orange
+    outlines): a bouncing one with an arrow to where it heads in `ARROW_SECONDS`, one on a path
+    with its path. Returns whether there was any."""
+    p = jax.device_get(params)
+    if p.motion is None:
+        return False
+    nb = len(p.box_pos)
+    pos = np.concatenate([p.box_pos, p.cyl_pos])
+    active = np.concatenate([p.box_active, p.cyl_active])
+    bouncing = active & (np.abs(p.motion.velocity) > 0).any(-1)
+    on_path = active & (p.motion.speed > 0)
+    for i in np.flatnonzero(bouncing | on_path):
+        if i < nb:
+            corners = box_corners(Box(pos[i], 2 * p.box_half[i], p.box_yaw[i]))
+            ax.add_patch(patches.Polygon(corners, closed=True, zorder=4, **_MOVER))
+        else:
+            ax.add_patch(patches.Circle(pos[i], p.cyl_radius[i - nb], zorder=4, **_MOVER))
+        if bouncing[i]:
+            dx, dy = ARROW_SECONDS * p.motion.velocity[i]
+            ax.arrow(*pos[i], dx, dy, color="tab:orange", width=0.02, zorder=4)
+        else:
+            line = p.motion.path[i]
+            ax.plot(line[:, 0], line[:, 1], color="tab:orange", linestyle=":", zorder=4)
+    return bool((bouncing | on_path).any())
+
+
 def plot_trajectories(
     layout: RoomLayout,
     trajectories: Sequence[np.ndarray],
@@ -130,15 +159,19 @@ def plot_trajectories(
     path: str | os.PathLike,
     title: str | None = None,
     goals: Sequence | None = None,
+    movers: SceneParams | None = None,
 ) -> None:
     """Writes a top-down PNG: the room, each episode's path ([T_i, 2] xy arrays, one colour each),
     a start marker and a red X where an episode collided; with `goals` ([2] per episode, the goal
-    task), a star in the path's colour at each episode's goal. Draws the first `MAX_PATHS` only.
+    task), a star in the path's colour at each episode's goal; with `movers` (one episode's
+    `SceneParams` at its reset), that episode's moving obstacles where they started
+    (`draw_movers`). Draws the first `MAX_PATHS` paths only.
     """
     trajectories = list(trajectories)[:MAX_PATHS]
     fig = Figure(figsize=(6, 6 * layout.size[1] / layout.size[0] + 0.6), layout="constrained")
     ax = fig.add_subplot()
     draw_room(ax, layout)
+    moving = movers is not None and draw_movers(ax, movers)
     colors = _path_colors(len(trajectories))
     for xy, hit, color in zip(trajectories, collided, colors, strict=False):
         xy = np.asarray(xy)  # [T, 2]
@@ -148,7 +181,7 @@ def plot_trajectories(
             ax.plot(*xy[-1], marker="X", markersize=9, color="red", markeredgecolor="k", zorder=6)
     for goal, color in zip(goals if goals is not None else [], colors, strict=False):
         ax.plot(*goal, marker="*", markersize=12, color=color, markeredgecolor="k", zorder=6)
-    handles = _legend_handles(spawn=layout.robot_pos is not None, goal=goals is not None)
+    handles = _legend_handles(layout.robot_pos is not None, goals is not None, moving)
     # Below the axes, so it never hides part of the room.
     ax.legend(
         handles=handles,
@@ -170,7 +203,7 @@ def _path_colors(n: int) -> list:
     return [cmap(i % cmap.N) for i in range(n)]
 
 
-def _legend_handles(spawn: bool, goal: bool = False) -> list[Line2D]:
+def _legend_handles(spawn: bool, goal: bool = False, moving: bool = False) -> list[Line2D]:
     handles = [
         Line2D([], [], color="0.3", linewidth=1.2, label="path"),
         Line2D([], [], color="0.3", marker="o", linestyle="", markersize=4, label="start"),
@@ -188,6 +221,10 @@ def _legend_handles(spawn: bool, goal: bool = False) -> list[Line2D]:
     if goal:
         handles.append(
             Line2D([], [], color="0.3", marker="*", linestyle="", markersize=10, label="goal")
+        )
+    if moving:
+        handles.append(
+            Line2D([], [], color="tab:orange", linestyle="--", label="moving (1st episode)")
         )
     if spawn:
         handles.append(

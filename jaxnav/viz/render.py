@@ -4,7 +4,9 @@
 `geom_pos`, `geom_quat` and `geom_size` the MJX model gets from `Scene.geom_fields`; the rendered
 depth test draws depth images of it too), poses the robot at each recorded `qpos` and renders two
 cameras side by side: a top-down free camera over the room (with the robot's path so far and its
-heading) and the robot's own `depth` camera (what the Orbbec Astra sees, in colour).
+heading) and the robot's own `depth` camera (what the Orbbec Astra sees, in colour). Moving
+obstacles are replayed from the reset's `SceneParams` (`motion.advance`, deterministic), one
+control step per frame.
 
 Rendering without a display needs an OpenGL backend: EGL (Debian/Ubuntu: libegl1 and
 libgl1-mesa-dri for software rendering, or the NVIDIA driver) or OSMesa (libosmesa6). mujoco picks
@@ -26,6 +28,7 @@ import jax
 import mujoco
 import numpy as np
 
+from jaxnav.core import motion
 from jaxnav.viz.plots import room_shapes
 
 GL_BACKENDS = ("egl", "osmesa")  # tried in this order when MUJOCO_GL is not set
@@ -110,8 +113,9 @@ def render_episode(
 ) -> Path:
     """Writes an animated GIF of one episode and returns its path.
 
-    `params` is the episode's SceneParams (one env's, no batch axis; constant over an episode
-    without auto-reset), `qpos_seq` [T, 3] its robot poses (x, y m; yaw rad), one frame each.
+    `params` is the episode's SceneParams at its reset (one env's, no batch axis; its moving
+    obstacles are advanced one control step per frame), `qpos_seq` [T, 3] its robot poses (x, y
+    m; yaw rad), one frame each.
     Frames are the top-down view, `width` x `height` pixels, and with `robot_view` the robot's
     `depth` camera at the same size to its right. Raises NoGLError without an OpenGL backend.
     """
@@ -134,9 +138,12 @@ def render_episode(
     # Shadows cost 4x the frame time in software GL, and from straight above they hide under the
     # obstacles anyway.
     renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+    rooms = _moving_rooms(params, len(qpos), env.scene.cfg.control_period)
     frames = []
     with renderer:
         for i in range(len(qpos)):
+            if rooms is not None:
+                set_room(model, env.scene, jax.tree_util.tree_map(lambda x, i=i: x[i], rooms))
             data.qpos[:3] = qpos[i]  # the pose; a wheeled model's other joints stay at rest
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera)
@@ -150,6 +157,15 @@ def render_episode(
             frames.append(np.concatenate(views, axis=1))
     period = env.scene.cfg.control_period
     return _write_gif(frames, Path(path), fps, title, period)
+
+
+def _moving_rooms(params, frames: int, period: float):
+    """[frames] SceneParams: the room at each control step from the reset (None where nothing
+    moves)."""
+    if params.motion is None:
+        return None
+    step = lambda p, _: (motion.advance(p, period), p)  # noqa: E731
+    return jax.device_get(jax.lax.scan(step, params, None, frames)[1])
 
 
 def episode_model(scene, params, width: int, height: int) -> mujoco.MjModel:
