@@ -1,15 +1,16 @@
 """Any jaxnav task as a `brax.envs.Env`: `make_brax_env(name, **kwargs)` (needs `jaxnav[brax]`).
 
 brax's trainers (`brax.training.agents.ppo.train`, `sac.train`) wrap an env with
-`brax.envs.training.wrap`: a VmapWrapper, an EpisodeWrapper (time limit, episode metrics) and an
-AutoResetWrapper, which on `done` puts back the state and observation saved at the first reset
-(`info["first_pipeline_state"]`, `info["first_obs"]`): every later episode would replay the first
-room, spawn and robot parameters. The adapter keeps jaxnav's per-episode randomisation: its
-`pipeline_state` is the task's whole `EnvState` (room and robot parameters included), and under an
-AutoResetWrapper each step writes a fresh draw of the task's own `reset` into those two entries, so
-wherever an episode ends (a collision, a goal reached or the EpisodeWrapper's time limit) the next
-is a new episode. Under vmap a draw costs the same whether it is used or not: one task reset per
-robot per step (jaxnav's own `AutoReset` draws a pool of 1/16 of the robots instead).
+`brax.envs.wrappers.training.wrap`: a VmapWrapper, an EpisodeWrapper (time limit, episode
+metrics) and an AutoResetWrapper, which on `done` puts back the state and observation saved at the
+first reset (`info["first_pipeline_state"]`, `info["first_obs"]`): every later episode would
+replay the first room, spawn and robot parameters. The adapter keeps jaxnav's per-episode
+randomisation: its `pipeline_state` is the task's whole `EnvState` (room and robot parameters
+included), and under an AutoResetWrapper each step writes a fresh draw of the task's own `reset`
+into those two entries, so wherever an episode ends (a collision, a goal reached or the
+EpisodeWrapper's time limit) the next is a new episode. Under vmap a draw costs the same whether
+it is used or not: one task reset per robot per step (jaxnav's own `AutoReset` draws a pool of
+1/16 of the robots instead).
 
 The time limit is brax's: the adapter reports terminations only, and the EpisodeWrapper ends an
 episode after `episode_length` steps as a truncation (not a terminal for brax's PPO). Pass
@@ -23,8 +24,6 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 try:
     from brax.envs.base import Env, State
@@ -38,13 +37,15 @@ from jaxnav.wrappers import RESET_KEY
 
 def _restore_device_put_replicated() -> None:
     """brax 0.14.2's trainers call `jax.device_put_replicated`, which jax 0.10 removed (brax issue
-    671, open): where it is missing, put back the drop-in replacement of jax's pmap migration
-    guide (stack a copy per device, sharded over the devices). Nothing else of jax changes."""
+    671, open): where it is missing, put it back as jax's pmap migration guide does (a copy per
+    device, stacked and sharded over the devices). Nothing else of jax changes."""
     if hasattr(jax, "device_put_replicated"):
         return
 
     def device_put_replicated(x, devices):
-        sharding = NamedSharding(Mesh(np.array(devices), ("devices",)), PartitionSpec("devices"))
+        # The sharding pmap gives its own outputs: with any other, brax's pmapped training epoch
+        # would compile a second time when its outputs come back as inputs.
+        sharding = jax.pmap(lambda y: y, devices=devices)(jnp.zeros(len(devices))).sharding
         return jax.tree.map(lambda y: jax.device_put(jnp.stack([y] * len(devices)), sharding), x)
 
     jax.device_put_replicated = device_put_replicated
