@@ -27,6 +27,7 @@ import numpy as np
 
 import jaxnav
 from jaxnav.evaluate import eval_randomize, load_suite, make_rollout
+from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
 from jaxnav.train import build_config, make_run_env
@@ -50,9 +51,23 @@ def parse_sets(items: list[str]) -> dict[str, dict]:
     return out
 
 
-def make_evaluator(trainer, config, episodes: int, steps: int):
-    """jit((params, obs_stats, key) -> per-episode (collided [E], speed [E] m/s)) on the suite, and
-    the family of each episode [E]."""
+def greedy_policy(trainer, config):
+    """policy((params, obs_stats), obs [E, D]) -> actions [E, ...]: a jaxnav PPO network's greedy
+    action (argmax of the logits, or the Gaussian's mean clipped to the bounds)."""
+    dist = make_distribution(config.task.action_spec)
+
+    def policy(policy_params, obs):
+        params, stats = policy_params
+        obs = normalize(stats, obs) if config.ppo.normalize_obs else obs
+        return dist.mode(trainer.network.apply(params, obs)[0])
+
+    return policy
+
+
+def make_evaluator(policy, config, episodes: int, steps: int):
+    """jit((policy_params, key) -> per-episode (collided [E], speed [E] m/s)) on the suite, for any
+    `policy(policy_params, obs [E, D]) -> actions [E, ...]` of the run's task, and the family of
+    each episode [E]."""
     suite = load_suite("benchmark")
     layouts = [room for rooms in suite.values() for room in rooms]
     family = np.repeat([f for f, rooms in suite.items() for _ in rooms], episodes)
@@ -61,11 +76,8 @@ def make_evaluator(trainer, config, episodes: int, steps: int):
     period = env.control_period
 
     @jax.jit
-    def evaluate(params, stats, key):
-        def act(obs, _):
-            obs = normalize(stats, obs) if config.ppo.normalize_obs else obs
-            return jnp.argmax(trainer.network.apply(params, obs)[0], axis=-1)
-
+    def evaluate(policy_params, key):
+        act = lambda obs, _: policy(policy_params, obs)  # noqa: E731
         track, _ = make_rollout(env, act, episodes, steps, keep=1, pinned=True)(key)
         return track.collided, track.distance / (jnp.maximum(track.steps, 1) * period)
 
@@ -91,6 +103,43 @@ def judge(collided: np.ndarray, speed: np.ndarray, family: np.ndarray) -> dict:
     return out
 
 
+def train_to_bar(trainer, config, evaluate, family, max_seconds: float, full: bool):
+    """Trains in chunks of `updates_per_chunk` updates, judging the greedy policy on the suite after
+    each, until the bar is met (or, `full`, the budget is spent) or `max_seconds` of training.
+    Returns (compile s, history: one dict per evaluation, the first that met the bar or None)."""
+    ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(config.seed)))
+    tick = time.perf_counter()
+    run_chunk = trainer.run_chunk.lower(ts).compile()  # compile apart from the timed training
+    compile_s = time.perf_counter() - tick
+    train_s, history, solved = 0.0, [], None
+    while int(ts.update) < config.ppo.num_updates and train_s < max_seconds:
+        tick = time.perf_counter()
+        ts, _ = jax.block_until_ready(run_chunk(ts))
+        train_s += time.perf_counter() - tick
+        steps = int(ts.update) * config.ppo.batch_size
+        record = {"update": int(ts.update), "env_steps": steps, "train_s": round(train_s, 2)}
+        key = jax.random.PRNGKey(int(ts.update))
+        history.append(judge_policy(evaluate, family, (ts.params, ts.obs_stats), key, record))
+        if history[-1]["solved"] and solved is None:
+            solved = history[-1]
+            if not full:
+                break
+    return compile_s, history, solved
+
+
+def judge_policy(evaluate, family, policy_params, key, record: dict) -> dict:
+    """`record` (env_steps, train_s, ...) with the suite's judgement of the policy, printed."""
+    collided, speed = jax.device_get(evaluate(policy_params, key))
+    result = {**record, **judge(collided, speed, family)}
+    worst = min(result["families"].items(), key=lambda kv: kv[1]["free"])
+    print(
+        f"{record['env_steps']:>12,} steps {record['train_s']:7.1f} s  free {result['free']:.3f}  "
+        f"speed {result['speed']:.3f}  worst {worst[0]} {worst[1]['free']:.2f}",
+        flush=True,
+    )
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="cpu")
@@ -110,32 +159,12 @@ def main() -> None:
     sets.setdefault("ppo", {})["updates_per_chunk"] = args.eval_every
     config = build_config(args.preset, args.seed, None, sets, args.env)
     trainer = make_train(config.ppo, make_run_env(config))
-    evaluate, family = make_evaluator(trainer, config, args.episodes, args.steps)
-    ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(args.seed)))
-    tick = time.perf_counter()
-    run_chunk = trainer.run_chunk.lower(ts).compile()  # compile apart from the timed training
-    compile_s = time.perf_counter() - tick
-    train_s, history, solved = 0.0, [], None
-    while int(ts.update) < config.ppo.num_updates and train_s < args.max_seconds:
-        tick = time.perf_counter()
-        ts, _ = jax.block_until_ready(run_chunk(ts))
-        train_s += time.perf_counter() - tick
-        key = jax.random.PRNGKey(int(ts.update))
-        collided, speed = jax.device_get(evaluate(ts.params, ts.obs_stats, key))
-        result = judge(collided, speed, family)
-        steps = int(ts.update) * config.ppo.batch_size
-        history.append({"update": int(ts.update), "env_steps": steps, "train_s": round(train_s, 2)})
-        history[-1].update(result)
-        worst = min(result["families"].items(), key=lambda kv: kv[1]["free"])
-        print(
-            f"{steps:>12,} steps {train_s:7.1f} s  free {result['free']:.3f}  speed "
-            f"{result['speed']:.3f}  worst {worst[0]} {worst[1]['free']:.2f}",
-            flush=True,
-        )
-        if result["solved"] and solved is None:
-            solved = history[-1]
-            if not args.full:
-                break
+    evaluate, family = make_evaluator(
+        greedy_policy(trainer, config), config, args.episodes, args.steps
+    )
+    compile_s, history, solved = train_to_bar(
+        trainer, config, evaluate, family, args.max_seconds, args.full
+    )
     device = jax.devices()[0]
     out = {
         "device": f"{device.platform}: {device.device_kind}",

@@ -18,6 +18,7 @@ __all__ = [
     "evaluate",
     "load_layout",
     "load_policy",
+    "make_brax_env",
     "make_env",
     "train",
 ]
@@ -30,6 +31,7 @@ _SOURCES = {
     "RoomLayout": "jaxnav.io.layouts",
     "load_layout": "jaxnav.io.layouts",
     "load_policy": "jaxnav.io.checkpoint",
+    "make_brax_env": "jaxnav.brax_env",  # imports brax, only when asked for
     "make_env": "jaxnav.tasks.registry",
     "train": None,
     "evaluate": None,
