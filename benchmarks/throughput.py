@@ -1,7 +1,7 @@
 """Throughput of the `avoid` scene and of PPO training, per batch size, with a split of the step.
 
     python benchmarks/throughput.py --num-envs 1024,4096 --steps 100 --json benchmarks/throughput.json
-    python benchmarks/throughput.py --num-envs 65536 --variants full,no_contacts,in_place,default
+    python benchmarks/throughput.py --num-envs 65536 --variants default,full,no_contacts,in_place
 
 For each size: (a) env-only random rollouts of the training distribution (sim-to-real ranges and the
 5-row camera on, auto-reset with PPO's default pool) with every obstacle slot in use,
@@ -13,18 +13,21 @@ compiling it, with `block_until_ready`.
 `--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
 contact pass in every physics step, the auto-reset selecting in every row), `default` the
 defaults. `--pieces` names the variants that also get the split; `--trace DIR` writes a JAX
-profiler trace of one PPO chunk of the last variant (open it in TensorBoard or Perfetto).
+profiler trace of one PPO chunk of the first variant (open it in TensorBoard or Perfetto).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import datetime
+import gzip
 import json
 import platform
 import resource
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -150,6 +153,29 @@ def training(env, n, updates, repeats, ppo: dict, trace=None):
     }
 
 
+def trace_summary(folder: str, top: int = 15) -> list[dict]:
+    """The ops of a profiler trace that took the most time in total: on an accelerator its
+    device ops, on the CPU the host's (Python frames left out)."""
+    events = []
+    for path in Path(folder).rglob("*.trace.json.gz"):
+        raw = json.loads(gzip.open(path).read())
+        events += raw["traceEvents"] if isinstance(raw, dict) else raw
+    procs = {e["pid"]: e["args"]["name"] for e in events if e.get("name") == "process_name"}
+    device = {p for p, name in procs.items() if "/device:" in name}
+    total, calls = collections.Counter(), collections.Counter()
+    for e in events:
+        if e.get("ph") != "X" or "dur" not in e or e["name"].startswith("$"):
+            continue
+        if device and e["pid"] not in device:
+            continue
+        total[e["name"]] += e["dur"]
+        calls[e["name"]] += 1
+    return [
+        {"op": name, "ms": round(us / 1e3, 2), "calls": calls[name]}
+        for name, us in total.most_common(top)
+    ]
+
+
 def peak_memory_mb() -> float:
     stats = jax.devices()[0].memory_stats() or {}
     if "peak_bytes_in_use" in stats:
@@ -162,7 +188,9 @@ def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
     levers = VARIANTS[variant]
     env = jaxnav.make_env("avoid", randomize=FULL, scene=SceneConfig(**levers.get("scene", {})))
     ppo = levers.get("ppo", {})
-    row = {"num_envs": n, "variant": variant}
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    size = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
+    row = {"num_envs": n, "variant": variant, "state_bytes": int(size)}  # one robot's EnvState
     row["env"] = env_pieces(env, n, args.steps, args.repeats, ppo, split)
     if split:
         row["policy_forward"] = policy_piece(n, args.steps, args.repeats)
@@ -180,7 +208,7 @@ def print_table(result: dict) -> None:
     print(
         f"{'variant':>12} {'robots':>8} {'env step':>12} {'physics':>12} {'sensor':>12} "
         f"{'reset':>12} {'policy':>12} {'PPO train':>12} {'learn ms/upd':>12} "
-        f"{'compile s':>9} {'peak MB':>8}"
+        f"{'compile s':>9} {'peak MB':>8} {'state B':>8}"
     )
     for r in result["rows"]:
         e, t = r["env"], r.get("train", {})
@@ -190,7 +218,7 @@ def print_table(result: dict) -> None:
             f"{piece(e, 'physics'):>12} {piece(e, 'sensor'):>12} "
             f"{piece(e, 'reset_sampling'):>12} {piece(r, 'policy_forward'):>12} "
             f"{t.get('env_steps_per_s', 0):>12,} {t.get('learn_ms_per_update', 0):>12.1f} "
-            f"{t.get('compile_s', 0):>9} {r['peak_memory_mb']:>8}"
+            f"{t.get('compile_s', 0):>9} {r['peak_memory_mb']:>8} {r['state_bytes']:>8}"
         )
 
 
@@ -207,7 +235,7 @@ def main() -> None:
     parser.add_argument(
         "--pieces", default="all", help="variants that get the split ('all' or comma-separated)"
     )
-    parser.add_argument("--trace", help="write a profiler trace of the last variant's PPO here")
+    parser.add_argument("--trace", help="write a profiler trace of the first variant's PPO here")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args()
     variants = args.variants.split(",")
@@ -226,14 +254,22 @@ def main() -> None:
     }
     for n in (int(x) for x in args.num_envs.split(",")):
         for v in variants:
-            trace = args.trace if v == variants[-1] else None
+            trace = args.trace if v == variants[0] else None
             row = measure(n, v, args, v in pieces, trace)
             result["rows"].append(row)
             print(json.dumps(row), flush=True)
+            if args.json:  # after every row, so that a run cut short keeps what it measured
+                with open(args.json, "w") as fh:
+                    json.dump(result, fh, indent=2)
+    if args.trace:
+        result["trace_top"] = trace_summary(args.trace)
+        print(f"\nprofile of one PPO chunk of '{variants[0]}' (top ops, total ms; {args.trace}):")
+        for r in result["trace_top"]:
+            print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump(result, fh, indent=2)
     print_table(result)
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
 
 
 if __name__ == "__main__":
