@@ -8,7 +8,10 @@ the auto-reset pool of the PPO default) with one thing changed, to time what eac
 `rows1`/`rows3` (a 1- or 3-row camera), `no_fidelity` (randomize.FIDELITY off), `families` (sampled
 rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step),
 `wheeled` (the wheeled validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles
-per room, `RandomizeConfig.moving_count`).
+per room, `RandomizeConfig.moving_count`); the speed levers: `full` (MJX's
+contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-reset's select in
+every row, `PPOConfig.reset_in_place` off), `no_contacts` and `in_place` (one lever on each).
+>>>>>>> speed
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size.
@@ -43,15 +46,24 @@ VARIANTS = {
     "pool_all": {"reset_share": 1.0},
     "wheeled": {"scene": SceneConfig(physics="wheeled")},
     "movers": {"randomize": dataclasses.replace(TRAINING, moving_count=(0, 3))},
+    # The speed levers (benchmarks/throughput.py --variants has them too): the full MJX path, and
+    # one lever at a time on it.
+    "full": {"scene": SceneConfig(fast_contacts=True), "in_place": False},
+    "no_contacts": {"in_place": False},
+    "in_place": {"scene": SceneConfig(fast_contacts=True)},
 }
 
 
 def make(variant: str, num_envs: int):
     """The training env of `variant`, auto-reset as PPO runs it."""
     kwargs = dict(VARIANTS[variant])
-    share = kwargs.pop("reset_share", PPOConfig().reset_share)
-    pool = max(1, round(share * num_envs))
-    return AutoReset(jaxnav.make_env("avoid", **kwargs), pool=pool)
+    ppo = PPOConfig(
+        num_envs=num_envs,
+        reset_share=kwargs.pop("reset_share", PPOConfig().reset_share),
+        reset_in_place=kwargs.pop("in_place", PPOConfig().reset_in_place),
+    )
+    env = jaxnav.make_env("avoid", **kwargs)
+    return AutoReset(env, pool=ppo.reset_pool, in_place=ppo.reset_in_place)
 
 
 def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -> dict:

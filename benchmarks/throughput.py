@@ -1,29 +1,40 @@
 """Throughput of the `avoid` scene and of PPO training, per batch size, with a split of the step.
 
     python benchmarks/throughput.py --num-envs 1024,4096 --steps 100 --json benchmarks/throughput.json
+    python benchmarks/throughput.py --num-envs 65536 --variants default,full,no_contacts,in_place
 
 For each size: (a) env-only random rollouts of the training distribution (sim-to-real ranges and the
 5-row camera on, auto-reset with PPO's default pool) with every obstacle slot in use,
 (b) full PPO updates of the `cpu` preset shape (rollout 32, 4 epochs, 4 minibatches), and the split of
-one control step into physics / sensor / reset sampling / policy forward. Every timing is the best of
-`--repeats` runs of a jitted scan, after compiling it, with `block_until_ready`.
+one control step into physics / sensor / reset sampling / policy forward, and of one PPO update
+into rollout and learning. Every timing is the best of `--repeats` runs of a jitted scan, after
+compiling it, with `block_until_ready`.
+
+`--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
+contact pass in every physics step, the auto-reset selecting in every row), `default` the
+defaults. `--pieces` names the variants that also get the split; `--trace DIR` writes a JAX
+profiler trace of one PPO chunk of the first variant (open it in TensorBoard or Perfetto).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import datetime
+import gzip
 import json
 import platform
 import resource
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
 import jaxnav
 from jaxnav.core.randomize import TRAINING
+from jaxnav.core.scene import SceneConfig
 from jaxnav.ppo.config import PPOConfig, preset
 from jaxnav.ppo.train import make_network, make_train
 from jaxnav.tasks.avoid import AvoidConfig
@@ -31,6 +42,14 @@ from jaxnav.wrappers import AutoReset
 
 # The training distribution (sim-to-real ranges on) with every obstacle slot in use.
 FULL = dataclasses.replace(TRAINING, num_boxes=(8, 8), num_cylinders=(4, 4), sampled_room_prob=1.0)
+# The speed levers, each on or off: SceneConfig.fast_contacts (MJX's contact pass and solver) and
+# PPOConfig.reset_in_place (the auto-reset writes the finished rows only).
+VARIANTS = {
+    "default": {},
+    "full": {"scene": {"fast_contacts": True}, "ppo": {"reset_in_place": False}},
+    "no_contacts": {"ppo": {"reset_in_place": False}},
+    "in_place": {"scene": {"fast_contacts": True}},
+}
 
 
 def timed(fn, *args, repeats=3):
@@ -51,11 +70,12 @@ def scan_steps(fn, steps):
     return jax.jit(lambda s: jax.lax.scan(lambda c, _: (fn(c), None), s, None, steps)[0])
 
 
-def env_pieces(env, n, steps, repeats):
-    """env-steps/s of a whole step and of its pieces, each run alone over `steps` steps."""
+def env_pieces(env, n, steps, repeats, ppo: dict, split=True):
+    """env-steps/s of a whole step and (`split`) of its pieces, each run alone over `steps` steps."""
     keys = jax.random.split(jax.random.PRNGKey(0), n)
-    pool = PPOConfig(num_envs=n).reset_pool
-    wrapped = AutoReset(env, pool)  # the step training runs (episode statistics aside)
+    cfg = PPOConfig(num_envs=n, **ppo)
+    # The step training runs (episode statistics aside).
+    wrapped = AutoReset(env, cfg.reset_pool, in_place=cfg.reset_in_place)
     state = jax.jit(wrapped.reset)(keys)
     actions = jax.random.randint(jax.random.PRNGKey(1), (n,), 0, env.action_spec.n)
     cmd = jnp.array(env.action_spec.commands[0])  # forward
@@ -81,7 +101,7 @@ def env_pieces(env, n, steps, repeats):
         "reset_sampling": reset_sampling,
     }
     out = {}
-    for name, fn in pieces.items():
+    for name, fn in pieces.items() if split else [("step", pieces["step"])]:
         compile_s, best = timed(scan_steps(fn, steps), state, repeats=repeats)
         out[name] = {
             "env_steps_per_s": round(n * steps / best),
@@ -100,7 +120,9 @@ def policy_piece(n, steps, repeats):
     return {"env_steps_per_s": round(n * steps / best), "ms_per_step": 1e3 * best / steps}
 
 
-def training(env, n, updates, repeats):
+def training(env, n, updates, repeats, ppo: dict, trace=None):
+    """PPO env-steps/s of chunks of `updates` updates (the best of `repeats`), and a profiler
+    trace of one more chunk into the folder `trace` if given."""
     cfg = preset(
         "cpu",
         num_envs=n,
@@ -109,6 +131,7 @@ def training(env, n, updates, repeats):
         num_epochs=4,
         updates_per_chunk=updates,
         total_steps=n * 32 * updates * 100,
+        **ppo,
     )
     trainer = make_train(cfg, env)
     ts = trainer.init(jax.random.PRNGKey(0))
@@ -120,11 +143,37 @@ def training(env, n, updates, repeats):
         tick = time.perf_counter()
         ts, _ = jax.block_until_ready(trainer.run_chunk(ts))
         best = min(best, time.perf_counter() - tick)
+    if trace:
+        with jax.profiler.trace(trace):
+            jax.block_until_ready(trainer.run_chunk(ts))
     return {
         "env_steps_per_s": round(n * 32 * updates / best),
         "compile_s": round(compile_s, 1),
         "s_per_update": best / updates,
     }
+
+
+def trace_summary(folder: str, top: int = 15) -> list[dict]:
+    """The ops of a profiler trace that took the most time in total: on an accelerator its
+    device ops, on the CPU the host's (Python frames left out)."""
+    events = []
+    for path in Path(folder).rglob("*.trace.json.gz"):
+        raw = json.loads(gzip.open(path).read())
+        events += raw["traceEvents"] if isinstance(raw, dict) else raw
+    procs = {e["pid"]: e["args"]["name"] for e in events if e.get("name") == "process_name"}
+    device = {p for p, name in procs.items() if "/device:" in name}
+    total, calls = collections.Counter(), collections.Counter()
+    for e in events:
+        if e.get("ph") != "X" or "dur" not in e or e["name"].startswith("$"):
+            continue
+        if device and e["pid"] not in device:
+            continue
+        total[e["name"]] += e["dur"]
+        calls[e["name"]] += 1
+    return [
+        {"op": name, "ms": round(us / 1e3, 2), "calls": calls[name]}
+        for name, us in total.most_common(top)
+    ]
 
 
 def peak_memory_mb() -> float:
@@ -134,6 +183,45 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10  # host RSS on CPU
 
 
+def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
+    """One row: the env step (and with `split` its pieces) and PPO training of `variant`."""
+    levers = VARIANTS[variant]
+    env = jaxnav.make_env("avoid", randomize=FULL, scene=SceneConfig(**levers.get("scene", {})))
+    ppo = levers.get("ppo", {})
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    size = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
+    row = {"num_envs": n, "variant": variant, "state_bytes": int(size)}  # one robot's EnvState
+    row["env"] = env_pieces(env, n, args.steps, args.repeats, ppo, split)
+    if split:
+        row["policy_forward"] = policy_piece(n, args.steps, args.repeats)
+    if not args.no_train:
+        row["train"] = training(env, n, args.updates, args.repeats, ppo, trace)
+        # An update's time beyond its 32 env steps: the policy, GAE and 4 x 4 gradient steps.
+        step_s = row["env"]["step"]["ms_per_step"] / 1e3
+        row["train"]["learn_ms_per_update"] = 1e3 * (row["train"]["s_per_update"] - 32 * step_s)
+    row["peak_memory_mb"] = round(peak_memory_mb())
+    return row
+
+
+def print_table(result: dict) -> None:
+    print(f"\n{result['device']} x{result['devices']}, jax {result['jax']} (env-steps/s)")
+    print(
+        f"{'variant':>12} {'robots':>8} {'env step':>12} {'physics':>12} {'sensor':>12} "
+        f"{'reset':>12} {'policy':>12} {'PPO train':>12} {'learn ms/upd':>12} "
+        f"{'compile s':>9} {'peak MB':>8} {'state B':>8}"
+    )
+    for r in result["rows"]:
+        e, t = r["env"], r.get("train", {})
+        piece = lambda d, k: f"{d[k]['env_steps_per_s']:,}" if k in d else "-"  # noqa: E731
+        print(
+            f"{r['variant']:>12} {r['num_envs']:>8} {piece(e, 'step'):>12} "
+            f"{piece(e, 'physics'):>12} {piece(e, 'sensor'):>12} "
+            f"{piece(e, 'reset_sampling'):>12} {piece(r, 'policy_forward'):>12} "
+            f"{t.get('env_steps_per_s', 0):>12,} {t.get('learn_ms_per_update', 0):>12.1f} "
+            f"{t.get('compile_s', 0):>9} {r['peak_memory_mb']:>8} {r['state_bytes']:>8}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--num-envs", default="1024", help="comma-separated batch sizes")
@@ -141,9 +229,20 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=5, help="PPO updates per training timing")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-train", action="store_true", help="env timings only")
+    parser.add_argument(
+        "--variants", default="default", help=f"comma-separated: {', '.join(VARIANTS)}"
+    )
+    parser.add_argument(
+        "--pieces", default="all", help="variants that get the split ('all' or comma-separated)"
+    )
+    parser.add_argument("--trace", help="write a profiler trace of the first variant's PPO here")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args()
-    env = jaxnav.make_env("avoid", randomize=FULL)
+    variants = args.variants.split(",")
+    unknown = sorted(set(variants) - set(VARIANTS))
+    if unknown:
+        parser.error(f"--variants: unknown {', '.join(unknown)}; valid: {', '.join(VARIANTS)}")
+    pieces = variants if args.pieces == "all" else args.pieces.split(",")
     device = jax.devices()[0]
     result = {
         "device": f"{device.platform}: {device.device_kind}",
@@ -154,34 +253,23 @@ def main() -> None:
         "rows": [],
     }
     for n in (int(x) for x in args.num_envs.split(",")):
-        row = {
-            "num_envs": n,
-            "env": env_pieces(env, n, args.steps, args.repeats),
-            "policy_forward": policy_piece(n, args.steps, args.repeats),
-        }
-        if not args.no_train:
-            row["train"] = training(env, n, args.updates, args.repeats)
-        row["peak_memory_mb"] = round(peak_memory_mb())
-        result["rows"].append(row)
-        print(json.dumps(row), flush=True)
-    print(f"\n{result['device']} x{result['devices']}, jax {result['jax']}")
-    print(
-        f"{'robots':>8} {'env steps/s':>12} {'physics':>10} {'sensor':>10} {'reset':>10} "
-        f"{'policy':>10} {'train steps/s':>14} {'compile s':>10} {'peak MB':>8}"
-    )
-    for r in result["rows"]:
-        e = r["env"]
-        t = r.get("train", {})
-        print(
-            f"{r['num_envs']:>8} {e['step']['env_steps_per_s']:>12,} "
-            f"{e['physics']['env_steps_per_s']:>10,} {e['sensor']['env_steps_per_s']:>10,} "
-            f"{e['reset_sampling']['env_steps_per_s']:>10,} "
-            f"{r['policy_forward']['env_steps_per_s']:>10,} {t.get('env_steps_per_s', 0):>14,} "
-            f"{t.get('compile_s', 0):>10} {r['peak_memory_mb']:>8}"
-        )
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
+        for v in variants:
+            trace = args.trace if v == variants[0] else None
+            row = measure(n, v, args, v in pieces, trace)
+            result["rows"].append(row)
+            print(json.dumps(row), flush=True)
+            if args.json:  # after every row, so that a run cut short keeps what it measured
+                with open(args.json, "w") as fh:
+                    json.dump(result, fh, indent=2)
+    if args.trace:
+        result["trace_top"] = trace_summary(args.trace)
+        print(f"\nprofile of one PPO chunk of '{variants[0]}' (top ops, total ms; {args.trace}):")
+        for r in result["trace_top"]:
+            print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump(result, fh, indent=2)
+    print_table(result)
 
 
 if __name__ == "__main__":

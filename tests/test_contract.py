@@ -16,7 +16,7 @@ from stand_still import StandStillConfig, StandStillEnv
 import jaxnav
 from jaxnav.core.geometry import ray_cast, signed_distance
 from jaxnav.core.randomize import RandomizeConfig, sample
-from jaxnav.core.scene import OBSTACLE_GROUP, SCENES_DIR
+from jaxnav.core.scene import OBSTACLE_GROUP, SCENES_DIR, SceneConfig
 from jaxnav.export import export
 from jaxnav.policy import forward_policy
 from jaxnav.robot_side.policy import NumpyPolicy
@@ -106,7 +106,8 @@ def _mujoco_touching(env, params, qpos) -> bool:
 
 
 def test_analytic_collision_agrees_with_mujoco():
-    env = jaxnav.make_env("avoid", layouts=[])
+    # MuJoCo's contacts, which the fast physics skips by default (SceneConfig.fast_contacts).
+    env = jaxnav.make_env("avoid", layouts=[], scene=SceneConfig(fast_contacts=True))
     cfg = RandomizeConfig(sampled_room_prob=1.0, num_boxes=(6, 8), num_cylinders=(3, 4))
     keys = jax.random.split(jax.random.PRNGKey(1), 12)
     rooms = jax.vmap(lambda k: sample(k, cfg, env.bank, env.robot.radius))(keys)

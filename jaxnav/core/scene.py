@@ -34,6 +34,8 @@ FLOOR_AFFINITY = 2  # the floor's conaffinity: robot geoms of contype 2 (wheels,
 PHYSICS = ("fast", "wheeled")
 WHEELS = ("wheel_left", "wheel_right")  # the wheeled model's wheel joints, geoms and actuators
 PARK_DEPTH = -10.0  # m; z of parked slots, far below the floor and the rays
+# The MJX stages the fast physics skips without `fast_contacts`: collision, the constraint solver.
+_NO_CONTACTS = mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
 _WALL_NORMALS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]], np.float64)  # east, west, north, south
 
 
@@ -60,6 +62,14 @@ class SceneConfig:
     solver_iterations: int = 1
     """Constraint solver iterations of the fast physics; a contact ends the episode, so one Newton
     step suffices."""
+    fast_contacts: bool = False
+    """Run MJX's contact pass and constraint solver in the fast physics (True: the full MJX path).
+    Off (default), MJX skips both and every env shares one model: a contact only ever ends the
+    episode, which the analytic collision test (`NavTask.touching`) does at the first touch, and
+    MuJoCo applies contact forces only from a pose that already penetrates, never the start of a
+    step of a live episode. So episodes are bit-identical to the full path with one substep, the
+    colliding step included (tested); with more, the rest of the colliding step goes on into the
+    obstacle. The wheeled physics always runs them (its wheels roll on floor contacts)."""
 
     def __post_init__(self):
         if self.physics not in PHYSICS:
@@ -125,6 +135,8 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
         spec.option.timestep = cfg.timestep
         spec.option.iterations = cfg.solver_iterations
         spec.option.ls_iterations = cfg.solver_iterations
+        if not cfg.fast_contacts:
+            spec.option.disableflags |= _NO_CONTACTS
     spec.add_material(name="floor", rgba=[0.85, 0.85, 0.8, 1])
     spec.add_material(name="wall", rgba=[0.7, 0.6, 0.5, 1])
     spec.add_material(name="obstacle", rgba=[0.3, 0.5, 0.8, 1])
@@ -168,7 +180,11 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
             material="obstacle",
             **solid,
         )
-    return spec.compile()
+    m = spec.compile()
+    if m.opt.disableflags & _NO_CONTACTS and not m.dof_damping.any():
+        # Euler's implicit damping would refactor M to add nothing (MuJoCo itself skips it then).
+        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+    return m
 
 
 def _bumper_span(m: mujoco.MjModel, bumper: int, source: str) -> tuple[tuple[float, float], float]:
@@ -267,6 +283,7 @@ class Scene:
         self.mass = float(self.mj_model.body_mass[self.robot_body])
         self.yaw_inertia = float(self.mj_model.body_inertia[self.robot_body, 2])
         self.wheeled = cfg.physics == "wheeled"
+        self.shared = not (self.wheeled or cfg.fast_contacts)  # one model for every env
         self.timestep = float(self.mj_model.opt.timestep)  # s per physics step
         self.substeps = _physics_substeps(cfg, self.timestep, source)  # physics steps per control
         self.floor = name("floor")
@@ -310,6 +327,12 @@ class Scene:
     def model_for(self, params) -> mjx.Model:
         """The `mjx.Model` of one env (use under `jax.vmap` for a batch)."""
         return self.model.replace(**self.geom_fields(params))
+
+    def physics_model(self, params) -> mjx.Model:
+        """The model the physics steps one env with: its own (`model_for`), or without MJX's
+        contacts (`SceneConfig.fast_contacts` off) the shared one, since then nothing the robot
+        does depends on where the room's geoms are."""
+        return self.model if self.shared else self.model_for(params)
 
     def batched_model(self, params) -> tuple[mjx.Model, mjx.Model]:
         """A batch's model with leading-axis geom fields, and the `in_axes` tree to vmap it with."""

@@ -56,6 +56,10 @@ class PPOConfig:
     reset_share: float = 0.0625
     """New episodes drawn per step for the robots whose episode ended, as a share of num_envs
     (at least one; 1: one per robot). See `jaxnav.wrappers.AutoReset`."""
+    reset_in_place: bool = True
+    """Write the new episodes into the rows of the robots that finished only, instead of selecting
+    between old and new state for every robot: the same result bit for bit (tested; see
+    `jaxnav.wrappers.AutoReset`), less memory traffic per step."""
     updates_per_chunk: int = 10
     """Updates per jitted call; progress, metrics and checkpoints happen between chunks."""
     checkpoint_every: int = 50

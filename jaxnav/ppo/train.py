@@ -111,7 +111,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     dist = make_distribution(env.action_spec)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
-    env = AutoReset(EpisodeStats(env), pool=cfg.reset_pool)
+    env = AutoReset(EpisodeStats(env), pool=cfg.reset_pool, in_place=cfg.reset_in_place)
     reset = lambda keys: shard(env.reset(keys))  # noqa: E731
     step = lambda state, action: shard(env.step(state, action))  # noqa: E731
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)

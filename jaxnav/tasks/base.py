@@ -127,8 +127,9 @@ class NavTask:
     def place(self, params: SceneParams) -> mjx.Data:
         """The physics state of the robot at `params.spawn` in the room of `params`."""
         data = self._data0.replace(qpos=self._data0.qpos.at[:3].set(params.spawn))
-        # Kinematics places the new room's geoms for the rays; contacts come with the first step.
-        return mjx.kinematics(self.scene.model_for(params), data)
+        # Kinematics places the robot (and the new room's geoms, where the physics has them);
+        # contacts come with the first step.
+        return mjx.kinematics(self.scene.physics_model(params), data)
 
     def command(self, action: jax.Array) -> jax.Array:
         """[2] the (forward m/s, yaw rad/s) the policy's `action` asks for: a row of the command
@@ -173,7 +174,7 @@ class NavTask:
         """Holds `command` [2] (forward m/s, yaw rad/s, as `actuate` passes it) for one period of
         the scene's physics steps. Returns the new data and whether the bumper touched anything
         after any of them."""
-        m = self.scene.model_for(params)
+        m = self.scene.physics_model(params)
         control = self._wheel_speeds if self.scene.wheeled else self._base_forces
 
         def substep(carry, _):

@@ -1,0 +1,128 @@
+"""The speed levers against the full MJX path: each shortcut must leave episodes as they were."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+import jaxnav
+from jaxnav.core.randomize import TRAINING
+from jaxnav.core.scene import SceneConfig
+from jaxnav.core.types import EnvState
+from jaxnav.wrappers import AutoReset, EpisodeStats
+
+ROBOTS, STEPS = 32, 40
+
+
+def forward_biased(key, shape):
+    """Actions that drive forward 4 times in 5, so most robots reach an obstacle: [shape] int32."""
+    u = jax.random.uniform(key, shape)
+    return jnp.where(u < 0.8, 0, jnp.where(u < 0.9, 1, 2)).astype(jnp.int32)
+
+
+def rollout(env):
+    """Jitted (state [R], actions [T, R]) -> per step (qpos, qvel, obs, reward, done), bare env."""
+
+    @jax.jit
+    def run(state, actions):
+        def body(s, a):
+            n = jax.vmap(env.step)(s, a)
+            return n, (n.data.qpos, n.data.qvel, n.obs, n.reward, n.done)
+
+        return jax.lax.scan(body, state, actions)[1]
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def full_and_fast():
+    """Trajectories of the training distribution (sim-to-real ranges on, rooms sampled and from
+    layouts) with MJX's contact pass (the full path) and without (the default), from the same
+    episodes (one reset compiled: the fast env places the robots in its own physics state)."""
+    full = jaxnav.make_env("avoid", randomize=TRAINING, scene=SceneConfig(fast_contacts=True))
+    fast = jaxnav.make_env("avoid", randomize=TRAINING)
+    start = jax.jit(jax.vmap(full.reset))(jax.random.split(jax.random.PRNGKey(7), ROBOTS))
+    placed = start.replace(data=jax.jit(jax.vmap(fast.place))(start.info["params"]))
+    actions = forward_biased(jax.random.PRNGKey(8), (STEPS, ROBOTS))
+    runs = rollout(full)(start, actions), rollout(fast)(placed, actions)
+    return [[np.asarray(x) for x in r] for r in runs]
+
+
+def test_fast_physics_skips_mjx_contacts():
+    """By default the fast physics has no MJX contacts or constraint rows; the full path and the
+    wheeled physics keep them."""
+    no_contact = mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+    build = jaxnav.core.scene.build_mj_model
+    assert build(SceneConfig()).opt.disableflags & no_contact == no_contact
+    for cfg in (SceneConfig(fast_contacts=True), SceneConfig(physics="wheeled")):
+        assert not build(cfg).opt.disableflags & no_contact
+
+
+@pytest.mark.slow  # two env steps and a reset to compile: about 80 s on a 2-core CPU
+def test_episodes_without_mjx_contacts_are_bit_identical(full_and_fast):
+    """Every step of every episode up to its end, the colliding step included, is the same bit
+    for bit: pose, velocity, observation, reward and termination."""
+    full, fast = full_and_fast
+    done = full[-1]  # [T, R]
+    live = np.cumsum(done, 0) - done == 0  # [T, R]: the step starts in the first episode
+    assert done.any(0).sum() >= ROBOTS // 3  # many robots reach an obstacle
+    assert (full[3][done & live] == -100).mean() > 0.9  # ... and collide there
+    for name, a, b in zip(("qpos", "qvel", "obs", "reward", "done"), full, fast, strict=True):
+        np.testing.assert_array_equal(a[live], b[live], err_msg=name)
+    # After the collision the full path's contacts push back, the fast path goes on: the two
+    # really are different physics.
+    after = ~live & done.any(0)
+    assert not np.array_equal(full[0][after], fast[0][after])
+
+
+class Countdown:
+    """A toy env whose episodes last 1-6 steps, drawn per episode, so that in a batch some steps
+    end fewer episodes than the auto-reset pool holds and some more."""
+
+    metric_names = ()
+
+    def reset(self, key):
+        k_len, k_obs, key = jax.random.split(key, 3)
+        length = jax.random.randint(k_len, (), 1, 7)
+        obs = jax.random.normal(k_obs, (2,))
+        f0, b0 = jnp.float32(0), jnp.bool_(False)
+        info = {"left": length, "key": key}
+        return EnvState(data=obs, obs=obs, reward=f0, done=b0, truncated=b0, metrics={}, info=info)
+
+    def step(self, state, action):
+        left = state.info["left"] - 1
+        data = state.data + action
+        return state.replace(
+            data=data,
+            obs=2 * data,
+            reward=data.sum(),
+            done=left <= 0,
+            info={**state.info, "left": left},
+        )
+
+
+def test_in_place_auto_reset_is_the_select():
+    """`AutoReset(in_place=True)` gives every leaf of the state of the select, bit for bit, in
+    steps that end fewer episodes than the pool holds (the rows written) and more (the select)."""
+    n, pool = 64, 6
+    envs = [AutoReset(EpisodeStats(Countdown()), pool, in_place=flag) for flag in (False, True)]
+
+    @jax.jit
+    def run(keys):
+        out = []
+        for env in envs:
+            state = env.reset(keys)
+            states = jax.lax.scan(
+                lambda s, a, env=env: (env.step(s, a),) * 2, state, jnp.ones((30, n))
+            )[1]
+            out.append(states)
+        return out
+
+    select, in_place = run(jax.random.split(jax.random.PRNGKey(0), n))
+    ended = np.asarray(select.done).sum(1)  # [T]
+    assert (ended > pool).any() and ((ended > 0) & (ended <= pool)).any()
+    for a, b in zip(
+        jax.tree_util.tree_leaves(select), jax.tree_util.tree_leaves(in_place), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
