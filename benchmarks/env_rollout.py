@@ -11,7 +11,6 @@ rooms drawn from every room family), `pool_all` (a new episode drawn for every r
 per room, `RandomizeConfig.moving_count`); the speed levers: `full` (MJX's
 contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-reset's select in
 every row, `PPOConfig.reset_in_place` off), `no_contacts` and `in_place` (one lever on each).
->>>>>>> speed
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size.
