@@ -90,7 +90,7 @@ class NavTask:
         self.task, self.randomize, self.sensor, self.robot = task, randomize, sensor, robot
         self.bank = bank
         self.scene = Scene(scene, robot)
-        self._data0 = mjx.make_data(self.scene.model)
+        self._data0 = mjx.make_data(self.scene.model, device=jax.local_devices()[0])
 
     @property
     def control_period(self) -> float:
