@@ -34,14 +34,15 @@ QUICK = "python -m jaxnav.train"
 # Accelerator lines: (JSON under benchmarks/results/, the command that wrote it, what it measures).
 GATHERED = (
     (
-        "env_rollout_h200.json",
+        "env_rollout_h200_movers.json",
         "python benchmarks/env_rollout.py --num-envs 65536 --steps 50 --repeats 2 "
-        "--variants default,rows1",
+        "--variants default,movers",
         "env-only throughput, random policy, 65,536 robots",
     ),
     (
         "throughput_h200.json",
-        "python benchmarks/throughput.py --num-envs 65536 --steps 50 --updates 3 --repeats 2",
+        "python benchmarks/throughput.py --num-envs 65536 --steps 50 --updates 3 --repeats 2 "
+        "--variants default,full --pieces default",
         "PPO training throughput, 65,536 robots",
     ),
     (
@@ -186,9 +187,13 @@ def _gathered_result(name: str, data: dict) -> str:
         ]
         if "rows1" in rows:
             parts.append(f"{rows['rows1']['env_steps_per_s'] / 1e6:.2f} M with a 1-row camera")
+        if "movers" in rows:
+            parts.append(
+                f"{rows['movers']['env_steps_per_s'] / 1e6:.2f} M with 0-3 moving obstacles"
+            )
         return "; ".join(parts)
     if name.startswith("throughput"):
-        row = data["rows"][-1]
+        row = next((r for r in data["rows"] if r.get("variant") == "default"), data["rows"][-1])
         return f"{row['train']['env_steps_per_s'] / 1e6:.2f} M env-steps/s (compile {row['train']['compile_s']} s)"
     solved, last = data["solved"], data["history"][-1]
     head = (

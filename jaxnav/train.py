@@ -5,6 +5,13 @@ python -m jaxnav.train --preset paper --out runs/paper  # the paper's Table II
 python -m jaxnav.train --num-envs 1024 --task.near-threshold 0.8 --layouts my_rooms.json
 python -m jaxnav.train --env goal                       # point-goal navigation
 python -m jaxnav.train --env goal --actions continuous  # (forward m/s, yaw rad/s) commands
+python -m jaxnav.train --out runs/big --coordinator host0:8476 --num-processes 2 --process-id 0
+                                                        # one run over two hosts (see below)
+
+Several processes (hosts): start the same command on each with its own --process-id (or set
+JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID); the robots are split over every
+device of every process, and process 0 writes the run folder, which must be on a filesystem all
+hosts share for --resume (see jaxnav/distributed.py).
 """
 
 from __future__ import annotations
@@ -13,6 +20,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import os
 import shutil
 import sys
 import time
@@ -22,6 +30,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from jaxnav import distributed
 from jaxnav.cli import (
     EXIT_INTERRUPTED,
     Interrupts,
@@ -91,6 +100,7 @@ def memory_check(config: RunConfig, env, trainer) -> None:
     it) or the first accelerator's `bytes_limit`. Where neither is known, nothing is checked.
     """
     cfg, devices = config.ppo, jax.local_devices()
+    # Robots one memory holds: this process's (the CPU's devices share it), or one device's.
     shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
     leaves = jax.tree_util.tree_leaves(shapes.env_state)
     state = sum(x.size * x.dtype.itemsize for x in leaves) / cfg.num_envs
@@ -99,14 +109,15 @@ def memory_check(config: RunConfig, env, trainer) -> None:
     # The state, the next one and its auto-reset draw; the rollout and its shuffled copy.
     per_robot = 3 * state + 2 * cfg.rollout_length * step
     if devices[0].platform == "cpu":
-        available, where, share = _meminfo_available(), "free CPU memory (MemAvailable)", 1
+        available, share = _meminfo_available(), jax.process_count()
+        where = "free CPU memory (MemAvailable)"
     else:
         stats = devices[0].memory_stats() or {}
-        available, share = stats.get("bytes_limit"), len(devices)
+        available, share = stats.get("bytes_limit"), jax.device_count()
         where = f"memory of one {devices[0].device_kind}"
     if available is None or per_robot * cfg.num_envs / share <= available:
         return
-    fits = int(available * share / per_robot) // len(devices) * len(devices)
+    fits = int(available * share / per_robot) // jax.device_count() * jax.device_count()
     raise ValueError(
         f"--num-envs {cfg.num_envs}: needs about {per_robot * cfg.num_envs / share / 1e9:.1f} GB "
         f"({per_robot / 1e3:.1f} kB per robot) but the {where} is {available / 1e9:.1f} GB; "
@@ -116,14 +127,17 @@ def memory_check(config: RunConfig, env, trainer) -> None:
 
 class _NewRunFolder:
     """The start of a new run folder: made with its lock and config.json; `remove()` takes back
-    what the start made while no checkpoint exists (a failed or interrupted start)."""
+    what the start made while no checkpoint exists (a failed or interrupted start). With
+    `write=False` (processes other than 0 of a run) it touches nothing."""
 
-    def __init__(self, out: Path, config: RunConfig):
-        self.out, self.config = out, config
+    def __init__(self, out: Path, config: RunConfig, write: bool = True):
+        self.out, self.config, self.write = out, config, write
         self.lock = files.RunLock(out)
         self.made = False
 
     def create(self) -> None:
+        if not self.write:
+            return
         try:
             self.made = not self.out.exists()
             self.out.mkdir(parents=True, exist_ok=True)
@@ -138,7 +152,7 @@ class _NewRunFolder:
             ) from None
 
     def remove(self) -> None:
-        if not self.out.is_dir() or checkpoint.list_checkpoints(self.out):
+        if not self.write or not self.out.is_dir() or checkpoint.list_checkpoints(self.out):
             return  # something was saved: the folder is a run that --resume continues
         if self.made:
             shutil.rmtree(self.out, ignore_errors=True)
@@ -149,7 +163,11 @@ class _NewRunFolder:
                 shutil.rmtree(path, ignore_errors=True)
             else:
                 path.unlink(missing_ok=True)
-        self.lock.release()
+        self.release()
+
+    def release(self) -> None:
+        if self.write:
+            self.lock.release()
 
 
 # ---------------------------------------------------------------- starting and continuing
@@ -165,27 +183,31 @@ def run(
     `Interrupts` (None: the loop listens to SIGINT/SIGTERM itself once training runs).
     """
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder")
-    if checkpoint.list_checkpoints(out):
-        raise ValueError(
-            f"--out {out}: already holds a training run; use --resume {out} or "
-            "choose another folder"
-        )
-    env, trainer = interruptible(_build, config)
-    memory_check(config, env, trainer)
-    folder = _NewRunFolder(out, config)
-    folder.create()
+    folder, created = _NewRunFolder(out, config, write=distributed.is_main()), False
     try:
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"--out {out}: exists and is not a folder")
+        if checkpoint.list_checkpoints(out):
+            raise ValueError(
+                f"--out {out}: already holds a training run; use --resume {out} or "
+                "choose another folder"
+            )
+        env, trainer = interruptible(_build, config)
+        memory_check(config, env, trainer)
+        folder.create()
+        created = True
+        distributed.ready()
         if stop is not None:
             stop.at_once(f"removed the unfinished run folder {out}", folder.remove)
         ts = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
         return _loop(config, out, trainer, ts, [], 0.0, progress, stop, env.metric_names)
     except BaseException:
-        folder.remove()
+        if created:  # (not a folder that another run holds)
+            folder.remove()
         raise
     finally:
-        folder.lock.release()
+        if created:
+            folder.release()
 
 
 def _build(config: RunConfig):
@@ -229,6 +251,32 @@ def resume(
         config = _with_budget(checkpoint.load_config(out), total_steps)
         print(f"jaxnav: {out} has no checkpoint yet; starting it from its config.json", flush=True)
         return run(config, out, progress, stop)
+    main, lock, locked = distributed.is_main(), files.RunLock(out), False
+    try:
+        ckpt, config, meta = _resume_point(out, total_steps)  # every process reads it
+        env, trainer = interruptible(_build, config)
+        if main:
+            lock.acquire()
+            locked = True
+            checkpoint.remove_stale_writes(out)
+            files.write_atomic(out / "config.json", json.dumps(config.to_dict(), indent=2))
+        distributed.ready()
+        if stop is not None:
+            note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
+            stop.at_once(note, lock.release if main else None)
+        template = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
+        ts = checkpoint.restore_train_state(ckpt, template)
+        rows = runlog.read_rows(out / "metrics.csv") if main else []
+        rows = [r for r in rows if r["update"] <= meta["update"]]
+        elapsed = meta.get("elapsed_s", 0.0)
+        return _loop(config, out, trainer, ts, rows, elapsed, progress, stop, env.metric_names)
+    finally:
+        if locked:
+            lock.release()
+
+
+def _resume_point(out: Path, total_steps: int | None) -> tuple[Path, RunConfig, dict]:
+    """(checkpoint, config with the new budget, its meta.json) of the run in `out`; read-only."""
     ckpt = checkpoint.resolve(out)
     config = _run_config(out, ckpt)
     meta = checkpoint.load_meta(ckpt)
@@ -238,24 +286,8 @@ def resume(
             f"--total-steps {total_steps}: below the run's progress ({done:,} env steps, "
             f"{ckpt}); give at least {done}"
         )
-    config = _with_budget(config, total_steps)
     checkpoint.verify(ckpt)  # resolve() found no intact one: this names the damaged file
-    lock = files.RunLock(out)
-    lock.acquire()
-    try:
-        if stop is not None:
-            note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
-            stop.at_once(note, lock.release)
-        checkpoint.remove_stale_writes(out)
-        files.write_atomic(out / "config.json", json.dumps(config.to_dict(), indent=2))
-        env, trainer = interruptible(_build, config)
-        template = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
-        ts = checkpoint.restore_train_state(ckpt, template)
-        rows = [r for r in runlog.read_rows(out / "metrics.csv") if r["update"] <= int(ts.update)]
-        elapsed = meta.get("elapsed_s", 0.0)
-        return _loop(config, out, trainer, ts, rows, elapsed, progress, stop, env.metric_names)
-    finally:
-        lock.release()
+    return ckpt, _with_budget(config, total_steps), meta
 
 
 def _with_budget(config: RunConfig, total_steps: int | None) -> RunConfig:
@@ -271,17 +303,19 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names)
     """Runs chunks until the budget is spent or a stop is requested; checkpoints on the way.
 
     The first chunk (the compile) runs interruptibly; then `stop` defers signals to the end of
-    the chunk under way. Without `stop`, the loop listens itself.
+    the chunk under way. Without `stop`, the loop listens itself. With several processes, all run
+    it together and process 0 writes; a signal to any of them stops all after the chunk.
     """
-    cfg = config.ppo
+    cfg, main = config.ppo, distributed.is_main()
     start = time.perf_counter() - elapsed
     last_ckpt = (checkpoint.list_checkpoints(out) or [None])[-1]
+    update = int(distributed.to_host(ts.update))
     bar = tqdm(
         total=cfg.num_updates * cfg.batch_size,
-        initial=int(ts.update) * cfg.batch_size,
+        initial=update * cfg.batch_size,
         unit="step",
         unit_scale=True,
-        disable=not progress,
+        disable=not (progress and main),
         desc="training",
         dynamic_ncols=True,
     )
@@ -289,38 +323,50 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names)
     fields = runlog.columns(metric_names)
     with (
         _writes(out, lambda: last_ckpt),
-        runlog.MetricsLog(out, fields, rows) as log,
+        runlog.MetricsLog(out, fields, rows, write=main) as log,
         listen as stop,
     ):
         first = True
-        while int(ts.update) < cfg.num_updates:
-            before, tick = int(ts.update), time.perf_counter()
+        while update < cfg.num_updates:
+            before, tick = update, time.perf_counter()
             ts, metrics = _first_chunk(trainer, ts, stop) if first else trainer.run_chunk(ts)
             first = False
-            metrics = jax.device_get(metrics)
-            rate = (int(ts.update) - before) * cfg.batch_size / (time.perf_counter() - tick)
+            metrics = distributed.to_host(metrics)
+            update = int(distributed.to_host(ts.update))
+            rate = (update - before) * cfg.batch_size / (time.perf_counter() - tick)
             _check_finite(metrics, ts, last_ckpt)
             elapsed = time.perf_counter() - start
             log.add(runlog.chunk_rows(metrics, fields, before, cfg.batch_size, rate, elapsed))
-            _show(bar, log, metric_names, rate, int(ts.update) - before, cfg.batch_size)
-            update = int(ts.update)
+            _show(bar, log, metric_names, rate, update - before, cfg.batch_size)
             due = update // cfg.checkpoint_every > before // cfg.checkpoint_every
-            if due or update >= cfg.num_updates or stop.requested:
+            stopping = distributed.any_process(bool(stop.requested))
+            if due or update >= cfg.num_updates or stopping:
                 meta = {
                     "env_steps": update * cfg.batch_size,
                     "elapsed_s": time.perf_counter() - start,
                 }
-                last_ckpt = checkpoint.save(out, ts, config, meta)
-                _plot(out)
-            if stop.requested and update < cfg.num_updates:
+                last_ckpt = _save(out, ts, config, meta, main)
+            if stopping and update < cfg.num_updates:
                 bar.close()
+                signal = stop.requested[0] if stop.requested else "a signal to another process"
                 raise Interrupted(
-                    f"{stop.requested[0]}: stopped at update {update} of {cfg.num_updates}; "
+                    f"{signal}: stopped at update {update} of {cfg.num_updates}; "
                     f"checkpoint {last_ckpt}; continue with: python -m jaxnav.train "
                     f"--resume {out}"
                 )
     bar.close()
     return last_ckpt
+
+
+def _save(out: Path, ts, config: RunConfig, meta: dict, main: bool) -> Path:
+    """Checkpoints `ts` (gathered from every process) and draws the reward curve, on process 0;
+    returns the checkpoint folder."""
+    host = distributed.to_host(ts)
+    if not main:
+        return checkpoint.path_of(out, int(host.update))
+    ckpt = checkpoint.save(out, host, config, meta)
+    _plot(out)
+    return ckpt
 
 
 def _first_chunk(trainer, ts, stop: Interrupts):
@@ -371,7 +417,8 @@ def _check_finite(metrics, ts, last_ckpt) -> None:
     bad = []
     if not np.isfinite(np.asarray(metrics["total"])[live]).all():
         bad.append("loss")
-    if not all(np.isfinite(x).all() for x in jax.tree_util.tree_leaves(jax.device_get(ts.params))):
+    params = distributed.to_host(ts.params)
+    if not all(np.isfinite(x).all() for x in jax.tree_util.tree_leaves(params)):
         bad.append("weights")
     if not np.asarray(metrics["obs_finite"])[live].all():
         bad.append("observations")
@@ -445,6 +492,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="training room files (default: scenes/train_room.json + sampled rooms)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    distributed.add_flags(parser)
     env = Parser(add_help=False)
     env.add_argument("--env", default="avoid")
     name = env.parse_known_args(argv)[0].env
@@ -475,7 +523,8 @@ def _new_run_dir(root: Path, name: str) -> Path:
     return next(p for p in candidates if not p.exists())
 
 
-RESUME_FLAGS = ("--resume", "--total-steps", "--no-progress")  # the flags --resume takes
+# The flags --resume takes.
+RESUME_FLAGS = ("--resume", "--total-steps", "--no-progress", *distributed.FLAGS)
 
 
 def _start(args, stop: Interrupts) -> tuple[Path, Path]:
@@ -491,12 +540,15 @@ def _start(args, stop: Interrupts) -> tuple[Path, Path]:
         total = overrides["ppo"].get("total_steps")
         return args.resume, resume(args.resume, total, not args.no_progress, stop)
     config = build_config(args.preset or "cpu", args.seed or 0, args.layouts, overrides, args.env)
+    if jax.process_count() > 1 and args.out is None:
+        raise ValueError("--out: needed with several processes (all must name the same folder)")
     out = args.out or _new_run_dir(Path("runs"), f"{config.env}-{config.preset}")
     cfg = config.ppo
+    processes = f" of {jax.process_count()} processes" if jax.process_count() > 1 else ""
     print(
         f"jaxnav: training '{config.env}' with the {config.preset} preset: {cfg.num_envs} robots, "
         f"{cfg.num_updates} updates of {cfg.batch_size} steps, on {jax.device_count()} "
-        f"{jax.devices()[0].platform} device(s)",
+        f"{jax.devices()[0].platform} device(s){processes}",
         flush=True,
     )
     return out, run(config, out, not args.no_progress, stop)
@@ -517,14 +569,20 @@ def main(argv=None) -> int:
     try:
         with Interrupts() as stop:  # Ctrl-C: at once until training runs, then after a chunk
             args = parse_args(argv)
-            out, final = _start(args, stop)
+            distributed.start(distributed.from_args(args))  # before anything touches a device
+            with distributed.start_failed():  # an error before training: told to the others
+                out, final = _start(args, stop)
     except Interrupted as stopped:
         print(f"interrupted ({stopped})")
         return 0
     except KeyboardInterrupt:  # outside the main thread, where Interrupts cannot listen
         print_error("interrupted")
         return EXIT_INTERRUPTED
-    except (FloatingPointError, RunFailed) as err:
+    except ConnectionError as err:  # the processes of a run never met
+        print_error(err)
+        sys.stderr.flush()
+        os._exit(1)  # a normal exit would log pages about the half-made link to the coordinator
+    except (FloatingPointError, RunFailed, distributed.PeerFailed) as err:
         print_error(err)
         return 1
     except (ValueError, LayoutError, FileNotFoundError) as err:
@@ -535,6 +593,9 @@ def main(argv=None) -> int:
             raise
         print_error(_out_of_memory(err))
         return 1
+    if not distributed.is_main():
+        print(f"done: process {jax.process_index()}; process 0 wrote the run into {out}/")
+        return 0
     meta = checkpoint.load_meta(final)
     print(
         f"done: {meta['env_steps']:,} env steps, {time.perf_counter() - start:.0f} s in this "

@@ -264,7 +264,9 @@ class Scene:
         self.mj_model = build_mj_model(cfg, robot)
         field = mjcf_field(cfg.physics)
         source = f"RobotSpec.{field}: {getattr(robot, field)}"  # for error messages
-        self.model = mjx.put_model(self.mj_model)
+        # On this process's first device: MJX's default, jax.devices()[0], belongs to process 0
+        # in a run of several processes.
+        self.model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
         name = lambda n: mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
         self.wall_ids = np.array([name(f"wall{i}") for i in range(4)])
         self.box_ids = np.array([name(f"box{i}") for i in range(cfg.num_boxes)], dtype=int)

@@ -8,7 +8,8 @@ each checkpoint with `policy.msgpack` (network weights and observation normalise
 and, written last, `checksums.json` (sha256 of each of those). A checkpoint is written in a hidden
 temporary folder and renamed into place, so a crash mid-write leaves the previous ones intact.
 Hand-written rather than orbax: four plain files (numpy, msgpack, JSON) that numpy alone can read,
-where orbax adds tensorstore (~66 MB) and async machinery for a few MB of single-host state.
+where orbax adds tensorstore (~66 MB) and async machinery for a few MB of state (in a run of several
+processes, process 0 writes the state gathered from all: `jaxnav.distributed.to_host`).
 """
 
 from __future__ import annotations
@@ -50,10 +51,10 @@ class CheckpointError(ValueError):
 
 def save(run_dir: Path, ts, config: RunConfig, meta: dict, keep: int = 3) -> Path:
     """Writes checkpoint `update_<ts.update>` atomically; keeps the newest `keep` of them."""
-    root = Path(run_dir) / CKPT_DIR
-    root.mkdir(parents=True, exist_ok=True)
     update = int(ts.update)
-    target = root / f"{PREFIX}{update:06d}"
+    target = path_of(run_dir, update)
+    root = target.parent
+    root.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=root))
     try:
         host = jax.device_get(ts)
@@ -77,6 +78,11 @@ def save(run_dir: Path, ts, config: RunConfig, meta: dict, keep: int = 3) -> Pat
         raise
     _prune(root, target, keep)
     return target
+
+
+def path_of(run_dir: Path, update: int) -> Path:
+    """The folder of the checkpoint after `update` updates in run folder `run_dir`."""
+    return Path(run_dir) / CKPT_DIR / f"{PREFIX}{update:06d}"
 
 
 def remove_stale_writes(run_dir: Path) -> None:
@@ -204,7 +210,8 @@ def load_meta(ckpt: Path) -> dict:
 
 
 def load_tree(file: Path, template):
-    """The tree saved by `save_tree` in `file`, shaped like `template`, each leaf found by its path.
+    """The tree saved by `save_tree` in `file`, shaped (and placed) like `template`, each leaf
+    found by its path.
 
     A missing or extra entry, or a leaf whose shape or dtype differs, raises CheckpointError naming
     the file and the first such entry.
@@ -230,13 +237,24 @@ def load_tree(file: Path, template):
         what = f"no entry {missing[0]}" if missing else f"unexpected entry {extra[0]}"
         raise CheckpointError(f"{file}: {what} (the saved state does not match this configuration)")
     for key, (_, leaf) in zip(keys, named, strict=True):
-        want = (np.shape(leaf), np.dtype(getattr(leaf, "dtype", np.asarray(leaf).dtype)))
+        dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
+        want = (np.shape(leaf), np.dtype(dtype))
         if (saved[key].shape, saved[key].dtype) != want:
             raise CheckpointError(
                 f"{file}: {key} is {saved[key].dtype}{list(saved[key].shape)}, "
                 f"this configuration needs {want[1]}{list(want[0])}"
             )
-    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(saved[k]) for k in keys])
+    leaves = [_place(saved[k], leaf) for k, (_, leaf) in zip(keys, named, strict=True)]
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def _place(value: np.ndarray, like):
+    """`value` laid out as `like` where that is a placed jax.Array (sharded over several
+    processes, each keeps only its own part), else a plain device array."""
+    sharding = getattr(like, "sharding", None)
+    if not isinstance(sharding, jax.sharding.Sharding):
+        return jnp.asarray(value)
+    return jax.make_array_from_callback(value.shape, sharding, lambda index: value[index])
 
 
 def restore_train_state(ckpt: Path, template):

@@ -83,12 +83,16 @@ def _csv_text(fields, rows) -> str:
 
 
 class MetricsLog:
-    """metrics.csv (`rows` kept, then appended) and TensorBoard events in out/tb."""
+    """metrics.csv (`rows` kept, then appended) and TensorBoard events in out/tb; with
+    `write=False` (the processes of a run other than process 0) the rows are kept in memory only."""
 
-    def __init__(self, out: Path, fields: tuple[str, ...], rows: list[dict]):
-        self.out, self.fields, self.rows = out, fields, list(rows)
+    def __init__(self, out: Path, fields: tuple[str, ...], rows: list[dict], write: bool = True):
+        self.out, self.fields, self.rows, self.write = out, fields, list(rows), write
+        self.fh = self.tb = None
 
     def __enter__(self):
+        if not self.write:
+            return self
         file = self.out / "metrics.csv"
         text = _csv_text(self.fields, self.rows)
         if not file.exists() or read_text(file) != text:  # atomically: the old rows stay on
@@ -99,9 +103,11 @@ class MetricsLog:
         return self
 
     def add(self, rows: list[dict]) -> None:
+        self.rows += rows
+        if self.fh is None:
+            return
         self.writer.writerows(rows)
         self.fh.flush()
-        self.rows += rows
         for row in rows if self.tb else ():
             for key in self.fields[2:]:
                 if not math.isnan(row[key]):
@@ -115,7 +121,8 @@ class MetricsLog:
         return values[-1] if values else math.nan
 
     def __exit__(self, *exc):
-        self.fh.close()
+        if self.fh is not None:
+            self.fh.close()
         if self.tb:
             self.tb.close()
 

@@ -88,12 +88,14 @@ def episode_metrics(traj: Transition) -> dict[str, jax.Array]:
 
 
 def shard_envs(num_envs: int, devices=None):
-    """A function placing [num_envs, ...] arrays across `devices` (default: all local devices).
+    """A function placing [num_envs, ...] arrays across `devices` (default: every device of every
+    process, `jax.devices()`).
 
-    Robots are split evenly between devices; parameters stay replicated, and XLA inserts the
-    all-reduce of the gradients. With one device this is the identity.
+    Robots are split evenly between devices, so each device (and each process) simulates only its
+    own; parameters stay replicated, and XLA inserts the all-reduce of the gradients. With one
+    device this is the identity.
     """
-    devices = list(devices or jax.local_devices())
+    devices = list(devices or jax.devices())
     if len(devices) == 1:
         return lambda tree: tree
     if num_envs % len(devices):
@@ -105,7 +107,7 @@ def shard_envs(num_envs: int, devices=None):
 def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     """Builds the jitted PPO functions for `env` (any object with vmappable reset/step).
 
-    The robots are sharded over `devices` (default: every local device).
+    The robots are sharded over `devices` (default: every device of every process).
     """
     network = make_network(cfg, env.action_spec)
     dist = make_distribution(env.action_spec)

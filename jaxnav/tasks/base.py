@@ -93,7 +93,7 @@ class NavTask:
         self.task, self.randomize, self.sensor, self.robot = task, randomize, sensor, robot
         self.bank = bank
         self.scene = Scene(scene, robot)
-        self._data0 = mjx.make_data(self.scene.model)
+        self._data0 = mjx.make_data(self.scene.model, device=jax.local_devices()[0])
         # Static: obstacles move in this env (added movers, or a layout's motions).
         self.moving = randomize.moving_count[1] > 0 or bank.rooms.motion is not None
 

@@ -1,0 +1,159 @@
+"""PPO throughput over 1, 2, 4 ... devices of one host: one process over all of them, and one
+process per device joined by `jax.distributed` (the multi-host code path on one host).
+
+    python benchmarks/scaling.py --devices 1,2,4 --num-envs 65536,131072 \\
+        --json benchmarks/results/scaling_h200.json                   # a host with 4 GPUs
+    python benchmarks/scaling.py --platform cpu --devices 1,2 --num-envs 64 --updates 1 \\
+        --repeats 1                                                   # CPU, forced host devices
+
+Each measurement runs in its own subprocess(es) (GPUs picked with CUDA_VISIBLE_DEVICES and, one per
+process, JAX_LOCAL_DEVICE_IDS; on the CPU, `--xla_force_host_platform_device_count`), so the parent
+never holds a device. The timing is
+`benchmarks/throughput.py`'s PPO one (the `cpu` preset's update shape: rollout 32, 4 epochs,
+4 minibatches; every obstacle slot in use), the best of `--repeats` chunks of `--updates` updates
+after the compile; env-steps/s counts every robot of every device.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+MODES = ("single", "multi")  # one process over k devices; k processes of one device each
+
+
+def device_env(platform_: str, k: int, mine: int | None) -> dict:
+    """The environment of a process of a run over `k` devices: all of them (`mine` None) or only
+    device `mine` (one process per device). Every GPU of the run stays visible to CUDA, so that
+    NCCL may link them directly; JAX takes its own from JAX_LOCAL_DEVICE_IDS."""
+    env = dict(os.environ)
+    if platform_ == "cpu":
+        env["JAX_PLATFORMS"] = "cpu"
+        count = k if mine is None else 1
+        env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={count}"
+        return env
+    env["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, range(k)))
+    env.setdefault("NCCL_NVLS_ENABLE", "0")  # no NVLink multicast on shared hosts
+    if mine is not None:
+        env["JAX_LOCAL_DEVICE_IDS"] = str(mine)
+    return env
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("localhost", 0))
+        return sock.getsockname()[1]
+
+
+def measure(args, mode: str, k: int, n: int) -> dict:
+    """One row: `mode` over `k` devices at `n` robots, from its subprocess(es)."""
+    base = [sys.executable, __file__, "--worker", "--num-envs", str(n)]
+    base += ["--updates", str(args.updates), "--repeats", str(args.repeats)]
+    if mode == "single":
+        mine, cluster = [None], []
+    else:
+        mine = list(range(k))
+        cluster = ["--coordinator", f"localhost:{free_port()}", "--num-processes", str(k)]
+    procs = [
+        subprocess.Popen(
+            [*base, *cluster, *(["--process-id", str(i)] if cluster else [])],
+            env=device_env(args.platform, k, i),
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for i in mine
+    ]
+    outs = [proc.communicate(timeout=args.timeout)[0] for proc in procs]
+    if any(proc.returncode for proc in procs):
+        raise SystemExit(f"{mode} x{k} at {n} robots failed (see its error above)")
+    row = json.loads(outs[0].strip().splitlines()[-1])  # process 0 speaks for the run
+    return {"mode": mode, "devices": k, "processes": len(procs), **row}
+
+
+def worker(args) -> None:
+    """Inside a subprocess: joins the run (multi), times PPO, prints one JSON line."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from jaxnav import distributed
+
+    distributed.start(
+        distributed.ClusterConfig(args.coordinator, args.num_processes, args.process_id)
+    )
+    import jax
+    from throughput import FULL, training
+
+    import jaxnav
+
+    env = jaxnav.make_env("avoid", randomize=FULL)
+    (n,) = (int(x) for x in args.num_envs.split(","))
+    result = training(env, n, args.updates, args.repeats)
+    device = jax.devices()[0]
+    result.update(num_envs=n, device=f"{device.platform}: {device.device_kind}")
+    result.update(device_count=jax.device_count(), jax=jax.__version__)
+    print(json.dumps(result), flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--devices", default="1,2,4", help="comma-separated device counts")
+    parser.add_argument("--num-envs", default="65536", help="comma-separated robot counts")
+    parser.add_argument("--modes", default=",".join(MODES), help="single, multi or both")
+    parser.add_argument("--platform", choices=("gpu", "cpu"), default="gpu")
+    parser.add_argument("--updates", type=int, default=5, help="PPO updates per timed chunk")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--timeout", type=int, default=600, help="s per measurement")
+    parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--coordinator", help=argparse.SUPPRESS)
+    parser.add_argument("--num-processes", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--process-id", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        return worker(args)
+    modes = args.modes.split(",")
+    if set(modes) - set(MODES):
+        parser.error(f"--modes: one or both of {', '.join(MODES)}, got {args.modes}")
+    rows = []
+    for n in (int(x) for x in args.num_envs.split(",")):
+        for k in (int(x) for x in args.devices.split(",")):
+            for mode in modes:
+                if mode == "multi" and k == 1:
+                    continue  # the same as single
+                rows.append(measure(args, mode, k, n))
+                print(json.dumps(rows[-1]), flush=True)
+    result = {
+        "date": datetime.date.today().isoformat(),
+        "python": platform.python_version(),
+        "command": " ".join(sys.argv),
+        "rows": rows,
+    }
+    print_table(rows)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+
+
+def print_table(rows) -> None:
+    """Speed-up and efficiency are against one device at the same robot count."""
+    print(f"\n{rows[0]['device']}, jax {rows[0]['jax']}")
+    print(
+        f"{'robots':>8} {'devices':>7} {'processes':>9} {'env steps/s':>12} {'speed-up':>8} "
+        f"{'efficiency':>10} {'s/update':>9} {'compile s':>9}"
+    )
+    for r in rows:
+        one = next((o for o in rows if o["num_envs"] == r["num_envs"] and o["devices"] == 1), None)
+        up = r["env_steps_per_s"] / one["env_steps_per_s"] if one else float("nan")
+        print(
+            f"{r['num_envs']:>8} {r['devices']:>7} {r['processes']:>9} "
+            f"{r['env_steps_per_s']:>12,} {up:>7.2f}x {up / r['devices']:>10.0%} "
+            f"{r['s_per_update']:>9.3f} {r['compile_s']:>9}"
+        )
+
+
+if __name__ == "__main__":
+    main()
