@@ -92,7 +92,7 @@ def worker(args) -> None:
 
     env = jaxnav.make_env("avoid", randomize=FULL)
     (n,) = (int(x) for x in args.num_envs.split(","))
-    result = training(env, n, args.updates, args.repeats)
+    result = training(env, n, args.updates, args.repeats, {})  # the default speed levers
     device = jax.devices()[0]
     result.update(num_envs=n, device=f"{device.platform}: {device.device_kind}")
     result.update(device_count=jax.device_count(), jax=jax.__version__)
