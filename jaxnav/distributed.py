@@ -65,14 +65,24 @@ class ClusterConfig:
 
 
 def add_flags(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("several processes (hosts)")
-    group.add_argument("--coordinator", metavar="HOST:PORT", help=ClusterConfig.__doc__)
+    """The flags of `ClusterConfig` (each process of a run gets the same but --process-id)."""
+    group = parser.add_argument_group(
+        "several processes (hosts)",
+        "or JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID; see jaxnav/distributed.py",
+    )
+    group.add_argument(
+        "--coordinator", metavar="HOST:PORT", help="process 0's host and a free port on it"
+    )
     group.add_argument("--num-processes", type=int, metavar="N", help="processes in the run")
     group.add_argument(
         "--process-id", type=int, metavar="I", help="this process's index (0 writes the run)"
     )
     group.add_argument(
-        "--init-timeout", type=int, default=300, metavar="S", help="start-up wait, s (300)"
+        "--init-timeout",
+        type=int,
+        default=300,
+        metavar="S",
+        help="seconds to wait for every process to join (default 300)",
     )
 
 
@@ -80,7 +90,7 @@ def from_args(args: argparse.Namespace, environ=os.environ) -> ClusterConfig:
     """The flags, else the environment variables (`ENV_VARS`); a half-given trio is an error."""
     given = [args.coordinator, args.num_processes, args.process_id]
     if any(x is not None for x in given):
-        missing = [flag for flag, x in zip(FLAGS, given) if x is None]  # noqa: B905
+        missing = [flag for flag, x in zip(FLAGS[:3], given, strict=True) if x is None]
         if missing:
             raise ValueError(f"{missing[0]}: needed with {', '.join(FLAGS[:3])}")
         return ClusterConfig(*given, timeout_s=args.init_timeout)
@@ -92,7 +102,10 @@ def from_args(args: argparse.Namespace, environ=os.environ) -> ClusterConfig:
         if raw is not None and not raw.strip().isdigit():
             raise ValueError(f"{name}: expected a whole number, got {raw!r}")
         numbers.append(None if raw is None else int(raw))
-    return ClusterConfig(environ[ENV_VARS[0]], *numbers, timeout_s=args.init_timeout)
+    try:
+        return ClusterConfig(environ[ENV_VARS[0]], *numbers, timeout_s=args.init_timeout)
+    except ValueError as err:
+        raise ValueError(f"{err} (from {', '.join(ENV_VARS)})") from None
 
 
 def start(cluster: ClusterConfig) -> None:

@@ -100,7 +100,6 @@ def memory_check(config: RunConfig, env, trainer) -> None:
     it) or the first accelerator's `bytes_limit`. Where neither is known, nothing is checked.
     """
     cfg, devices = config.ppo, jax.local_devices()
-    # Robots one memory holds: this process's (the CPU's devices share it), or one device's.
     shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
     leaves = jax.tree_util.tree_leaves(shapes.env_state)
     state = sum(x.size * x.dtype.itemsize for x in leaves) / cfg.num_envs
@@ -108,6 +107,8 @@ def memory_check(config: RunConfig, env, trainer) -> None:
     step = 4 * (2 * env.observation_size + 8 + len(env.metric_names))
     # The state, the next one and its auto-reset draw; the rollout and its shuffled copy.
     per_robot = 3 * state + 2 * cfg.rollout_length * step
+    # `share`: robots per memory = num_envs / share. The CPU's devices share this process's memory
+    # (one process per host); an accelerator holds its own device's robots.
     if devices[0].platform == "cpu":
         available, share = _meminfo_available(), jax.process_count()
         where = "free CPU memory (MemAvailable)"
