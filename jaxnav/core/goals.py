@@ -194,11 +194,17 @@ def _grid(half_extent: float):
     return jnp.asarray(np.stack(np.meshgrid(axis, axis), -1), jnp.float32)
 
 
+def _free(params: SceneParams, radius: float, half_extent: float):
+    """([n, n, 2] cell centres, [n, n] clearance beyond the robot m, [n, n] bool free): a cell is
+    free where the robot clears everything by half a cell (module doc)."""
+    centres = _grid(half_extent)
+    gap = signed_distance(params, centres) - radius
+    return centres, gap, gap >= 0.5 * GRID_CELL
+
+
 def _flood_goal(key, params: SceneParams, radius, clearance, min_distance, half_extent):
     """([2] goal, [] bool found) in a sampled room: a uniform reachable cell (module doc)."""
-    centres = _grid(half_extent)  # [n, n, 2]
-    gap = signed_distance(params, centres) - radius  # [n, n]
-    free = gap >= 0.5 * GRID_CELL
+    centres, gap, free = _free(params, radius, half_extent)
     straight = jnp.linalg.norm(centres - params.spawn[:2], axis=-1)  # [n, n]
     steps = grid_steps(free, straight == straight.min())  # seeded at the spawn's cell
     ok = jnp.isfinite(steps) & (straight >= min_distance) & (gap >= clearance)
@@ -210,8 +216,7 @@ def _flood_goal(key, params: SceneParams, radius, clearance, min_distance, half_
 def goal_field(params: SceneParams, goal: jax.Array, radius: float, half_extent: float):
     """[n, n] float32 grid steps from every cell of the traced grid to the goal's cell (inf
     where the robot cannot reach it): the geodesic distance `geodesic` reads."""
-    centres = _grid(half_extent)
-    free = signed_distance(params, centres) - radius >= 0.5 * GRID_CELL
+    centres, _, free = _free(params, radius, half_extent)
     straight = jnp.linalg.norm(centres - goal, axis=-1)
     return grid_steps(free, straight == straight.min())
 
