@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import faulthandler
 import json
 import os
 import platform
@@ -56,6 +57,7 @@ def measure(args, mode: str, k: int, n: int) -> dict:
     """One row: `mode` over `k` devices at `n` robots, from its subprocess(es)."""
     base = [sys.executable, __file__, "--worker", "--num-envs", str(n)]
     base += ["--updates", str(args.updates), "--repeats", str(args.repeats)]
+    base += [f"--set={item}" for item in args.set]
     if mode == "single":
         mine, cluster = [None], []
     else:
@@ -70,17 +72,31 @@ def measure(args, mode: str, k: int, n: int) -> dict:
         )
         for i in mine
     ]
-    outs = [proc.communicate(timeout=args.timeout)[0] for proc in procs]
+    head = {"mode": mode, "devices": k, "processes": len(procs), "num_envs": n}
+    try:
+        outs = [proc.communicate(timeout=args.timeout)[0] for proc in procs]
+    except subprocess.TimeoutExpired:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+        return {**head, "error": f"did not finish within {args.timeout} s"}
     if any(proc.returncode for proc in procs):
-        raise SystemExit(f"{mode} x{k} at {n} robots failed (see its error above)")
-    row = json.loads(outs[0].strip().splitlines()[-1])  # process 0 speaks for the run
-    return {"mode": mode, "devices": k, "processes": len(procs), **row}
+        return {**head, "error": "failed (its error is above)"}
+    return {**head, **json.loads(outs[0].strip().splitlines()[-1])}  # process 0 speaks for the run
 
 
 def worker(args) -> None:
-    """Inside a subprocess: joins the run (multi), times PPO, prints one JSON line."""
+    """Inside a subprocess: joins the run (multi), times PPO, prints one JSON line. Shortly before
+    its time is up it prints every thread's stack to stderr, to show where a stuck run waits."""
+    faulthandler.dump_traceback_later(max(args.timeout - 10, 1), exit=False)
     sys.path.insert(0, str(Path(__file__).parent))
+    from time_to_solve import parse_sets
+
     from jaxnav import distributed
+
+    sets = parse_sets(args.set)
+    if set(sets) - {"ppo"}:
+        raise SystemExit(f"--set: only ppo.FIELD=VALUE here, got {', '.join(args.set)}")
 
     distributed.start(
         distributed.ClusterConfig(args.coordinator, args.num_processes, args.process_id)
@@ -92,7 +108,7 @@ def worker(args) -> None:
 
     env = jaxnav.make_env("avoid", randomize=FULL)
     (n,) = (int(x) for x in args.num_envs.split(","))
-    result = training(env, n, args.updates, args.repeats, {})  # the default speed levers
+    result = training(env, n, args.updates, args.repeats, sets.get("ppo", {}))
     device = jax.devices()[0]
     result.update(num_envs=n, device=f"{device.platform}: {device.device_kind}")
     result.update(device_count=jax.device_count(), jax=jax.__version__)
@@ -109,6 +125,13 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--timeout", type=int, default=600, help="s per measurement")
     parser.add_argument("--json", help="write the results here")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        help="ppo.FIELD=VALUE (repeatable), e.g. "
+        "ppo.reset_in_place=false; default: the default speed levers",
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--coordinator", help=argparse.SUPPRESS)
     parser.add_argument("--num-processes", type=int, help=argparse.SUPPRESS)
@@ -131,6 +154,7 @@ def main() -> None:
         "date": datetime.date.today().isoformat(),
         "python": platform.python_version(),
         "command": " ".join(sys.argv),
+        "ppo": args.set,
         "rows": rows,
     }
     print_table(rows)
@@ -140,17 +164,23 @@ def main() -> None:
 
 def print_table(rows) -> None:
     """Speed-up and efficiency are against one device at the same robot count."""
-    print(f"\n{rows[0]['device']}, jax {rows[0]['jax']}")
+    done = [r for r in rows if "error" not in r]
+    if done:
+        print(f"\n{done[0]['device']}, jax {done[0]['jax']}")
     print(
         f"{'robots':>8} {'devices':>7} {'processes':>9} {'env steps/s':>12} {'speed-up':>8} "
         f"{'efficiency':>10} {'s/update':>9} {'compile s':>9}"
     )
     for r in rows:
-        one = next((o for o in rows if o["num_envs"] == r["num_envs"] and o["devices"] == 1), None)
-        up = r["env_steps_per_s"] / one["env_steps_per_s"] if one else float("nan")
+        lead = f"{r['num_envs']:>8} {r['devices']:>7} {r['processes']:>9}"
+        if "error" in r:
+            print(f"{lead} {r['error']}")
+            continue
+        one = [o for o in rows if o["num_envs"] == r["num_envs"] and o["devices"] == 1]
+        base = one[0].get("env_steps_per_s") if one else None
+        up = r["env_steps_per_s"] / base if base else float("nan")
         print(
-            f"{r['num_envs']:>8} {r['devices']:>7} {r['processes']:>9} "
-            f"{r['env_steps_per_s']:>12,} {up:>7.2f}x {up / r['devices']:>10.0%} "
+            f"{lead} {r['env_steps_per_s']:>12,} {up:>7.2f}x {up / r['devices']:>10.0%} "
             f"{r['s_per_update']:>9.3f} {r['compile_s']:>9}"
         )
 
