@@ -70,13 +70,19 @@ class AutoReset(Wrapper):
     instead of selecting between the old and the new state in every row: the same result bit for
     bit (tested), reading and writing P rows of state instead of N. A step in which more than P
     envs finish takes the select.
+
+    `groups`: G independent blocks of N/G consecutive envs, each with its own P/G draws from its
+    own envs' keys (G = 1: one block). With the blocks sharded over devices, every device draws
+    for its own robots only, and no step needs another device's data.
     """
 
-    def __init__(self, env, pool: int | None = None, in_place: bool = False):
+    def __init__(self, env, pool: int | None = None, in_place: bool = False, groups: int = 1):
         super().__init__(env)
         if pool is not None and pool < 1:
             raise ValueError(f"AutoReset.pool: must be >= 1, got {pool}")
-        self.pool, self.in_place = pool, in_place
+        if groups < 1:
+            raise ValueError(f"AutoReset.groups: must be >= 1, got {groups}")
+        self.pool, self.in_place, self.groups = pool, in_place, groups
 
     def reset(self, keys: jax.Array) -> EnvState:
         keys, k_reset = _split(keys)
@@ -87,18 +93,27 @@ class AutoReset(Wrapper):
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
         info = {k: v for k, v in state.info.items() if k != RESET_KEY}
         nxt = jax.vmap(self.env.step)(state.replace(info=info), action)
-        n = action.shape[0]
-        pool = min(self.pool or n, n)
-        fresh = jax.vmap(self.env.reset)(k_reset[:pool])  # [P]
+        g = self.groups
+        n = action.shape[0] // g  # envs per group
+        pool = max(1, min(self.pool or n * g, n * g) // g)  # draws per group
+        block = (
+            lambda tree: jax.tree_util.tree_map(  # noqa: E731
+                lambda x: x.reshape(g, n, *x.shape[1:]), tree
+            )
+        )  # [N, ...] -> [G, N/G, ...]
+        fresh = jax.vmap(jax.vmap(self.env.reset))(block(k_reset)[:, :pool])  # [G, P/G]
         # What a new episode replaces: physics, observation and info, except the finished
         # episode's statistics, which carry over.
         part = lambda s: (s.data, s.obs, {k: v for k, v in s.info.items() if k != EPISODE})  # noqa: E731
+        done, old = block(nxt.done), block(part(nxt))
         if self.in_place and pool < n:
-            overflow = nxt.done.sum() > pool
-            merged = jax.lax.cond(overflow, _select, _write, nxt.done, part(fresh), part(nxt))
+            overflow = (done.sum(axis=1) > pool).any()
+            merged = jax.lax.cond(
+                overflow, jax.vmap(_select), jax.vmap(_write), done, part(fresh), old
+            )
         else:
-            merged = _select(nxt.done, part(fresh), part(nxt))
-        data, obs, info = merged
+            merged = jax.vmap(_select)(done, part(fresh), old)
+        data, obs, info = jax.tree_util.tree_map(lambda x: x.reshape(g * n, *x.shape[2:]), merged)
         if EPISODE in nxt.info:
             info = {**info, EPISODE: nxt.info[EPISODE]}
         return nxt.replace(data=data, obs=obs, info={**info, RESET_KEY: keys})

@@ -126,3 +126,26 @@ def test_in_place_auto_reset_is_the_select():
         jax.tree_util.tree_leaves(select), jax.tree_util.tree_leaves(in_place), strict=True
     ):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_grouped_auto_reset_is_each_block_on_its_own(in_place):
+    """`AutoReset(groups=2)` over 64 envs with a pool of 6 is, bit for bit, two auto-resets of
+    pool 3 each over its own 32 envs: a block draws from its own envs' keys only (what lets every
+    device reset its own robots)."""
+    n, pool = 64, 6
+    grouped = AutoReset(EpisodeStats(Countdown()), pool, in_place, groups=2)
+    alone = AutoReset(EpisodeStats(Countdown()), pool // 2, in_place)
+
+    def run(env, keys):
+        state = env.reset(keys)
+        actions = jnp.ones((30, keys.shape[0]))
+        return jax.lax.scan(lambda s, a: (env.step(s, a),) * 2, state, actions)[1]
+
+    keys = jax.random.split(jax.random.PRNGKey(1), n)
+    both = jax.jit(run, static_argnums=0)(grouped, keys)
+    halves = [jax.jit(run, static_argnums=0)(alone, k) for k in (keys[: n // 2], keys[n // 2 :])]
+    ended = np.asarray(both.done).reshape(30, 2, n // 2).sum(2)  # [T, block]
+    assert (ended > pool // 2).any() and ((ended > 0) & (ended <= pool // 2)).any()
+    for a, *parts in zip(*(jax.tree_util.tree_leaves(t) for t in (both, *halves)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.concatenate(parts, axis=1))

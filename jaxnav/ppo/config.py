@@ -60,6 +60,11 @@ class PPOConfig:
     """Write the new episodes into the rows of the robots that finished only, instead of selecting
     between old and new state for every robot: the same result bit for bit (tested; see
     `jaxnav.wrappers.AutoReset`), less memory traffic per step."""
+    groups: int = 0
+    """Independent blocks the robots are split into (0: one per device). Each block draws its own
+    new episodes (`jaxnav.wrappers.AutoReset`) and each minibatch takes the same share of every
+    block's transitions, so a device never needs another's robots. Results depend on `groups`, not
+    on the device count: two devices give what one gives with groups 2."""
     updates_per_chunk: int = 10
     """Updates per jitted call; progress, metrics and checkpoints happen between chunks."""
     checkpoint_every: int = 50
@@ -95,6 +100,13 @@ class PPOConfig:
         for name in ("learning_rate", "clip_eps", "max_grad_norm", "reward_scale"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{_flag(name)}: must be > 0, got {getattr(self, name)}")
+        if self.groups < 0:
+            raise ValueError(f"--groups: must be >= 0 (0: one per device), got {self.groups}")
+        for name in ("num_envs", "minibatch_size"):
+            if self.groups and getattr(self, name) % self.groups:
+                raise ValueError(
+                    f"{_flag(name)} {getattr(self, name)} must be a multiple of --groups {self.groups}"
+                )
         if not 0 < self.reset_share <= 1:
             raise ValueError(f"--reset-share: must be in (0, 1], got {self.reset_share}")
         for name in ("vf_coef", "ent_coef"):

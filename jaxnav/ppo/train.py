@@ -104,6 +104,18 @@ def shard_envs(num_envs: int, devices=None):
     return lambda tree: jax.lax.with_sharding_constraint(tree, sharding)
 
 
+def block_count(cfg: PPOConfig, devices=None) -> int:
+    """`cfg.groups`, or one block per device; each device must hold whole blocks."""
+    count = len(devices or jax.devices())
+    groups = cfg.groups or count
+    if groups % count:
+        raise ValueError(f"--groups {groups} must be a multiple of the {count} devices")
+    for name, value in (("--num-envs", cfg.num_envs), ("--minibatch-size", cfg.minibatch_size)):
+        if value % groups:
+            raise ValueError(f"{name} {value} must be a multiple of the {groups} robot blocks")
+    return groups
+
+
 def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     """Builds the jitted PPO functions for `env` (any object with vmappable reset/step).
 
@@ -113,7 +125,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     dist = make_distribution(env.action_spec)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
-    env = AutoReset(EpisodeStats(env), pool=cfg.reset_pool, in_place=cfg.reset_in_place)
+    g = block_count(cfg, devices)
+    env = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place, groups=g)
     reset = lambda keys: shard(env.reset(keys))  # noqa: E731
     step = lambda state, action: shard(env.step(state, action))  # noqa: E731
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
@@ -175,10 +188,13 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     def _update_epoch(carry, _):
         params, opt_state, batch, key = carry
         key, k_perm = jax.random.split(key)
-        perm = jax.random.permutation(k_perm, cfg.batch_size)
-        shuffled = jax.tree_util.tree_map(
-            lambda x: x[perm].reshape(cfg.num_minibatches, cfg.minibatch_size, *x.shape[1:]), batch
-        )
+        perm = jax.random.permutation(k_perm, cfg.batch_size // g)  # the same in every block
+
+        def minibatches(x):  # [G, B/G, ...] -> [B/M, M, ...], minibatch i: every block's i-th part
+            x = x[:, perm].reshape(g, cfg.num_minibatches, cfg.minibatch_size // g, *x.shape[2:])
+            return x.swapaxes(0, 1).reshape(cfg.num_minibatches, cfg.minibatch_size, *x.shape[3:])
+
+        shuffled = jax.tree_util.tree_map(minibatches, batch)
         (params, opt_state), metrics = jax.lax.scan(
             _update_minibatch, (params, opt_state), shuffled
         )
@@ -196,21 +212,22 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             cfg.gae_lambda,
             truncations=traj.truncated,
         )
-        flat = lambda x: x.reshape(cfg.batch_size, *x.shape[2:])  # noqa: E731
+
+        def blocks(x):  # [T, N, ...] -> [G, T * N/G, ...]: each block's own transitions
+            x = x.reshape(x.shape[0], g, cfg.num_envs // g, *x.shape[2:]).swapaxes(0, 1)
+            return x.reshape(g, cfg.batch_size // g, *x.shape[3:])
+
         batch = Batch(
-            flat(traj.obs),
-            flat(traj.action),
-            flat(traj.log_prob),
-            flat(traj.value),
-            flat(adv),
-            flat(targets),
+            *map(blocks, (traj.obs, traj.action, traj.log_prob, traj.value, adv, targets))
         )
         key, k_epochs = jax.random.split(key)
         (params, opt_state, _, _), losses = jax.lax.scan(
             _update_epoch, (ts.params, ts.opt_state, batch, k_epochs), None, cfg.num_epochs
         )
         stats = (
-            update_stats(ts.obs_stats, flat(traj.raw_obs)) if cfg.normalize_obs else ts.obs_stats
+            update_stats(ts.obs_stats, blocks(traj.raw_obs).reshape(cfg.batch_size, -1))
+            if cfg.normalize_obs
+            else ts.obs_stats
         )
         ts = TrainState(
             params=params,
