@@ -8,7 +8,9 @@ the auto-reset pool of the PPO default) with one thing changed, to time what eac
 `rows1`/`rows3` (a 1- or 3-row camera), `no_fidelity` (randomize.FIDELITY off), `families` (sampled
 rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step),
 `wheeled` (the wheeled validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles
-per room, `RandomizeConfig.moving_count`); the speed levers: `full` (MJX's
+per room, `RandomizeConfig.moving_count`); the `goal` task (`goal_families`: rooms of every family,
+`goal_history0`: no stacked frames, `goal_straight`: straight-line progress, no distance field);
+the speed levers: `full` (MJX's
 contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-reset's select in
 every row, `PPOConfig.reset_in_place` off), `no_contacts` and `in_place` (one lever on each).
 
@@ -50,6 +52,11 @@ VARIANTS = {
     "full": {"scene": SceneConfig(fast_contacts=True), "in_place": False},
     "no_contacts": {"in_place": False},
     "in_place": {"scene": SceneConfig(fast_contacts=True)},
+    # The goal task (its default 16-frame memory and geodesic progress), and what its pieces cost.
+    "goal": {"task": "goal"},
+    "goal_families": {"task": "goal", "randomize": dataclasses.replace(TRAINING, families="all")},
+    "goal_history0": {"task": "goal", "history": 0},
+    "goal_straight": {"task": "goal", "progress": "straight"},
 }
 
 
@@ -58,10 +65,11 @@ def make(variant: str, num_envs: int):
     kwargs = dict(VARIANTS[variant])
     ppo = PPOConfig(
         num_envs=num_envs,
+        minibatch_size=num_envs,  # unused here; any size that divides a rollout
         reset_share=kwargs.pop("reset_share", PPOConfig().reset_share),
         reset_in_place=kwargs.pop("in_place", PPOConfig().reset_in_place),
     )
-    env = jaxnav.make_env("avoid", **kwargs)
+    env = jaxnav.make_env(kwargs.pop("task", "avoid"), **kwargs)
     return AutoReset(env, pool=ppo.reset_pool, in_place=ppo.reset_in_place)
 
 

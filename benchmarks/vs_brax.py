@@ -2,8 +2,8 @@
 
     python benchmarks/vs_brax.py --num-envs 256 --steps 98304 --eval-every 4 --episodes 1 \\
         --json benchmarks/results/vs_brax_cpu.json
-    python benchmarks/vs_brax.py --preset gpu --num-envs 8192 --steps 52428800 --eval-every 20 \\
-        --trainers jaxnav,jaxnav-reset-all,brax --json benchmarks/results/vs_brax_h200.json
+    python benchmarks/vs_brax.py --preset gpu --num-envs 8192 --steps 104857600 --eval-every 40 \\
+        --trainers jaxnav,brax --json benchmarks/results/vs_brax_h200.json
 
 One process trains `avoid` with continuous actions (forward m/s, yaw rad/s) from one seed with
 jaxnav's PPO (`jaxnav.ppo.train.make_train`) and with brax's (`brax.training.agents.ppo.train`

@@ -71,7 +71,7 @@ def test_export_and_robot_side_take_the_goal_observation(goal_run, tmp_path):
     onnx_file = export(out, "onnx", tmp_path / "policy.onnx")
     robot = NumpyPolicy.from_npz(numpy_file)
     assert robot.continuous and robot.success_radius == 0.3
-    assert robot.observation_size == 13 * (1 + robot.history) and robot.history == 8
+    assert robot.observation_size == 13 * (1 + robot.history) and robot.history == 16
     rng = np.random.default_rng(0)
     sectors = rng.uniform(0.6, 8.0, (50, 8)).astype(np.float32)
     poses = rng.uniform(-2, 2, (50, 3)).astype(np.float32)

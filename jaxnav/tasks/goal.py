@@ -3,7 +3,7 @@
 Observation [(1 + history) x (num_sectors + 5)]: a frame is the depth sectors (m, as `avoid`), the
 goal in the robot's frame (distance m, sin and cos of its bearing, positive = to the left) and the
 last command the policy sent (forward / forward_speed, yaw / turn_rate); the newest frame comes
-first, then the `history` (8) before it, newest first. The stacked frames are a short memory: a
+first, then the `history` (16) before it, newest first. The stacked frames are a short memory: a
 policy that remembers where it has just been gets round walls a memoryless one stalls at
 (benchmarks/RESULTS.md). The last command rather than the measured
 velocity: with the Kobuki's velocity smoother and command latency the robot's motion lags the
@@ -71,8 +71,8 @@ class GoalConfig:
     """Added on every step (a small cost of time)."""
     max_steps: int = 500
     """Time limit in control steps (500 = 50 s at 10 Hz); ends the episode without penalty."""
-    history: int = 8
-    """Earlier observations appended to the current one, newest first (stacked frames: a short
+    history: int = 16
+    """Earlier observations appended to the current one, newest first (stacked frames: a 1.6 s
     memory); 0 = none. The observation grows to (1 + history) x (sectors + 5)."""
 
     def __post_init__(self):
