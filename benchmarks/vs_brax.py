@@ -42,7 +42,14 @@ import time
 import jax
 from brax.training.agents.ppo import networks as brax_networks
 from brax.training.agents.ppo import train as brax_ppo
-from time_to_solve import BAR, greedy_policy, judge_policy, make_evaluator, train_to_bar
+from time_to_solve import (
+    BAR,
+    greedy_policy,
+    judge_policy,
+    make_evaluator,
+    suite_judge,
+    train_to_bar,
+)
 
 from jaxnav.brax_env import BraxEnv, to_command
 from jaxnav.ppo.train import make_train
@@ -84,7 +91,8 @@ def run_jaxnav(config, episodes: int, steps: int) -> dict:
     """jaxnav's PPO over the whole budget, judged after every chunk."""
     trainer = make_train(config.ppo, make_run_env(config))
     evaluate, family = make_evaluator(greedy_policy(trainer, config), config, episodes, steps)
-    compile_s, history, _ = train_to_bar(trainer, config, evaluate, family, float("inf"), full=True)
+    judge_state = suite_judge(evaluate, family)
+    compile_s, history, _ = train_to_bar(trainer, config, judge_state, float("inf"), full=True)
     rate = history[-1]["env_steps"] / history[-1]["train_s"]
     return {"compile_s": compile_s, "env_steps_per_s": rate, "history": history}
 
@@ -99,8 +107,8 @@ def run_brax(config, episodes: int, steps: int) -> dict:
         if "evaluate" not in latest:
             greedy = make_policy  # the inference function is the same object at every call
 
-            def policy(p, obs):
-                action, _ = greedy(p, deterministic=True)(obs, jax.random.PRNGKey(0))
+            def policy(p, obs, key):
+                action, _ = greedy(p, deterministic=True)(obs, key)  # the key goes unused
                 return to_command(env.env.action_spec, action)
 
             latest["evaluate"], latest["family"] = make_evaluator(policy, config, episodes, steps)
