@@ -23,16 +23,15 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import datetime
 import gzip
 import json
-import platform
 import resource
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from report import run_info, write_json
 
 import jaxnav
 from jaxnav.core.randomize import TRAINING
@@ -257,13 +256,10 @@ def main() -> None:
     if unknown:
         parser.error(f"--variants: unknown {', '.join(unknown)}; valid: {', '.join(VARIANTS)}")
     pieces = variants if args.pieces == "all" else args.pieces.split(",")
-    device = jax.devices()[0]
     result = {
-        "device": f"{device.platform}: {device.device_kind}",
+        **run_info("device"),
         "devices": jax.device_count(),
-        "python": platform.python_version(),
-        "date": datetime.date.today().isoformat(),
-        "jax": jax.__version__,
+        **run_info("python", "date", "jax"),
         "env": args.env,
         "rows": [],
     }
@@ -274,16 +270,14 @@ def main() -> None:
             result["rows"].append(row)
             print(json.dumps(row), flush=True)
             if args.json:  # after every row, so that a run cut short keeps what it measured
-                with open(args.json, "w") as fh:
-                    json.dump(result, fh, indent=2)
+                write_json(args.json, result)
     if args.trace:
         result["trace_top"] = trace_summary(args.trace)
         print(f"\nprofile of one PPO chunk of '{variants[0]}' (top ops, total ms; {args.trace}):")
         for r in result["trace_top"]:
             print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
         if args.json:
-            with open(args.json, "w") as fh:
-                json.dump(result, fh, indent=2)
+            write_json(args.json, result)
     print_table(result)
 
 

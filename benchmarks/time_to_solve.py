@@ -16,14 +16,13 @@ the value parsed as JSON where it parses.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import platform
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from report import run_info, write_json
 
 import jaxnav
 from jaxnav.core.goals import ShortestPaths
@@ -211,11 +210,8 @@ def main() -> None:
     compile_s, history, solved = train_to_bar(
         trainer, config, judge_state, args.max_seconds, args.full
     )
-    device = jax.devices()[0]
     out = {
-        "device": f"{device.platform}: {device.device_kind}",
-        "python": platform.python_version(),
-        "date": datetime.date.today().isoformat(),
+        **run_info("device", "python", "date"),
         "preset": args.preset,
         "sets": args.set,
         "num_envs": config.ppo.num_envs,
@@ -231,8 +227,7 @@ def main() -> None:
         else f"not solved within the budget (compile {compile_s:.0f} s)"
     )
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=2)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import json
 
 import jax
 import jax.numpy as jnp
+from report import run_info, write_json
 from time_to_solve import (  # benchmarks/: the script's own folder
     greedy_policy,
     make_evaluator,
@@ -85,9 +86,8 @@ def main() -> None:
     compile_s, history, solved = train_to_bar(
         trainer, config, judge_state, args.max_seconds, every=args.eval_every
     )
-    device = jax.devices()[0]
     result = {
-        "device": f"{device.platform}: {device.device_kind}",
+        **run_info("device"),
         "preset": args.preset,
         "num_envs": cfg.num_envs,
         "actions": args.actions,
@@ -105,8 +105,7 @@ def main() -> None:
         else "not solved within the budget"
     )
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
+        write_json(args.json, result)
 
 
 if __name__ == "__main__":

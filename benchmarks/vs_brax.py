@@ -33,15 +33,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import functools
-import json
-import platform
 import time
 
 import jax
 from brax.training.agents.ppo import networks as brax_networks
 from brax.training.agents.ppo import train as brax_ppo
+from report import run_info, write_json
 from time_to_solve import (
     BAR,
     greedy_policy,
@@ -231,11 +229,8 @@ def main() -> None:
             )
         rows[name] = summary(result, time.perf_counter() - tick)
     print_table(rows)
-    device = jax.devices()[0]
     out = {
-        "device": f"{device.platform}: {device.device_kind}",
-        "python": platform.python_version(),
-        "date": datetime.date.today().isoformat(),
+        **run_info("device", "python", "date"),
         "args": {k: v for k, v in vars(args).items() if k != "json"},
         "ppo": dataclasses.asdict(config.ppo),
         "brax_kwargs": {k: v for k, v in brax_kwargs(config.ppo).items() if k != "network_factory"},
@@ -243,8 +238,7 @@ def main() -> None:
         "trainers": rows,
     }
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=2)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":
