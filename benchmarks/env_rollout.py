@@ -22,13 +22,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
-import json
-import platform
 import time
 
 import jax
 import jax.numpy as jnp
+from report import run_info, write_json
 
 import jaxnav
 from jaxnav.core.randomize import FIDELITY, TRAINING
@@ -122,13 +120,10 @@ def main() -> None:
     sizes = [int(n) for n in args.num_envs.split(",")]
     variants = args.variants.split(",")
     rows = [measure(n, args.steps, args.repeats, v) for v in variants for n in sizes]
-    device = jax.devices()[0]
     result = {
-        "device": f"{device.platform}: {device.device_kind}",
+        **run_info("device"),
         "cpus": jax.local_device_count(),
-        "python": platform.python_version(),
-        "date": datetime.date.today().isoformat(),
-        "jax": jax.__version__,
+        **run_info("python", "date", "jax"),
         "rows": rows,
     }
     print(
@@ -141,8 +136,7 @@ def main() -> None:
             f"{r['env_steps_per_s']:>12,}"
         )
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
+        write_json(args.json, result)
 
 
 if __name__ == "__main__":

@@ -23,13 +23,13 @@ os.environ["XLA_FLAGS"] = (
 )
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import platform  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from report import run_info, write_json  # noqa: E402
 
 TARGET_US = 20.0  # numpy policy budget per action
 
@@ -130,13 +130,13 @@ def main() -> None:
     if args.json:
         report = {
             "machine": platform.platform(),
-            "python": platform.python_version(),
+            **run_info("python"),
             "pinned_core": args.core,
             "checkpoint": str(args.checkpoint) if args.checkpoint else "fresh (untrained)",
             "target_us": TARGET_US,
             "results": results,
         }
-        args.json.write_text(json.dumps(report, indent=2))
+        write_json(args.json, report)
 
 
 if __name__ == "__main__":

@@ -16,12 +16,10 @@ and SPL (the shortest path ignores the movers). Prints a table and writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import time
 from pathlib import Path
 
-import jax
+from report import run_info, write_json
 
 from jaxnav.evaluate import evaluate
 from jaxnav.io.checkpoint import load_policy
@@ -83,11 +81,8 @@ def main() -> None:
     movers = {"moving_count": tuple(args.count), "moving_speed": tuple(args.speed)}
     still, moving = run(policy, args, None), run(policy, args, movers)
     print(format_table(still, moving))
-    device = jax.devices()[0]
     result = {
-        "device": f"{device.platform}: {device.device_kind}",
-        "python": platform.python_version(),
-        "jax": jax.__version__,
+        **run_info("device", "python", "jax"),
         "checkpoint": args.checkpoint,
         "task": policy.env,
         "episodes_per_room": args.episodes,
@@ -96,8 +91,7 @@ def main() -> None:
         "still": still,
         "moving": moving,
     }
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.json, result)
     print(f"results: {args.json}")
 
 

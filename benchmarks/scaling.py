@@ -17,15 +17,15 @@ after the compile; env-steps/s counts every robot of every device.
 from __future__ import annotations
 
 import argparse
-import datetime
 import faulthandler
 import json
 import os
-import platform
 import socket
 import subprocess
 import sys
 from pathlib import Path
+
+from report import run_info, write_json
 
 MODES = ("single", "multi")  # one process over k devices; k processes of one device each
 
@@ -109,9 +109,8 @@ def worker(args) -> None:
     env = jaxnav.make_env("avoid", randomize=FULL)
     (n,) = (int(x) for x in args.num_envs.split(","))
     result = training(env, n, args.updates, args.repeats, sets.get("ppo", {}))
-    device = jax.devices()[0]
-    result.update(num_envs=n, device=f"{device.platform}: {device.device_kind}")
-    result.update(device_count=jax.device_count(), jax=jax.__version__)
+    result.update(num_envs=n, **run_info("device"))
+    result.update(device_count=jax.device_count(), **run_info("jax"))
     print(json.dumps(result), flush=True)
 
 
@@ -151,15 +150,13 @@ def main() -> None:
                 rows.append(measure(args, mode, k, n))
                 print(json.dumps(rows[-1]), flush=True)
     result = {
-        "date": datetime.date.today().isoformat(),
-        "python": platform.python_version(),
-        "command": " ".join(sys.argv),
+        **run_info("date", "python", "command"),
         "ppo": args.set,
         "rows": rows,
     }
     print_table(rows)
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2))
+        write_json(args.json, result)
 
 
 def print_table(rows) -> None:

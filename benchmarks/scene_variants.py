@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 
 import jax
 import jax.numpy as jnp
+from report import run_info, write_json
 
 import jaxnav
 from jaxnav.core.randomize import RandomizeConfig
@@ -69,24 +69,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json")
     args = parser.parse_args()
-    device = jax.devices()[0]
     rows = []
     for name, changes in VARIANTS.items():
         rate = measure(changes, args.num_envs, args.steps, args.repeats)
         rows.append({"variant": name, "changes": changes, "env_steps_per_s": round(rate)})
         print(f"{name:<55} {rate:>12,.0f} env-steps/s", flush=True)
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(
-                {
-                    "device": f"{device.platform}: {device.device_kind}",
-                    "num_envs": args.num_envs,
-                    "jax": jax.__version__,
-                    "rows": rows,
-                },
-                fh,
-                indent=2,
-            )
+        head = {**run_info("device"), "num_envs": args.num_envs, **run_info("jax")}
+        write_json(args.json, {**head, "rows": rows})
 
 
 if __name__ == "__main__":

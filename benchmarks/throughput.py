@@ -2,13 +2,15 @@
 
     python benchmarks/throughput.py --num-envs 1024,4096 --steps 100 --json benchmarks/throughput.json
     python benchmarks/throughput.py --num-envs 65536 --variants default,full,no_contacts,in_place
+    python benchmarks/throughput.py --env goal --num-envs 256 --steps 10 --no-train
 
 For each size: (a) env-only random rollouts of the training distribution (sim-to-real ranges and the
 5-row camera on, auto-reset with PPO's default pool) with every obstacle slot in use,
 (b) full PPO updates of the `cpu` preset shape (rollout 32, 4 epochs, 4 minibatches), and the split of
-one control step into physics / sensor / reset sampling / policy forward, and of one PPO update
-into rollout and learning. Every timing is the best of `--repeats` runs of a jitted scan, after
-compiling it, with `block_until_ready`.
+one control step into physics / sensor / reset sampling / a whole reset / policy forward, and of
+one PPO update into rollout and learning. `--env goal` times the `goal` task instead (its reset
+also draws the goal and its distance field). Every timing is the best of `--repeats` runs of a
+jitted scan, after compiling it, with `block_until_ready`.
 
 `--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
 contact pass in every physics step, the auto-reset selecting in every row), `default` the
@@ -21,16 +23,15 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import datetime
 import gzip
 import json
-import platform
 import resource
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from report import run_info, write_json
 
 import jaxnav
 from jaxnav.core.randomize import TRAINING
@@ -85,20 +86,29 @@ def env_pieces(env, n, steps, repeats, ppo: dict, split=True):
         return s.replace(data=d)
 
     def sensor(s):
-        obs = jax.vmap(env.sense)(s.info["params"], s.data, keys)
+        obs = jax.vmap(env.sense)(s.info["params"], s.data, keys)  # [N, sectors]
         # Nudge the pose so that XLA cannot hoist the (otherwise loop-invariant) rays out of the scan.
-        return s.replace(obs=obs, data=s.data.replace(qpos=s.data.qpos + 1e-4 * obs[:, :3]))
+        qpos = s.data.qpos + 1e-4 * obs[:, :3]
+        return s.replace(obs=s.obs.at[:, : obs.shape[1]].set(obs), data=s.data.replace(qpos=qpos))
 
     def reset_sampling(s):
         steps = s.info["steps"]
         params, data = jax.vmap(env.new_episode)(jax.vmap(jax.random.fold_in)(keys, steps))
         return s.replace(data=data, info={**s.info, "params": params, "steps": steps + 1})
 
+    def reset(s):  # the task's whole reset: room, spawn, goal if any, first observation
+        steps = s.info["steps"]
+        new = jax.vmap(env.reset)(jax.vmap(jax.random.fold_in)(keys, steps))
+        return s.replace(
+            data=new.data, obs=new.obs, info={**s.info, **new.info, "steps": steps + 1}
+        )
+
     pieces = {
         "step": lambda s: wrapped.step(s, actions),
         "physics": physics,
         "sensor": sensor,
         "reset_sampling": reset_sampling,
+        "reset": reset,
     }
     out = {}
     for name, fn in pieces.items() if split else [("step", pieces["step"])]:
@@ -186,7 +196,8 @@ def peak_memory_mb() -> float:
 def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
     """One row: the env step (and with `split` its pieces) and PPO training of `variant`."""
     levers = VARIANTS[variant]
-    env = jaxnav.make_env("avoid", randomize=FULL, scene=SceneConfig(**levers.get("scene", {})))
+    scene = SceneConfig(**levers.get("scene", {}))
+    env = jaxnav.make_env(args.env, randomize=FULL, scene=scene)
     ppo = levers.get("ppo", {})
     state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     size = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
@@ -207,7 +218,7 @@ def print_table(result: dict) -> None:
     print(f"\n{result['device']} x{result['devices']}, jax {result['jax']} (env-steps/s)")
     print(
         f"{'variant':>12} {'robots':>8} {'env step':>12} {'physics':>12} {'sensor':>12} "
-        f"{'reset':>12} {'policy':>12} {'PPO train':>12} {'learn ms/upd':>12} "
+        f"{'reset draw':>12} {'reset':>12} {'policy':>12} {'PPO train':>12} {'learn ms/upd':>12} "
         f"{'compile s':>9} {'peak MB':>8} {'state B':>8}"
     )
     for r in result["rows"]:
@@ -216,7 +227,8 @@ def print_table(result: dict) -> None:
         print(
             f"{r['variant']:>12} {r['num_envs']:>8} {piece(e, 'step'):>12} "
             f"{piece(e, 'physics'):>12} {piece(e, 'sensor'):>12} "
-            f"{piece(e, 'reset_sampling'):>12} {piece(r, 'policy_forward'):>12} "
+            f"{piece(e, 'reset_sampling'):>12} {piece(e, 'reset'):>12} "
+            f"{piece(r, 'policy_forward'):>12} "
             f"{t.get('env_steps_per_s', 0):>12,} {t.get('learn_ms_per_update', 0):>12.1f} "
             f"{t.get('compile_s', 0):>9} {r['peak_memory_mb']:>8} {r['state_bytes']:>8}"
         )
@@ -224,6 +236,7 @@ def print_table(result: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="avoid", help="the task timed (avoid or goal)")
     parser.add_argument("--num-envs", default="1024", help="comma-separated batch sizes")
     parser.add_argument("--steps", type=int, default=100, help="control steps per env timing")
     parser.add_argument("--updates", type=int, default=5, help="PPO updates per training timing")
@@ -243,13 +256,11 @@ def main() -> None:
     if unknown:
         parser.error(f"--variants: unknown {', '.join(unknown)}; valid: {', '.join(VARIANTS)}")
     pieces = variants if args.pieces == "all" else args.pieces.split(",")
-    device = jax.devices()[0]
     result = {
-        "device": f"{device.platform}: {device.device_kind}",
+        **run_info("device"),
         "devices": jax.device_count(),
-        "python": platform.python_version(),
-        "date": datetime.date.today().isoformat(),
-        "jax": jax.__version__,
+        **run_info("python", "date", "jax"),
+        "env": args.env,
         "rows": [],
     }
     for n in (int(x) for x in args.num_envs.split(",")):
@@ -259,16 +270,14 @@ def main() -> None:
             result["rows"].append(row)
             print(json.dumps(row), flush=True)
             if args.json:  # after every row, so that a run cut short keeps what it measured
-                with open(args.json, "w") as fh:
-                    json.dump(result, fh, indent=2)
+                write_json(args.json, result)
     if args.trace:
         result["trace_top"] = trace_summary(args.trace)
         print(f"\nprofile of one PPO chunk of '{variants[0]}' (top ops, total ms; {args.trace}):")
         for r in result["trace_top"]:
             print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
         if args.json:
-            with open(args.json, "w") as fh:
-                json.dump(result, fh, indent=2)
+            write_json(args.json, result)
     print_table(result)
 
 

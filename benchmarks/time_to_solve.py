@@ -16,17 +16,17 @@ the value parsed as JSON where it parses.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import platform
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from report import run_info, write_json
 
 import jaxnav
-from jaxnav.evaluate import eval_randomize, load_suite, make_rollout
+from jaxnav.core.goals import ShortestPaths
+from jaxnav.evaluate import eval_randomize, load_suite, make_rollout, spl_from
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
@@ -51,37 +51,64 @@ def parse_sets(items: list[str]) -> dict[str, dict]:
     return out
 
 
-def greedy_policy(trainer, config):
-    """policy((params, obs_stats), obs [E, D]) -> actions [E, ...]: a jaxnav PPO network's greedy
-    action (argmax of the logits, or the Gaussian's mean clipped to the bounds)."""
+def greedy_policy(trainer, config, sample: bool = False):
+    """policy((params, obs_stats), obs [E, D], key) -> actions [E, ...]: a jaxnav PPO network's
+    greedy action (argmax of the logits, or the Gaussian's mean clipped to the bounds), or with
+    `sample` one drawn from its distribution."""
     dist = make_distribution(config.task.action_spec)
 
-    def policy(policy_params, obs):
+    def policy(policy_params, obs, key):
         params, stats = policy_params
         obs = normalize(stats, obs) if config.ppo.normalize_obs else obs
-        return dist.mode(trainer.network.apply(params, obs)[0])
+        out = trainer.network.apply(params, obs)[0]
+        return dist.sample(key, out) if sample else dist.mode(out)
 
     return policy
 
 
 def make_evaluator(policy, config, episodes: int, steps: int):
-    """jit((policy_params, key) -> per-episode (collided [E], speed [E] m/s)) on the suite, for any
-    `policy(policy_params, obs [E, D]) -> actions [E, ...]` of the run's task, and the family of
-    each episode [E]."""
+    """(evaluate, family [E]): `evaluate(policy_params, key)` runs `episodes` episodes of `steps`
+    control steps in every suite room in one compiled batch, for any `policy(policy_params,
+    obs [E, D], key) -> actions [E, ...]` of the run's task, and returns per-episode numpy arrays
+    [E]: `collided`, `speed` (m/s) and, for a goal task (one with a `success` metric), `success`
+    and `spl` (`jaxnav.evaluate.spl_from`, the shortest paths of `ShortestPaths` built once per
+    room, less the success radius). `family` names each episode's room family."""
     suite = load_suite("benchmark")
     layouts = [room for rooms in suite.values() for room in rooms]
     family = np.repeat([f for f, rooms in suite.items() for _ in rooms], episodes)
     kwargs = {**config.env_kwargs(), "randomize": eval_randomize("layout"), "max_steps": steps}
     env = jaxnav.make_env(config.env, layouts, **kwargs)
     period = env.control_period
+    paths = [ShortestPaths(room) for room in layouts] if "success" in env.metric_names else None
 
     @jax.jit
-    def evaluate(policy_params, key):
-        act = lambda obs, _: policy(policy_params, obs)  # noqa: E731
+    def rollout(policy_params, key):
+        act = lambda obs, k: policy(policy_params, obs, k)  # noqa: E731
         track, _ = make_rollout(env, act, episodes, steps, keep=1, pinned=True)(key)
-        return track.collided, track.distance / (jnp.maximum(track.steps, 1) * period)
+        return track, track.distance / (jnp.maximum(track.steps, 1) * period)
+
+    def evaluate(policy_params, key) -> dict:
+        track, speed = jax.device_get(rollout(policy_params, key))
+        out = {"collided": track.collided, "speed": speed}
+        if paths is not None:
+            out["success"] = track.metrics["success"] > 0
+            out["spl"] = suite_spl(paths, track, out["success"], env.task.success_radius)
+        return out
 
     return evaluate, family
+
+
+def suite_spl(paths, track, success: np.ndarray, success_radius: float) -> np.ndarray:
+    """[E] SPL per episode of a pinned rollout's `track` (rooms in order, the same number of
+    episodes in each), from each room's `ShortestPaths` less the success radius."""
+    episodes = len(success) // len(paths)
+    spl = np.zeros(len(success))
+    for r, shortest in enumerate(paths):
+        e = slice(r * episodes, (r + 1) * episodes)
+        reach = shortest(track.start[e], track.goal[e]) - success_radius
+        room = {"metrics": {"success": success[e]}, "distance": track.distance[e]}
+        spl[e] = spl_from(reach, room)
+    return spl
 
 
 def judge(collided: np.ndarray, speed: np.ndarray, family: np.ndarray) -> dict:
@@ -103,34 +130,51 @@ def judge(collided: np.ndarray, speed: np.ndarray, family: np.ndarray) -> dict:
     return out
 
 
-def train_to_bar(trainer, config, evaluate, family, max_seconds: float, full: bool):
-    """Trains in chunks of `updates_per_chunk` updates, judging the greedy policy on the suite after
-    each, until the bar is met (or, `full`, the budget is spent) or `max_seconds` of training.
-    Returns (compile s, history: one dict per evaluation, the first that met the bar or None)."""
+def train_to_bar(trainer, config, judge_state, max_seconds: float, full=False, every: int = 1):
+    """Trains in chunks of `updates_per_chunk` updates, calling `judge_state(ts, metrics, record) ->
+    (entry, met)` after every `every` chunks and after the last, until the bar is met (or, `full`,
+    the budget is spent) or `max_seconds` of training. `record` holds update, env_steps and
+    train_s; `metrics` are the last chunk's. Returns (compile s, history: the entries, the first
+    entry that met the bar or None)."""
     ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(config.seed)))
     tick = time.perf_counter()
     run_chunk = trainer.run_chunk.lower(ts).compile()  # compile apart from the timed training
     compile_s = time.perf_counter() - tick
-    train_s, history, solved = 0.0, [], None
+    train_s, history, solved, chunk = 0.0, [], None, 0
     while int(ts.update) < config.ppo.num_updates and train_s < max_seconds:
         tick = time.perf_counter()
-        ts, _ = jax.block_until_ready(run_chunk(ts))
+        ts, metrics = jax.block_until_ready(run_chunk(ts))
         train_s += time.perf_counter() - tick
+        chunk += 1
+        last = int(ts.update) >= config.ppo.num_updates or train_s >= max_seconds
+        if chunk % every and not last:
+            continue
         steps = int(ts.update) * config.ppo.batch_size
         record = {"update": int(ts.update), "env_steps": steps, "train_s": round(train_s, 2)}
-        key = jax.random.PRNGKey(int(ts.update))
-        history.append(judge_policy(evaluate, family, (ts.params, ts.obs_stats), key, record))
-        if history[-1]["solved"] and solved is None:
-            solved = history[-1]
+        entry, met = judge_state(ts, metrics, record)
+        history.append(entry)
+        if met and solved is None:
+            solved = entry
             if not full:
                 break
     return compile_s, history, solved
 
 
+def suite_judge(evaluate, family):
+    """`train_to_bar`'s judge_state: the suite's judgement of the training state's policy (`BAR`)."""
+
+    def judge_state(ts, metrics, record):
+        key = jax.random.PRNGKey(record["update"])
+        result = judge_policy(evaluate, family, (ts.params, ts.obs_stats), key, record)
+        return result, result["solved"]
+
+    return judge_state
+
+
 def judge_policy(evaluate, family, policy_params, key, record: dict) -> dict:
     """`record` (env_steps, train_s, ...) with the suite's judgement of the policy, printed."""
-    collided, speed = jax.device_get(evaluate(policy_params, key))
-    result = {**record, **judge(collided, speed, family)}
+    out = evaluate(policy_params, key)
+    result = {**record, **judge(out["collided"], out["speed"], family)}
     worst = min(result["families"].items(), key=lambda kv: kv[1]["free"])
     print(
         f"{record['env_steps']:>12,} steps {record['train_s']:7.1f} s  free {result['free']:.3f}  "
@@ -162,14 +206,12 @@ def main() -> None:
     evaluate, family = make_evaluator(
         greedy_policy(trainer, config), config, args.episodes, args.steps
     )
+    judge_state = suite_judge(evaluate, family)
     compile_s, history, solved = train_to_bar(
-        trainer, config, evaluate, family, args.max_seconds, args.full
+        trainer, config, judge_state, args.max_seconds, args.full
     )
-    device = jax.devices()[0]
     out = {
-        "device": f"{device.platform}: {device.device_kind}",
-        "python": platform.python_version(),
-        "date": datetime.date.today().isoformat(),
+        **run_info("device", "python", "date"),
         "preset": args.preset,
         "sets": args.set,
         "num_envs": config.ppo.num_envs,
@@ -185,8 +227,7 @@ def main() -> None:
         else f"not solved within the budget (compile {compile_s:.0f} s)"
     )
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=2)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":

@@ -6,9 +6,9 @@
 The bar: over `--episodes` episodes in each of the 32 rooms of `scenes/benchmark/` (the layout's
 spawn, a reachable goal drawn per episode at least `goal_min_distance` away, `--steps` control
 steps), a success rate of at least 90 % and an SPL of at least 0.7 (issue 12). Every
-`--eval-every` chunks the greedy policy is evaluated in one compiled batch; SPL is evaluate's
-(`jaxnav.evaluate.spl_values`: the grid's shortest path less the success radius), its shortest
-paths from `jaxnav.core.goals.ShortestPaths` built once per room.
+`--eval-every` chunks the greedy policy is evaluated in one compiled batch by `time_to_solve.py`'s
+evaluator; SPL is evaluate's (`jaxnav.evaluate.spl_from`: the grid's shortest path less the
+success radius), its shortest paths from `jaxnav.core.goals.ShortestPaths` built once per room.
 Training time excludes the evaluations and the compile, which is reported on its own. `--set
 GROUP.FIELD=VALUE` overrides any run-config field, as in `time_to_solve.py`.
 """
@@ -17,59 +17,42 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
-from time_to_solve import parse_sets  # benchmarks/: the script's own folder
+from report import run_info, write_json
+from time_to_solve import (  # benchmarks/: the script's own folder
+    greedy_policy,
+    make_evaluator,
+    parse_sets,
+    train_to_bar,
+)
 
-import jaxnav
-from jaxnav.core.goals import ShortestPaths
-from jaxnav.evaluate import eval_randomize, load_suite, make_rollout, spl_from
-from jaxnav.ppo.distributions import make_distribution
-from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
 from jaxnav.train import build_config, make_run_env
 
 SUCCESS_BAR, SPL_BAR = 0.9, 0.7
 
 
-def make_evaluator(trainer, config, episodes: int, steps: int, sample: bool = False):
-    """(params, obs_stats, key) -> (success rate, SPL, {family: success rate}) on the benchmark
-    rooms, the policy's most likely action (`sample`: drawn from the policy) each step."""
-    suite = load_suite("benchmark")
-    rooms = [room for group in suite.values() for room in group]
-    family = np.repeat([f for f, group in suite.items() for _ in group], episodes)
-    kwargs = {**config.env_kwargs(), "randomize": eval_randomize("layout"), "max_steps": steps}
-    env = jaxnav.make_env("goal", rooms, **kwargs)
-    cfg = config.ppo
-    dist = make_distribution(env.action_spec)
-    paths = [ShortestPaths(room) for room in rooms]
+def goal_judge(evaluate, family):
+    """`train_to_bar`'s judge_state: success rate, SPL and per-family success on the suite,
+    printed as one JSON line, and whether they meet the bar."""
 
-    @jax.jit
-    def rollout(params, stats, key):
-        def act(obs, key):
-            obs = normalize(stats, obs) if cfg.normalize_obs else obs
-            out = trainer.network.apply(params, obs)[0]
-            return dist.sample(key, out) if sample else dist.mode(out)
+    def judge_state(ts, metrics, record):
+        out = evaluate((ts.params, ts.obs_stats), jax.random.PRNGKey(record["update"]))
+        success = out["success"]  # [E] bool
+        per = {f: round(float(success[family == f].mean()), 3) for f in dict.fromkeys(family)}
+        entry = {
+            **record,
+            "train_success": float(jnp.nanmean(metrics["success"])),
+            "success_rate": float(success.mean()),
+            "spl": float(out["spl"].mean()),
+            "families": per,
+        }
+        print(json.dumps(entry), flush=True)
+        return entry, entry["success_rate"] >= SUCCESS_BAR and entry["spl"] >= SPL_BAR
 
-        track, _ = make_rollout(env, act, episodes, steps, keep=1, pinned=True)(key)
-        return track
-
-    def evaluate(params, stats, key):
-        track = jax.device_get(rollout(params, stats, key))
-        success = np.asarray(track.metrics["success"]) > 0
-        spl = np.zeros(len(success))
-        for r, shortest in enumerate(paths):
-            e = slice(r * episodes, (r + 1) * episodes)
-            reach = shortest(track.start[e], track.goal[e]) - env.task.success_radius
-            room = {"metrics": {"success": success[e]}, "distance": track.distance[e]}
-            spl[e] = spl_from(reach, room)
-        per = {f: round(float(success[family == f].mean()), 3) for f in suite}
-        return float(success.mean()), float(spl.mean()), per
-
-    return evaluate
+    return judge_state
 
 
 def main() -> None:
@@ -98,41 +81,13 @@ def main() -> None:
     config = build_config(args.preset, args.seed, None, sets, "goal")
     cfg = config.ppo
     trainer = make_train(cfg, make_run_env(config))
-    evaluate = make_evaluator(trainer, config, args.episodes, args.steps, args.sample)
-    ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(args.seed)))
-    tick = time.perf_counter()
-    run_chunk = trainer.run_chunk.lower(ts).compile()  # compile apart from the timed training
-    compile_s = time.perf_counter() - tick
-    train_s, history, solved, chunk = 0.0, [], None, 0
-    while True:
-        tick = time.perf_counter()
-        ts, metrics = jax.block_until_ready(run_chunk(ts))
-        train_s += time.perf_counter() - tick
-        chunk += 1
-        done = int(ts.update) >= cfg.num_updates or train_s > args.max_seconds
-        if chunk % args.eval_every and not done:
-            continue
-        success, spl, per = evaluate(ts.params, ts.obs_stats, jax.random.PRNGKey(int(ts.update)))
-        history.append(
-            {
-                "update": int(ts.update),
-                "env_steps": int(ts.update) * cfg.batch_size,
-                "train_s": round(train_s, 2),
-                "train_success": float(jnp.nanmean(metrics["success"])),
-                "success_rate": success,
-                "spl": spl,
-                "families": per,
-            }
-        )
-        print(json.dumps(history[-1]), flush=True)
-        if success >= SUCCESS_BAR and spl >= SPL_BAR:
-            solved = history[-1]
-            break
-        if done:
-            break
-    device = jax.devices()[0]
+    policy = greedy_policy(trainer, config, args.sample)
+    judge_state = goal_judge(*make_evaluator(policy, config, args.episodes, args.steps))
+    compile_s, history, solved = train_to_bar(
+        trainer, config, judge_state, args.max_seconds, every=args.eval_every
+    )
     result = {
-        "device": f"{device.platform}: {device.device_kind}",
+        **run_info("device"),
         "preset": args.preset,
         "num_envs": cfg.num_envs,
         "actions": args.actions,
@@ -150,8 +105,7 @@ def main() -> None:
         else "not solved within the budget"
     )
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
+        write_json(args.json, result)
 
 
 if __name__ == "__main__":

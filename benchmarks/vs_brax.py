@@ -33,16 +33,21 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import functools
-import json
-import platform
 import time
 
 import jax
 from brax.training.agents.ppo import networks as brax_networks
 from brax.training.agents.ppo import train as brax_ppo
-from time_to_solve import BAR, greedy_policy, judge_policy, make_evaluator, train_to_bar
+from report import run_info, write_json
+from time_to_solve import (
+    BAR,
+    greedy_policy,
+    judge_policy,
+    make_evaluator,
+    suite_judge,
+    train_to_bar,
+)
 
 from jaxnav.brax_env import BraxEnv, to_command
 from jaxnav.ppo.train import make_train
@@ -84,7 +89,8 @@ def run_jaxnav(config, episodes: int, steps: int) -> dict:
     """jaxnav's PPO over the whole budget, judged after every chunk."""
     trainer = make_train(config.ppo, make_run_env(config))
     evaluate, family = make_evaluator(greedy_policy(trainer, config), config, episodes, steps)
-    compile_s, history, _ = train_to_bar(trainer, config, evaluate, family, float("inf"), full=True)
+    judge_state = suite_judge(evaluate, family)
+    compile_s, history, _ = train_to_bar(trainer, config, judge_state, float("inf"), full=True)
     rate = history[-1]["env_steps"] / history[-1]["train_s"]
     return {"compile_s": compile_s, "env_steps_per_s": rate, "history": history}
 
@@ -99,8 +105,8 @@ def run_brax(config, episodes: int, steps: int) -> dict:
         if "evaluate" not in latest:
             greedy = make_policy  # the inference function is the same object at every call
 
-            def policy(p, obs):
-                action, _ = greedy(p, deterministic=True)(obs, jax.random.PRNGKey(0))
+            def policy(p, obs, key):
+                action, _ = greedy(p, deterministic=True)(obs, key)  # the key goes unused
                 return to_command(env.env.action_spec, action)
 
             latest["evaluate"], latest["family"] = make_evaluator(policy, config, episodes, steps)
@@ -223,11 +229,8 @@ def main() -> None:
             )
         rows[name] = summary(result, time.perf_counter() - tick)
     print_table(rows)
-    device = jax.devices()[0]
     out = {
-        "device": f"{device.platform}: {device.device_kind}",
-        "python": platform.python_version(),
-        "date": datetime.date.today().isoformat(),
+        **run_info("device", "python", "date"),
         "args": {k: v for k, v in vars(args).items() if k != "json"},
         "ppo": dataclasses.asdict(config.ppo),
         "brax_kwargs": {k: v for k, v in brax_kwargs(config.ppo).items() if k != "network_factory"},
@@ -235,8 +238,7 @@ def main() -> None:
         "trainers": rows,
     }
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=2)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":

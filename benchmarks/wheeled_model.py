@@ -15,10 +15,10 @@ floor of traction 1) in C MuJoCo (float64), a few seconds of CPU:
 from __future__ import annotations
 
 import argparse
-import json
 
 import mujoco
 import numpy as np
+from report import write_json
 
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.core.scene import Scene, SceneConfig
@@ -125,8 +125,7 @@ def main() -> None:
         print(f"{r['timestep']:>10} {r['iterations']:>10}  {errors:>36}   {r['max_pitch_rad']:.3f}")
     if args.json:
         result = {"tracking": tracked, "reference": REFERENCE, "convergence": converged}
-        with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
+        write_json(args.json, result)
 
 
 if __name__ == "__main__":

@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
-import platform
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from report import run_info, write_json
 
 from jaxnav.evaluate import eval_randomize, evaluate, first_state, load_suite, make_eval_env
 from jaxnav.policy import BASELINES
@@ -180,11 +179,8 @@ def main() -> None:
         policies = [BASELINES["forward"](), BASELINES["random"]()]
     rows = [compare(policy, args) for policy in policies]
     print(format_table(rows))
-    device = jax.devices()[0]
     result = {
-        "device": f"{device.platform}: {device.device_kind}",
-        "python": platform.python_version(),
-        "jax": jax.__version__,
+        **run_info("device", "python", "jax"),
         "checkpoint": args.checkpoint,
         "episodes_per_room": args.episodes,
         "steps": args.steps,
@@ -192,8 +188,7 @@ def main() -> None:
         "stochastic_env": not args.deterministic_env,
         "rows": rows,
     }
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.json, result)
     print(f"results: {args.json}")
 
 

@@ -3,6 +3,7 @@ actions within the limits, goals in layouts, and no recompilation when goals cha
 
 import dataclasses
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,9 +11,10 @@ import pytest
 from conftest import EXACT, start_in, traced_once
 
 import jaxnav
-from jaxnav.core import families
+from jaxnav.core import families, goals
+from jaxnav.core.geometry import signed_distance
 from jaxnav.core.goals import GRID_CELL, grid_steps, shortest_paths
-from jaxnav.core.randomize import TRAINING
+from jaxnav.core.randomize import TRAINING, make_bank
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.evaluate import spl_values
 from jaxnav.io.layouts import Box, LayoutError, RoomLayout, parse_layouts
@@ -329,3 +331,48 @@ def test_geodesic_progress_pays_for_a_detour():
         jaxnav.core.goals.geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2])
     )
     np.testing.assert_allclose(total, start_geo - geo, atol=1e-4)
+
+
+# A 5 x 5 m room whose centre is walled in (a ring of boxes 1.2 m across): the flood from a spawn
+# there finds no goal 1.5 m away, so the L-shaped path is cleared through the ring.
+RING = RoomLayout(
+    name="ring",
+    size=(5.0, 5.0),
+    obstacles=tuple(
+        Box(pos=pos, size=size)
+        for pos, size in [((0, 0.6), (1.4, 0.2)), ((0, -0.6), (1.4, 0.2))]
+        + [((0.6, 0), (0.2, 1.4)), ((-0.6, 0), (0.2, 1.4))]
+    ),
+)
+
+
+def test_goal_draw_and_field_share_the_grid_distances(monkeypatch):
+    """The goal draw and the goal's field share one grid of shape distances (`goals.goal_grid`):
+    the goals, rooms and fields are bit for bit those of recomputing the signed distance for each,
+    in a layout, a sampled room flooded whole and one whose path is cleared."""
+    rooms, spawns = [OPEN, RING, POCKET], [(-1.5, -1.5), (0.0, 0.0), (-2.0, 1.0)]
+    bank = make_bank(rooms, 8, 4)
+    cells = goals.make_goal_cells(rooms)
+    params = bank.rooms.replace(
+        spawn=jnp.array([(*xy, 0.0) for xy in spawns]),
+        layout_id=jnp.array([-1, -1, 2]),  # open and ring as sampled rooms, pocket a layout
+    )
+
+    def draw(key, params):
+        grid = goals.goal_grid(params, goals.GRID_HALF)
+        room, goal = goals.sample_goal(key, params, grid, cells, R, 0.3, 1.5, 0.15)
+        return room, goal, goals.goal_field(room, grid, goal, R)
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    shared = jax.jit(jax.vmap(draw))(keys, params)
+
+    def recomputed(params, grid, radius):  # each call its own signed distance, as before
+        gap = signed_distance(params, grid[0]) - radius
+        return gap, gap >= 0.5 * GRID_CELL
+
+    monkeypatch.setattr(goals, "_free", recomputed)
+    chex.assert_trees_all_equal(shared, jax.jit(jax.vmap(draw))(keys, params))
+    room, _, field = shared
+    cleared = np.asarray(room.box_active).sum(-1) < np.asarray(params.box_active).sum(-1)
+    np.testing.assert_array_equal(cleared, [False, True, False])
+    assert np.isfinite(np.asarray(field)).sum((1, 2)).min() > 100  # the goal is reachable

@@ -51,17 +51,27 @@ def signed_distance(room, p, z=None):
     span [box_bottom, box_height] and cylinders are upright segments of [cyl_bottom, cyl_height]
     widened by their radius (the capsules the scene collides).
     """
+    return nearest(room, *shape_distances(room, p, z))
+
+
+def shape_distances(room, p, z=None):
+    """(walls [...], boxes [..., Sb], cylinders [..., Sc]): the distances `signed_distance` takes
+    the least of (the nearest wall, and every obstacle slot, active or not)."""
     walls = wall_distance(p, room.room_half).min(-1)
     box = box_distance(p, room.box_pos, room.box_yaw, room.box_half)  # [..., Sb]
     cyl = jnp.linalg.norm(jnp.asarray(p)[..., None, :] - room.cyl_pos, axis=-1)  # [..., Sc]
     if z is None:
-        cyl = cyl - room.cyl_radius
-    else:
-        dz = _vertical(z, room.box_bottom, room.box_height)
-        corner = (box > 0) & (dz > 0)  # beyond an edge: distance to it; else the nearer face
-        box = jnp.where(corner, jnp.hypot(box, dz), jnp.maximum(box, dz))
-        dz = jnp.maximum(_vertical(z, room.cyl_bottom, room.cyl_height), 0.0)
-        cyl = jnp.hypot(cyl, dz) - room.cyl_radius
+        return walls, box, cyl - room.cyl_radius
+    dz = _vertical(z, room.box_bottom, room.box_height)
+    corner = (box > 0) & (dz > 0)  # beyond an edge: distance to it; else the nearer face
+    box = jnp.where(corner, jnp.hypot(box, dz), jnp.maximum(box, dz))
+    dz = jnp.maximum(_vertical(z, room.cyl_bottom, room.cyl_height), 0.0)
+    return walls, box, jnp.hypot(cyl, dz) - room.cyl_radius
+
+
+def nearest(room, walls, box, cyl):
+    """[...] the least of `shape_distances` over the walls and the obstacles active in `room`: a
+    room that differs only in which obstacles are active (`families.clear_around`) reuses them."""
     box = jnp.where(room.box_active, box, jnp.inf).min(-1, initial=jnp.inf)
     cyl = jnp.where(room.cyl_active, cyl, jnp.inf).min(-1, initial=jnp.inf)
     return jnp.minimum(walls, jnp.minimum(box, cyl))

@@ -34,7 +34,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from jaxnav.core import families
-from jaxnav.core.geometry import signed_distance
+from jaxnav.core.geometry import nearest, shape_distances, signed_distance
 from jaxnav.core.randomize import SceneParams
 from jaxnav.io import layouts as lay
 
@@ -194,17 +194,28 @@ def _grid(half_extent: float):
     return jnp.asarray(np.stack(np.meshgrid(axis, axis), -1), jnp.float32)
 
 
-def _free(params: SceneParams, radius: float, half_extent: float):
-    """([n, n, 2] cell centres, [n, n] clearance beyond the robot m, [n, n] bool free): a cell is
-    free where the robot clears everything by half a cell (module doc)."""
+def goal_grid(params: SceneParams, half_extent: float):
+    """The traced grid of a sampled room: ([n, n, 2] centres of its cells, covering
+    +-half_extent m; (walls [n, n], boxes [n, n, Sb], cylinders [n, n, Sc]) m from them to the
+    nearest wall and to every obstacle slot of `params`, `geometry.shape_distances`). Computed
+    once per reset: the goal draw and the goal's field share it, as their rooms differ at most in
+    which obstacles are active (the cleared L-shaped path)."""
     centres = _grid(half_extent)
-    gap = signed_distance(params, centres) - radius
-    return centres, gap, gap >= 0.5 * GRID_CELL
+    return centres, shape_distances(params, centres)
 
 
-def _flood_goal(key, params: SceneParams, radius, clearance, min_distance, half_extent):
+def _free(params: SceneParams, grid, radius: float):
+    """([n, n] clearance beyond the robot m, [n, n] bool free) of the room `params` on `grid`
+    (`goal_grid`): a cell is free where the robot clears everything by half a cell (module
+    doc)."""
+    gap = nearest(params, *grid[1]) - radius
+    return gap, gap >= 0.5 * GRID_CELL
+
+
+def _flood_goal(key, params: SceneParams, grid, radius, clearance, min_distance):
     """([2] goal, [] bool found) in a sampled room: a uniform reachable cell (module doc)."""
-    centres, gap, free = _free(params, radius, half_extent)
+    centres = grid[0]
+    gap, free = _free(params, grid, radius)
     straight = jnp.linalg.norm(centres - params.spawn[:2], axis=-1)  # [n, n]
     steps = grid_steps(free, straight == straight.min())  # seeded at the spawn's cell
     ok = jnp.isfinite(steps) & (straight >= min_distance) & (gap >= clearance)
@@ -213,11 +224,12 @@ def _flood_goal(key, params: SceneParams, radius, clearance, min_distance, half_
     return centres.reshape(-1, 2)[pick], ok.any()
 
 
-def goal_field(params: SceneParams, goal: jax.Array, radius: float, half_extent: float):
+def goal_field(params: SceneParams, grid, goal: jax.Array, radius: float):
     """[n, n] float32 grid steps from every cell of the traced grid to the goal's cell (inf
-    where the robot cannot reach it): the geodesic distance `geodesic` reads."""
-    centres, _, free = _free(params, radius, half_extent)
-    straight = jnp.linalg.norm(centres - goal, axis=-1)
+    where the robot cannot reach it): the geodesic distance `geodesic` reads. `grid` is the
+    `goal_grid` the goal was drawn on; `params` the episode's room (`sample_goal`'s)."""
+    _, free = _free(params, grid, radius)
+    straight = jnp.linalg.norm(grid[0] - goal, axis=-1)
     return grid_steps(free, straight == straight.min())
 
 
@@ -264,24 +276,24 @@ def _room_goal(key, params: SceneParams, radius, clearance, min_distance, path_c
 def sample_goal(
     key: jax.Array,
     params: SceneParams,
+    grid,
     goals: GoalCells,
     radius: float,
     clearance: float,
     min_distance: float,
     path_clearance: float,
-    half_extent: float = GRID_HALF,
 ) -> tuple[SceneParams, jax.Array]:
     """(the episode's params, [2] goal m) for the room `params` drew (`randomize.sample`).
 
-    Layout rooms (layout_id >= 0) take their goal data from `goals`; sampled rooms flood a traced
-    grid covering +-`half_extent` m (static: at least half the largest sampled room), else get a
-    cleared path (module doc). `clearance` is the spawn clearance of a moved spawn and the margin
+    Layout rooms (layout_id >= 0) take their goal data from `goals`; sampled rooms flood the
+    traced `grid` (`goal_grid(params, half_extent)`, half_extent static: at least half the largest
+    sampled room), else get a cleared path (module doc). `clearance` is the spawn clearance of a moved spawn and the margin
     of a goal from everything, m; goals are at least `min_distance` m from the spawn where the
     room allows (else as far as TRIES draws found).
     """
     k_layout, k_flood, k_room = jax.random.split(key, 3)
     in_layout = _layout_goal(k_layout, params, goals, radius, clearance, min_distance)
-    flood, found = _flood_goal(k_flood, params, radius, clearance, min_distance, half_extent)
+    flood, found = _flood_goal(k_flood, params, grid, radius, clearance, min_distance)
     cleared = _room_goal(k_room, params, radius, clearance, min_distance, path_clearance)
     in_room = jax.tree_util.tree_map(lambda a, b: jnp.where(found, a, b), (params, flood), cleared)
     sampled = params.layout_id < 0
