@@ -9,7 +9,8 @@ the auto-reset pool of the PPO default) with one thing changed, to time what eac
 rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step),
 `wheeled` (the wheeled validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles
 per room, `RandomizeConfig.moving_count`); the `goal` task (`goal_families`: rooms of every family,
-`goal_history0`: no stacked frames, `goal_straight`: straight-line progress, no distance field);
+`goal_history0`: no stacked frames, `goal_straight`: straight-line progress, no distance field,
+`goal_pool64`: new episodes drawn for 1/64 of the robots per step instead of 1/16);
 the speed levers: `full` (MJX's
 contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-reset's select in
 every row, `PPOConfig.reset_in_place` off), `no_contacts` and `in_place` (one lever on each).
@@ -55,6 +56,7 @@ VARIANTS = {
     "goal_families": {"task": "goal", "randomize": dataclasses.replace(TRAINING, families="all")},
     "goal_history0": {"task": "goal", "history": 0},
     "goal_straight": {"task": "goal", "progress": "straight"},
+    "goal_pool64": {"task": "goal", "reset_share": 1 / 64},
 }
 
 
