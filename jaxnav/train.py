@@ -45,7 +45,7 @@ from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overr
 from jaxnav.ppo.config import PRESETS, preset
 from jaxnav.ppo.train import make_train
 from jaxnav.tasks.base import ACTIONS
-from jaxnav.tasks.registry import TASKS, make_env
+from jaxnav.tasks.registry import TASKS, make_env, task_entry
 
 
 def build_config(
@@ -54,7 +54,8 @@ def build_config(
     """A RunConfig of task `env` from a preset, layout files and {group: {field: value}}
     overrides (the randomisation's start from the training distribution)."""
     overrides = overrides or {}
-    groups = {"ppo": preset(preset_name, **overrides.get("ppo", {}))}
+    ppo = {**task_entry(env).ppo_defaults, **overrides.get("ppo", {})}
+    groups = {"ppo": preset(preset_name, **ppo)}
     defaults = {"randomize": RunConfig.randomize, "robot": RunConfig.robot}
     for attr, cls, _ in GROUPS[1:]:
         cls = group_class(attr, cls, env)

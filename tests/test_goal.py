@@ -376,3 +376,15 @@ def test_goal_draw_and_field_share_the_grid_distances(monkeypatch):
     cleared = np.asarray(room.box_active).sum(-1) < np.asarray(params.box_active).sum(-1)
     np.testing.assert_array_equal(cleared, [False, True, False])
     assert np.isfinite(np.asarray(field)).sum((1, 2)).min() > 100  # the goal is reachable
+
+
+def test_goal_runs_draw_fewer_new_episodes_unless_told():
+    """The goal task's own PPO default (1/64 of the robots draw a new episode per step) goes over
+    every preset and under the user's setting; other tasks keep the preset's."""
+    from jaxnav.train import build_config
+
+    for name in ("cpu", "gpu", "paper"):
+        assert build_config(name, env="goal").ppo.reset_share == 1 / 64
+        assert build_config(name, env="avoid").ppo.reset_share == 1 / 16
+    told = build_config("gpu", env="goal", overrides={"ppo": {"reset_share": 0.25}})
+    assert told.ppo.reset_share == 0.25

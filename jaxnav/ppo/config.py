@@ -55,7 +55,8 @@ class PPOConfig:
     """Standardise observations with running mean/variance."""
     reset_share: float = 0.0625
     """New episodes drawn per step for the robots whose episode ended, as a share of num_envs
-    (at least one; 1: one per robot). See `jaxnav.wrappers.AutoReset`."""
+    (at least one; 1: one per robot; the goal task's own default is 1/64, for its longer
+    episodes). See `jaxnav.wrappers.AutoReset`."""
     reset_in_place: bool = True
     """Write the new episodes into the rows of the robots that finished only, instead of selecting
     between old and new state for every robot: the same result bit for bit (tested; see
