@@ -13,6 +13,9 @@ def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+MIN_RESET_POOL = 8  # the fewest new episodes drawn per step (`PPOConfig.reset_pool`)
+
+
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
     """Hyper-parameters of one training run. Derived sizes are properties."""
@@ -55,8 +58,8 @@ class PPOConfig:
     """Standardise observations with running mean/variance."""
     reset_share: float = 0.0625
     """New episodes drawn per step for the robots whose episode ended, as a share of num_envs
-    (at least one; 1: one per robot; the goal task's own default is 1/64, for its longer
-    episodes). See `jaxnav.wrappers.AutoReset`."""
+    (at least 8, or every robot; 1: one per robot; the goal task's own default is 1/64, for its
+    longer episodes). See `jaxnav.wrappers.AutoReset`."""
     reset_in_place: bool = True
     """Write the new episodes into the rows of the robots that finished only, instead of selecting
     between old and new state for every robot: the same result bit for bit (tested; see
@@ -134,8 +137,10 @@ class PPOConfig:
 
     @property
     def reset_pool(self) -> int:
-        """New episodes drawn per step (`reset_share` of the robots, at least one)."""
-        return max(1, round(self.reset_share * self.num_envs))
+        """New episodes drawn per step: `reset_share` of the robots, and at least 8 (or all of
+        them): a small batch would otherwise restart most robots that finish together in the
+        same episode."""
+        return max(min(MIN_RESET_POOL, self.num_envs), round(self.reset_share * self.num_envs))
 
     @property
     def num_updates(self) -> int:
