@@ -2,7 +2,6 @@
 the single-process run over two devices, bit for bit, and it resumes across processes."""
 
 import argparse
-import os
 import re
 import shutil
 import socket
@@ -11,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import cpu_env
 
 from jaxnav import distributed
 from jaxnav.io import checkpoint
@@ -22,16 +22,6 @@ FLAGS = [
     *("--num-epochs", "2", "--updates-per-chunk", "2", "--checkpoint-every", "100"),
     *("--total-steps", str(16 * 16 * 6), "--task.max-steps", "20", "--seed", "3", "--no-progress"),
 ]
-# Quicker compiles (the test is compile-bound); the same for both sides of the comparison.
-FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-
-
-def cpu_env(devices: int) -> dict:
-    return dict(
-        os.environ,
-        JAX_PLATFORMS="cpu",
-        XLA_FLAGS=f"--xla_force_host_platform_device_count={devices} {FAST_XLA}",
-    )
 
 
 def free_port() -> int:

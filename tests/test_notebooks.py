@@ -9,11 +9,11 @@ repository.
 """
 
 import asyncio
-import os
 from pathlib import Path
 
 import nbformat
 import pytest
+from conftest import cpu_env
 from ipykernel.kernelspec import write_kernel_spec
 from jupyter_client.kernelspec import KernelSpecManager
 from jupyter_client.manager import AsyncKernelManager
@@ -57,7 +57,8 @@ async def execute(name: str, root: Path, env: dict):
 def executed(tmp_path_factory) -> dict:
     """Both notebooks, executed concurrently: {name: (notebook with outputs, error or None)}."""
     root = tmp_path_factory.mktemp("notebooks")
-    env = {**os.environ, "JAXNAV_NOTEBOOK_SMALL": "1", "JAX_PLATFORMS": "cpu"}
+    # Tiny budgets make the kernels compile-bound: quicker XLA compiles (conftest.cpu_env).
+    env = {**cpu_env(1), "JAXNAV_NOTEBOOK_SMALL": "1"}
     env.pop("MPLBACKEND", None)  # the kernel then draws inline, as in Jupyter
 
     async def run_all():

@@ -1,12 +1,12 @@
 """The robots are sharded over every local device; results match the single-device run."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cpu_env
 
 from jaxnav.ppo.train import shard_envs
 
@@ -14,14 +14,9 @@ SCRIPT = Path(__file__).parent / "scripts" / "tiny_train.py"
 
 
 def train_on(devices: int, out: Path) -> dict:
-    env = dict(
-        os.environ,
-        XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-        JAX_PLATFORMS="cpu",
-    )
     proc = subprocess.run(
         [sys.executable, str(SCRIPT), str(out)],
-        env=env,
+        env=cpu_env(devices),  # compile-bound: quicker compiles, the same on both sides
         capture_output=True,
         text=True,
         timeout=600,
