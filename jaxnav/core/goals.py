@@ -287,9 +287,9 @@ def sample_goal(
 
     Layout rooms (layout_id >= 0) take their goal data from `goals`; sampled rooms flood the
     traced `grid` (`goal_grid(params, half_extent)`, half_extent static: at least half the largest
-    sampled room), else get a cleared path (module doc). `clearance` is the spawn clearance of a moved spawn and the margin
-    of a goal from everything, m; goals are at least `min_distance` m from the spawn where the
-    room allows (else as far as TRIES draws found).
+    sampled room), else get a cleared path (module doc). `clearance` is the spawn clearance of a
+    moved spawn and the margin of a goal from everything, m; goals are at least `min_distance` m
+    from the spawn where the room allows (else as far as TRIES draws found).
     """
     k_layout, k_flood, k_room = jax.random.split(key, 3)
     in_layout = _layout_goal(k_layout, params, goals, radius, clearance, min_distance)
