@@ -10,19 +10,15 @@ import tempfile
 
 
 def _session_compilation_cache() -> None:
-    """One persistent XLA compilation cache for the session, removed at its end, that every
-    program joins whatever its compile time or size; the subprocesses (CLI runs, notebook kernels)
-    inherit it through the environment. Tests build the same env or trainer again and again, and
-    the cache hands back the executable compiled for the same HLO. It caches compiled code only:
-    every test still traces and runs its program. Set before jax is imported, which reads these
-    variables then (the same names on jax 0.10 and 0.11); a cache folder given by the caller is
-    kept."""
+    """One persistent XLA compilation cache for the session, removed at its end; the subprocesses
+    (CLI runs, notebook kernels) inherit it through the environment, so the tiny runs of several
+    tests that compile the same programs compile them once. It caches compiled code only: every
+    test still traces and runs its program. Set before jax is imported, which reads the variable
+    then (the same name on jax 0.10 and 0.11); a cache folder given by the caller is kept."""
     if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
         folder = tempfile.mkdtemp(prefix="jaxnav-xla-cache-")
         atexit.register(shutil.rmtree, folder, ignore_errors=True)
         os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 
 
 _session_compilation_cache()
