@@ -93,30 +93,29 @@ class AutoReset(Wrapper):
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
         info = {k: v for k, v in state.info.items() if k != RESET_KEY}
         nxt = jax.vmap(self.env.step)(state.replace(info=info), action)
-        g = self.groups
-        n = action.shape[0] // g  # envs per group
-        pool = max(1, min(self.pool or n * g, n * g) // g)  # draws per group
-        block = (
-            lambda tree: jax.tree_util.tree_map(  # noqa: E731
-                lambda x: x.reshape(g, n, *x.shape[1:]), tree
-            )
-        )  # [N, ...] -> [G, N/G, ...]
-        fresh = jax.vmap(jax.vmap(self.env.reset))(block(k_reset)[:, :pool])  # [G, P/G]
+        g, total = self.groups, action.shape[0]
+        pool = max(1, min(self.pool or total, total) // g)  # draws per group
+        fresh = jax.vmap(jax.vmap(self.env.reset))(_blocks(k_reset, g)[:, :pool])  # [G, P/G]
         # What a new episode replaces: physics, observation and info, except the finished
         # episode's statistics, which carry over.
         part = lambda s: (s.data, s.obs, {k: v for k, v in s.info.items() if k != EPISODE})  # noqa: E731
-        done, old = block(nxt.done), block(part(nxt))
-        if self.in_place and pool < n:
+        done, old = _blocks(nxt.done, g), _blocks(part(nxt), g)
+        if self.in_place and pool < total // g:
             overflow = (done.sum(axis=1) > pool).any()
             merged = jax.lax.cond(
                 overflow, jax.vmap(_select), jax.vmap(_write), done, part(fresh), old
             )
         else:
             merged = jax.vmap(_select)(done, part(fresh), old)
-        data, obs, info = jax.tree_util.tree_map(lambda x: x.reshape(g * n, *x.shape[2:]), merged)
+        data, obs, info = jax.tree_util.tree_map(lambda x: x.reshape(total, *x.shape[2:]), merged)
         if EPISODE in nxt.info:
             info = {**info, EPISODE: nxt.info[EPISODE]}
         return nxt.replace(data=data, obs=obs, info={**info, RESET_KEY: keys})
+
+
+def _blocks(tree, g: int):
+    """Every leaf [N, ...] of `tree` as [G, N/G, ...]: G blocks of consecutive envs."""
+    return jax.tree_util.tree_map(lambda x: x.reshape(g, x.shape[0] // g, *x.shape[1:]), tree)
 
 
 def _select(done: jax.Array, fresh, old):

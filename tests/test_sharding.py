@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from conftest import cpu_env
 
-from jaxnav.ppo.train import shard_envs
+from jaxnav.ppo.config import preset
+from jaxnav.ppo.train import block_count, shard_envs
 
 SCRIPT = Path(__file__).parent / "scripts" / "tiny_train.py"
 
@@ -43,3 +44,19 @@ def test_num_envs_must_split_evenly():
     devices = jax.local_devices() * 3  # stands in for three devices: only the count matters here
     with pytest.raises(ValueError, match="--num-envs 10 must be a multiple of the 3 devices"):
         shard_envs(10, devices)
+
+
+def test_robot_blocks_must_split_evenly():
+    import jax
+
+    two = jax.local_devices() * 2  # stands in for two devices: only the count matters here
+    cfg = lambda **kw: preset("cpu", num_envs=48, minibatch_size=48, **kw)  # noqa: E731
+    assert block_count(cfg(), two) == 2 and block_count(cfg(groups=4), two) == 4
+    with pytest.raises(ValueError, match="--groups 3 must be a multiple of the 2 devices"):
+        block_count(cfg(groups=3), two)
+    with pytest.raises(ValueError, match="--num-envs 48 must be a multiple of the 32 robot blocks"):
+        block_count(cfg(groups=32), two)
+    with pytest.raises(ValueError, match="--minibatch-size 12 must be a multiple of the 8 robot"):
+        block_count(preset("cpu", num_envs=48, minibatch_size=12, groups=8), two)
+    with pytest.raises(ValueError, match="--groups: must be >= 0"):
+        cfg(groups=-1)

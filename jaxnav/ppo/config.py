@@ -104,13 +104,8 @@ class PPOConfig:
         for name in ("learning_rate", "clip_eps", "max_grad_norm", "reward_scale"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{_flag(name)}: must be > 0, got {getattr(self, name)}")
-        if self.groups < 0:
+        if self.groups < 0:  # what must divide into blocks: `jaxnav.ppo.train.block_count`
             raise ValueError(f"--groups: must be >= 0 (0: one per device), got {self.groups}")
-        for name in ("num_envs", "minibatch_size"):
-            if self.groups and getattr(self, name) % self.groups:
-                raise ValueError(
-                    f"{_flag(name)} {getattr(self, name)} must be a multiple of --groups {self.groups}"
-                )
         if not 0 < self.reset_share <= 1:
             raise ValueError(f"--reset-share: must be in (0, 1], got {self.reset_share}")
         for name in ("vf_coef", "ent_coef"):
