@@ -10,7 +10,8 @@ rooms drawn from every room family), `pool_all` (a new episode drawn for every r
 `wheeled` (the wheeled validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles
 per room, `RandomizeConfig.moving_count`); the `goal` task (`goal_families`: rooms of every family,
 `goal_history0`: no stacked frames, `goal_straight`: straight-line progress, no distance field,
-`goal_pool64`: new episodes drawn for 1/64 of the robots per step instead of 1/16);
+`goal_pool64`: new episodes drawn for 1/64 of the robots per step instead of 1/16, `goal_ahead`:
+the same drawn ahead, each 32 steps' in one batch as PPO's `reset_ahead` draws a rollout's);
 the speed levers: `full` (MJX's
 contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-reset's select in
 every row, `PPOConfig.reset_in_place` off), `no_contacts` and `in_place` (one lever on each).
@@ -57,12 +58,15 @@ VARIANTS = {
     "goal_history0": {"task": "goal", "history": 0},
     "goal_straight": {"task": "goal", "progress": "straight"},
     "goal_pool64": {"task": "goal", "reset_share": 1 / 64},
+    "goal_ahead": {"task": "goal", "reset_share": 1 / 64, "ahead": True},
 }
+WINDOW = 32  # steps whose new episodes are drawn in one batch with "ahead" (a PPO rollout)
 
 
 def make(variant: str, num_envs: int):
-    """The training env of `variant`, auto-reset as PPO runs it."""
+    """(the training env of `variant`, auto-reset as PPO runs it; whether it draws ahead)."""
     kwargs = dict(VARIANTS[variant])
+    ahead = kwargs.pop("ahead", False)
     ppo = PPOConfig(
         num_envs=num_envs,
         minibatch_size=num_envs,  # unused here; any size that divides a rollout
@@ -70,23 +74,35 @@ def make(variant: str, num_envs: int):
         reset_in_place=kwargs.pop("in_place", PPOConfig().reset_in_place),
     )
     env = jaxnav.make_env(kwargs.pop("task", "avoid"), **kwargs)
-    return AutoReset(env, pool=ppo.reset_pool, in_place=ppo.reset_in_place)
+    return AutoReset(env, pool=ppo.reset_pool, in_place=ppo.reset_in_place), ahead
 
 
 def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -> dict:
-    env = make(variant, num_envs)
+    env, ahead = make(variant, num_envs)
     reset = jax.jit(env.reset)
+    window = WINDOW if ahead else steps
+    if steps % window:
+        raise SystemExit(f"--steps {steps}: must be a multiple of {WINDOW} for '{variant}'")
 
     @jax.jit
     def rollout(state, key):
-        def body(carry, k):
+        def body(carry, xs):
             state, total = carry
+            k, fresh = xs
             action = jax.random.randint(k, (num_envs,), 0, env.action_spec.n)
-            state = env.step(state, action)
+            state = env.step(state, action, fresh)
             return (state, total + state.reward.sum()), None
 
+        def run_window(carry, k):
+            state, total = carry
+            fresh = None
+            if ahead:
+                state, fresh = env.draw(state, window)
+            keys = jax.random.split(k, window)
+            return jax.lax.scan(body, (state, total), (keys, fresh))[0], None
+
         (state, total), _ = jax.lax.scan(
-            body, (state, jnp.float32(0)), jax.random.split(key, steps)
+            run_window, (state, jnp.float32(0)), jax.random.split(key, steps // window)
         )
         return state, total
 

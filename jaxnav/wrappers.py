@@ -74,6 +74,13 @@ class AutoReset(Wrapper):
     `groups`: G independent blocks of N/G consecutive envs, each with its own P/G draws from its
     own envs' keys (G = 1: one block). With the blocks sharded over devices, every device draws
     for its own robots only, and no step needs another device's data.
+
+    Drawing ahead: `draw(state, steps)` draws the pools of the next `steps` steps in one batch
+    (steps x P episodes), and `step(state, action, fresh)` takes one step's pool from it (a scan
+    over the steps with the draws as its xs). The draws do not depend on the state, so the
+    episodes come from the same distribution as the per-step draws, from other keys. On an
+    accelerator one large batch costs far less than many small ones (a `goal` reset floods the
+    room's grid: benchmarks/RESULTS.md times its batches).
     """
 
     def __init__(self, env, pool: int | None = None, in_place: bool = False, groups: int = 1):
@@ -89,13 +96,30 @@ class AutoReset(Wrapper):
         state = jax.vmap(self.env.reset)(k_reset)
         return state.replace(info={**state.info, RESET_KEY: keys})
 
-    def step(self, state: EnvState, action: jax.Array) -> EnvState:
+    def draws_per_block(self, total: int) -> int:
+        """P/G: the new episodes each block draws per step, for `total` envs."""
+        return max(1, min(self.pool or total, total) // self.groups)
+
+    def draw(self, state: EnvState, steps: int) -> tuple[EnvState, EnvState]:
+        """(state with its keys advanced, the new episodes of the next `steps` steps: leaves
+        [steps, G, P/G, ...]), for `step(..., fresh=draws[t])`."""
+        keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
+        g = self.groups
+        first = _blocks(k_reset, g)[:, : self.draws_per_block(keys.shape[0])]  # [G, P/G, 2]
+        per_step = jax.vmap(lambda t: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, t)))(first))
+        fresh = jax.vmap(jax.vmap(jax.vmap(self.env.reset)))(per_step(jnp.arange(steps)))
+        return state.replace(info={**state.info, RESET_KEY: keys}), fresh
+
+    def step(self, state: EnvState, action: jax.Array, fresh: EnvState | None = None) -> EnvState:
+        """One step of every env; `fresh` (leaves [G, P/G, ...], one step of `draw`) are the new
+        episodes, else this step draws its own."""
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
         info = {k: v for k, v in state.info.items() if k != RESET_KEY}
         nxt = jax.vmap(self.env.step)(state.replace(info=info), action)
         g, total = self.groups, action.shape[0]
-        pool = max(1, min(self.pool or total, total) // g)  # draws per group
-        fresh = jax.vmap(jax.vmap(self.env.reset))(_blocks(k_reset, g)[:, :pool])  # [G, P/G]
+        pool = self.draws_per_block(total)
+        if fresh is None:
+            fresh = jax.vmap(jax.vmap(self.env.reset))(_blocks(k_reset, g)[:, :pool])  # [G, P/G]
         # What a new episode replaces: physics, observation and info, except the finished
         # episode's statistics, which carry over.
         part = lambda s: (s.data, s.obs, {k: v for k, v in s.info.items() if k != EPISODE})  # noqa: E731

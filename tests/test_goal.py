@@ -333,8 +333,9 @@ def test_geodesic_progress_pays_for_a_detour():
     np.testing.assert_allclose(total, start_geo - geo, atol=1e-4)
 
 
-# A 5 x 5 m room whose centre is walled in (a ring of boxes 1.2 m across): the flood from a spawn
-# there finds no goal 1.5 m away, so the L-shaped path is cleared through the ring.
+# A 5 x 5 m room whose centre is walled in (a ring of boxes 1.2 m across): a goal 1.5 m away lies
+# outside, so a spawn inside must move out. In a 2.6 x 2.6 m room no cell 1.5 m from the centre
+# keeps its clearance, so the L-shaped path to a goal is cleared through the ring instead.
 RING = RoomLayout(
     name="ring",
     size=(5.0, 5.0),
@@ -344,47 +345,63 @@ RING = RoomLayout(
         + [((0.6, 0), (0.2, 1.4)), ((-0.6, 0), (0.2, 1.4))]
     ),
 )
+SMALL_RING = dataclasses.replace(RING, name="small_ring", size=(2.6, 2.6))
 
 
-def test_goal_draw_and_field_share_the_grid_distances(monkeypatch):
-    """The goal draw and the goal's field share one grid of shape distances (`goals.goal_grid`):
-    the goals, rooms and fields are bit for bit those of recomputing the signed distance for each,
-    in a layout, a sampled room flooded whole and one whose path is cleared."""
-    rooms, spawns = [OPEN, RING, POCKET], [(-1.5, -1.5), (0.0, 0.0), (-2.0, 1.0)]
+def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
+    """A reset floods the grid once, from the goal: the field reaches the spawn, which moves out
+    of a pocket the goal is not in; where no cell is far enough the path is cleared first. The
+    goals, rooms and fields are bit for bit those of recomputing the signed distance for every
+    use of the grid (`goals.goal_grid` shares one), and the field is `goal_field`'s."""
+    rooms = [OPEN, RING, SMALL_RING, POCKET]
+    spawns = [(-1.5, -1.5), (0.0, 0.0), (0.0, 0.0), (-2.0, 1.0)]
     bank = make_bank(rooms, 8, 4)
     cells = goals.make_goal_cells(rooms)
     params = bank.rooms.replace(
         spawn=jnp.array([(*xy, 0.0) for xy in spawns]),
-        layout_id=jnp.array([-1, -1, 2]),  # open and ring as sampled rooms, pocket a layout
+        layout_id=jnp.array([-1, -1, -1, 3]),  # the rings and open as sampled rooms
     )
 
     def draw(key, params):
         grid = goals.goal_grid(params, goals.GRID_HALF)
-        room, goal = goals.sample_goal(key, params, grid, cells, R, 0.3, 1.5, 0.15)
-        return room, goal, goals.goal_field(room, grid, goal, R)
+        room, goal, field = goals.sample_goal(key, params, grid, cells, R, 0.3, 1.5, 0.15)
+        return room, goal, field, goals.goal_field(room, grid, goal, R)
 
-    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    keys = jax.random.split(jax.random.PRNGKey(0), len(rooms))
     shared = jax.jit(jax.vmap(draw))(keys, params)
 
-    def recomputed(params, grid, radius):  # each call its own signed distance, as before
+    def recomputed(params, grid, radius):  # each call its own signed distance
         gap = signed_distance(params, grid[0]) - radius
         return gap, gap >= 0.5 * GRID_CELL
 
     monkeypatch.setattr(goals, "_free", recomputed)
     chex.assert_trees_all_equal(shared, jax.jit(jax.vmap(draw))(keys, params))
-    room, _, field = shared
+    room, goal, field, again = (np.asarray(x) if not hasattr(x, "spawn") else x for x in shared)
+    np.testing.assert_array_equal(field, again)
     cleared = np.asarray(room.box_active).sum(-1) < np.asarray(params.box_active).sum(-1)
-    np.testing.assert_array_equal(cleared, [False, True, False])
-    assert np.isfinite(np.asarray(field)).sum((1, 2)).min() > 100  # the goal is reachable
+    np.testing.assert_array_equal(cleared, [False, False, True, False])
+    spawn = np.asarray(room.spawn[:, :2])
+    moved = np.linalg.norm(spawn - np.asarray(spawns), axis=-1) > 0
+    np.testing.assert_array_equal(moved, [False, True, False, False])
+    assert np.abs(spawn[1]).max() > 0.7  # out of the ring
+    for e in range(len(rooms)):  # the flood from the goal reaches the spawn
+        assert float(goals.geodesic(field[e], goal[e], spawn[e])) < 20.0
+        col, row = np.floor(spawn[e] / GRID_CELL + 0.5 * field.shape[1]).astype(int)
+        assert np.isfinite(field[e, row, col])
+    assert np.linalg.norm(goal[:2] - spawn[:2], axis=-1).min() >= 1.5
 
 
-def test_goal_runs_draw_fewer_new_episodes_unless_told():
-    """The goal task's own PPO default (1/64 of the robots draw a new episode per step) goes over
-    every preset and under the user's setting; other tasks keep the preset's."""
+def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
+    """The goal task's own PPO defaults (1/64 of the robots draw a new episode per step, each
+    rollout's drawn at its start) go over every preset and under the user's settings; other
+    tasks keep the preset's."""
     from jaxnav.train import build_config
 
     for name in ("cpu", "gpu", "paper"):
-        assert build_config(name, env="goal").ppo.reset_share == 1 / 64
-        assert build_config(name, env="avoid").ppo.reset_share == 1 / 16
-    told = build_config("gpu", env="goal", overrides={"ppo": {"reset_share": 0.25}})
-    assert told.ppo.reset_share == 0.25
+        goal, avoid = build_config(name, env="goal").ppo, build_config(name, env="avoid").ppo
+        assert (goal.reset_share, goal.reset_ahead) == (1 / 64, True)
+        assert (avoid.reset_share, avoid.reset_ahead) == (1 / 16, False)
+    told = build_config(
+        "gpu", env="goal", overrides={"ppo": {"reset_share": 0.25, "reset_ahead": False}}
+    )
+    assert (told.ppo.reset_share, told.ppo.reset_ahead) == (0.25, False)

@@ -128,19 +128,59 @@ def test_in_place_auto_reset_is_the_select():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def run_steps(env, keys, steps=30):
+    """States [steps, N] of `env` (an AutoReset) after each of `steps` steps, drawing per step."""
+    state = env.reset(keys)
+    actions = jnp.ones((steps, keys.shape[0]))
+    return jax.lax.scan(lambda s, a: (env.step(s, a),) * 2, state, actions)[1]
+
+
+def run_ahead(env, keys, windows=3, steps=10):
+    """(states [windows x steps, N], the new episodes each step was given [windows x steps, G,
+    P/G]) of `env` (an AutoReset) drawing every window's new episodes at its start."""
+    ones = jnp.ones(keys.shape[0])
+
+    def window(state, _):
+        state, fresh = env.draw(state, steps)
+        state, states = jax.lax.scan(lambda s, f: (env.step(s, ones, f),) * 2, state, fresh)
+        return state, (states, fresh)
+
+    _, out = jax.lax.scan(window, env.reset(keys), None, windows)
+    return jax.tree_util.tree_map(lambda x: x.reshape(windows * steps, *x.shape[2:]), out)
+
+
 @pytest.mark.parametrize("in_place", [False, True])
-def test_grouped_auto_reset_is_each_block_on_its_own(in_place):
+def test_drawn_ahead_episodes_start_where_envs_finish(in_place):
+    """With the new episodes drawn ahead, the k-th env of a block to finish in step t starts
+    draw k mod P of step t's draws (data, observation and info as drawn); every step's draws are
+    new ones (no draw is used in two steps)."""
+    n, pool, groups = 64, 6, 2
+    env = AutoReset(EpisodeStats(Countdown()), pool, in_place, groups=groups)
+    states, fresh = jax.jit(run_ahead, static_argnums=0)(
+        env, jax.random.split(jax.random.PRNGKey(2), n)
+    )
+    done = np.asarray(states.done).reshape(30, groups, n // groups)  # [T, G, N/G]
+    obs = np.asarray(states.obs).reshape(30, groups, n // groups, 2)
+    left = np.asarray(states.info["left"]).reshape(30, groups, n // groups)
+    drawn_obs, drawn_left = np.asarray(fresh.obs), np.asarray(fresh.info["left"])  # [T, G, P/G]
+    assert (done.sum(2) > pool // groups).any()  # steps that reuse draws within the step
+    for t, g in np.ndindex(30, groups):
+        slot = (np.cumsum(done[t, g]) - 1)[done[t, g]] % (pool // groups)
+        np.testing.assert_array_equal(obs[t, g][done[t, g]], drawn_obs[t, g][slot])
+        np.testing.assert_array_equal(left[t, g][done[t, g]], drawn_left[t, g][slot])
+    assert len(np.unique(drawn_obs.reshape(-1, 2), axis=0)) == drawn_obs.size // 2
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+@pytest.mark.parametrize("ahead", [False, True])
+def test_grouped_auto_reset_is_each_block_on_its_own(in_place, ahead):
     """`AutoReset(groups=2)` over 64 envs with a pool of 6 is, bit for bit, two auto-resets of
-    pool 3 each over its own 32 envs: a block draws from its own envs' keys only (what lets every
-    device reset its own robots)."""
+    pool 3 each over its own 32 envs, drawing per step or ahead: a block draws from its own envs'
+    keys only (what lets every device reset its own robots)."""
     n, pool = 64, 6
     grouped = AutoReset(EpisodeStats(Countdown()), pool, in_place, groups=2)
     alone = AutoReset(EpisodeStats(Countdown()), pool // 2, in_place)
-
-    def run(env, keys):
-        state = env.reset(keys)
-        actions = jnp.ones((30, keys.shape[0]))
-        return jax.lax.scan(lambda s, a: (env.step(s, a),) * 2, state, actions)[1]
+    run = (lambda env, keys: run_ahead(env, keys)[0]) if ahead else run_steps
 
     keys = jax.random.split(jax.random.PRNGKey(1), n)
     both = jax.jit(run, static_argnums=0)(grouped, keys)

@@ -16,11 +16,15 @@ def box_distance(p, pos, yaw, half):
 
     pos [N, 2] centres, yaw [N] rad, half [N, 2] half extents along each box's own axes.
     """
-    d = jnp.asarray(p)[..., None, :] - pos  # [..., N, 2]
+    p = jnp.asarray(p)
+    dx, dy = p[..., 0, None] - pos[:, 0], p[..., 1, None] - pos[:, 1]  # [..., N] each
     c, s = jnp.cos(yaw), jnp.sin(yaw)
-    local = jnp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
-    q = jnp.abs(local) - half  # per-axis distance beyond each face
-    return jnp.linalg.norm(jnp.maximum(q, 0.0), axis=-1) + jnp.minimum(q.max(-1), 0.0)
+    # Per-axis distance beyond each face, in the box's own frame. Each axis its own array: over
+    # a grid of points a stacked [..., N, 2] costs XLA's CPU backend three times the time.
+    qx = jnp.abs(c * dx + s * dy) - half[:, 0]
+    qy = jnp.abs(c * dy - s * dx) - half[:, 1]
+    outside = jnp.sqrt(jnp.maximum(qx, 0.0) ** 2 + jnp.maximum(qy, 0.0) ** 2)
+    return outside + jnp.minimum(jnp.maximum(qx, qy), 0.0)
 
 
 def disc_distance(p, pos, radius):

@@ -12,12 +12,14 @@ two ways:
   the grid's resolution. A layout whose fixed spawn and goal lie in different components is refused.
 - Sampled rooms (`randomize.sample_room` and the room families): a traced grid of `GRID_CELL`
   cells, free where the robot's disc clears everything by half a cell (so the segment between two
-  free neighbours is clear: clearance is 1-Lipschitz), is flooded from the spawn's cell by
-  `SWEEPS` rounds of four directional min-plus scans (`grid_steps`); the goal is a uniform
-  reachable cell at least the minimum distance from the spawn that keeps `clearance`. Corridors,
-  doorways and U-shapes keep their walls and the goal is often behind them. Where the flood finds
-  no such cell (a spawn boxed in), every obstacle that would block an L-shaped path spawn ->
-  corner -> goal (half-width robot radius + `path_clearance`) is removed instead.
+  free neighbours is clear: clearance is 1-Lipschitz). The goal is a uniform cell at least the
+  minimum distance from the spawn that keeps `clearance`; the grid is flooded from it once, by
+  `SWEEPS` rounds of four directional min-plus scans (`grid_steps`), and that flood is both the
+  reachability check and the goal's distance field (`geodesic`). A spawn the flood does not reach
+  (in a pocket) moves to a uniform reached cell as far from the goal. Corridors, doorways and
+  U-shapes keep their walls and the goal is often behind them. Where no cell is far enough (a
+  spawn boxed in), every obstacle that would block an L-shaped path spawn -> corner -> goal
+  (half-width robot radius + `path_clearance`) is removed instead.
 
 `shortest_paths` measures the geodesic distance for SPL on the same grid, 8-connected (diagonal
 steps only where both cells beside them are free, so no corner is cut).
@@ -212,25 +214,30 @@ def _free(params: SceneParams, grid, radius: float):
     return gap, gap >= 0.5 * GRID_CELL
 
 
-def _flood_goal(key, params: SceneParams, grid, radius, clearance, min_distance):
-    """([2] goal, [] bool found) in a sampled room: a uniform reachable cell (module doc)."""
-    centres = grid[0]
-    gap, free = _free(params, grid, radius)
-    straight = jnp.linalg.norm(centres - params.spawn[:2], axis=-1)  # [n, n]
-    steps = grid_steps(free, straight == straight.min())  # seeded at the spawn's cell
-    ok = jnp.isfinite(steps) & (straight >= min_distance) & (gap >= clearance)
-    # Goal: uniform over the reachable cells far enough away that keep `clearance`.
-    pick = jnp.argmax(jnp.where(ok, jax.random.gumbel(key, ok.shape), -jnp.inf))
-    return centres.reshape(-1, 2)[pick], ok.any()
+def _uniform(key, ok: jax.Array) -> jax.Array:
+    """Flat index of a uniform True cell of `ok` [n, n] (arbitrary where none is): one random
+    number (a Gumbel draw per cell costs more than the rest of a goal reset on a CPU)."""
+    count = jnp.cumsum(ok.ravel())  # [n * n]
+    return jnp.argmax(count > jax.random.randint(key, (), 0, jnp.maximum(count[-1], 1)))
+
+
+def _cell_of(n: int, xy: jax.Array) -> jax.Array:
+    """[2] (row, col) of the traced grid's cell (`_grid`, n x n) containing `xy` [2]."""
+    col_row = jnp.floor(xy / GRID_CELL + 0.5 * n).astype(jnp.int32)
+    return jnp.clip(col_row, 0, n - 1)[::-1]
+
+
+def _flood(free: jax.Array, centres: jax.Array, goal: jax.Array) -> jax.Array:
+    """[n, n] grid steps from the cell nearest `goal` to every `free` cell (`grid_steps`)."""
+    straight = jnp.linalg.norm(centres - goal, axis=-1)
+    return grid_steps(free, straight == straight.min())
 
 
 def goal_field(params: SceneParams, grid, goal: jax.Array, radius: float):
     """[n, n] float32 grid steps from every cell of the traced grid to the goal's cell (inf
     where the robot cannot reach it): the geodesic distance `geodesic` reads. `grid` is the
-    `goal_grid` the goal was drawn on; `params` the episode's room (`sample_goal`'s)."""
-    _, free = _free(params, grid, radius)
-    straight = jnp.linalg.norm(grid[0] - goal, axis=-1)
-    return grid_steps(free, straight == straight.min())
+    `goal_grid` of the room `params`."""
+    return _flood(_free(params, grid, radius)[1], grid[0], goal)
 
 
 def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array) -> jax.Array:
@@ -248,19 +255,21 @@ def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array) -> jax.Array:
     return jnp.where(jnp.isfinite(best), best, jnp.linalg.norm(goal - xy))
 
 
-def _room_goal(key, params: SceneParams, radius, clearance, min_distance, path_clearance):
-    """(params with an L-shaped path to the goal cleared, [2] goal) in a sampled room."""
-    k_goal, k_corner = jax.random.split(key)
-    spawn = params.spawn[:2]
-    # Goal: the first of TRIES uniform points of the interior (shrunk by the robot and `clearance`)
-    # at least min_distance from the spawn, or the farthest of them.
+def _interior_goal(key, params: SceneParams, radius, clearance, min_distance):
+    """[2] the first of TRIES uniform points of the room's interior (shrunk by the robot and
+    `clearance`) at least min_distance from the spawn, or the farthest of them."""
     limit = jnp.maximum(params.room_half - radius - clearance, 0.0)
-    cand = jax.random.uniform(k_goal, (TRIES, 2), minval=-1.0, maxval=1.0) * limit
-    dist = jnp.linalg.norm(cand - spawn, axis=-1)
-    goal = cand[_first_or_best(dist >= min_distance, dist)]
-    # Corner of the L: (spawn x, goal y) or (goal x, spawn y), each with probability 1/2.
+    cand = jax.random.uniform(key, (TRIES, 2), minval=-1.0, maxval=1.0) * limit
+    dist = jnp.linalg.norm(cand - params.spawn[:2], axis=-1)
+    return cand[_first_or_best(dist >= min_distance, dist)]
+
+
+def _clear_path(key, params: SceneParams, goal, radius, path_clearance) -> SceneParams:
+    """The room with every obstacle removed that blocks an L-shaped path spawn -> corner -> goal
+    (half-width radius + path_clearance); the corner (spawn x, goal y) or (goal x, spawn y)."""
+    spawn = params.spawn[:2]
     corner = jnp.where(
-        jax.random.bernoulli(k_corner),
+        jax.random.bernoulli(key),
         jnp.stack([spawn[0], goal[1]]),
         jnp.stack([goal[0], spawn[1]]),
     )
@@ -269,8 +278,7 @@ def _room_goal(key, params: SceneParams, radius, clearance, min_distance, path_c
     legs = jnp.stack([jnp.linalg.norm(corner - spawn), jnp.linalg.norm(goal - corner)])
     # Clearance is 1-Lipschitz: points `spacing` apart that keep r + spacing/2 keep r in between.
     keep = radius + path_clearance + 0.5 * legs.max() / (PATH_POINTS - 1)
-    room = families.clear_around(params, points, jnp.full(points.shape[0], keep))
-    return room, goal
+    return families.clear_around(params, points, jnp.full(points.shape[0], keep))
 
 
 def sample_goal(
@@ -282,22 +290,49 @@ def sample_goal(
     clearance: float,
     min_distance: float,
     path_clearance: float,
-) -> tuple[SceneParams, jax.Array]:
-    """(the episode's params, [2] goal m) for the room `params` drew (`randomize.sample`).
+) -> tuple[SceneParams, jax.Array, jax.Array]:
+    """(the episode's params, [2] goal m, [n, n] its `goal_field`) for the room `params` drew
+    (`randomize.sample`), with one flood of the traced `grid` (`goal_grid(params, half_extent)`,
+    half_extent static: at least half the largest sampled room).
 
-    Layout rooms (layout_id >= 0) take their goal data from `goals`; sampled rooms flood the
-    traced `grid` (`goal_grid(params, half_extent)`, half_extent static: at least half the largest
-    sampled room), else get a cleared path (module doc). `clearance` is the spawn clearance of a
-    moved spawn and the margin of a goal from everything, m; goals are at least `min_distance` m
-    from the spawn where the room allows (else as far as TRIES draws found).
+    Layout rooms (layout_id >= 0) take their goal from `goals` (`_layout_goal`). Sampled rooms:
+    the goal is a uniform cell at least `min_distance` from the spawn that keeps `clearance` from
+    everything, and the field is flooded from it. A spawn it does not reach (a pocket) moves to a
+    uniform reached cell at least `min_distance` from the goal that keeps `clearance`. Where no
+    cell is far enough, the goal is a point of the interior and the obstacles on an L-shaped path
+    to it are removed (`_clear_path`) before the flood; where the goal's part of the room holds no
+    cell for the spawn, too (rare), after it: the field then reaches the goal's part only, and
+    `geodesic` takes the straight line elsewhere.
     """
-    k_layout, k_flood, k_room = jax.random.split(key, 3)
-    in_layout = _layout_goal(k_layout, params, goals, radius, clearance, min_distance)
-    flood, found = _flood_goal(k_flood, params, grid, radius, clearance, min_distance)
-    cleared = _room_goal(k_room, params, radius, clearance, min_distance, path_clearance)
-    in_room = jax.tree_util.tree_map(lambda a, b: jnp.where(found, a, b), (params, flood), cleared)
+    k_layout, k_goal, k_spawn, k_room, k_path = jax.random.split(key, 5)
+    centres, spawn = grid[0], params.spawn[:2]  # [n, n, 2], [2]
+    pick = lambda k, ok: centres.reshape(-1, 2)[_uniform(k, ok)]  # noqa: E731
+    where = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
+    # Sampled rooms: the goal is a uniform far cell that keeps `clearance`, else (none is far
+    # enough) a point of the interior, the path to it cleared before the flood.
+    gap, free = _free(params, grid, radius)
+    roomy = free & (gap >= clearance)  # [n, n] cells a goal or a moved spawn may take
+    far = roomy & (jnp.linalg.norm(centres - spawn, axis=-1) >= min_distance)
+    found = far.any()
+    interior = _interior_goal(k_room, params, radius, clearance, min_distance)
+    room_goal = jnp.where(found, pick(k_goal, far), interior)
+    cleared = _clear_path(k_path, params, room_goal, radius, path_clearance)
+    layout_room, layout_goal = _layout_goal(
+        k_layout, params, goals, radius, clearance, min_distance
+    )
     sampled = params.layout_id < 0
-    return jax.tree_util.tree_map(lambda a, b: jnp.where(sampled, a, b), in_room, in_layout)
+    room = where(sampled, where(found, params, cleared), layout_room)
+    goal = jnp.where(sampled, room_goal, layout_goal)
+    field = _flood(_free(room, grid, radius)[1], centres, goal)  # [n, n]: the one flood
+    # A sampled spawn the flood does not reach moves to a reached cell far from the goal that
+    # keeps `clearance`; where there is none (rare), the path is cleared after the flood.
+    reached = jnp.isfinite(field)
+    row, col = _cell_of(centres.shape[0], spawn)
+    spots = reached & roomy & (jnp.linalg.norm(centres - goal, axis=-1) >= min_distance)
+    move = sampled & found & ~reached[row, col]
+    moved = room.spawn.at[:2].set(pick(k_spawn, spots))
+    room = room.replace(spawn=jnp.where(move & spots.any(), moved, room.spawn))
+    return where(move & ~spots.any(), cleared, room), goal, field
 
 
 # ------------------------------------------------------------------------------

@@ -128,7 +128,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     g = block_count(cfg, devices)
     env = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place, groups=g)
     reset = lambda keys: shard(env.reset(keys))  # noqa: E731
-    step = lambda state, action: shard(env.step(state, action))  # noqa: E731
+    step = lambda state, action, fresh: shard(env.step(state, action, fresh))  # noqa: E731
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
 
     def init(key: jax.Array) -> TrainState:
@@ -145,13 +145,13 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         )
 
     def _rollout(ts: TrainState):
-        def _env_step(carry, _):
+        def _env_step(carry, fresh):
             env_state, key = carry
             key, k_act = jax.random.split(key)
             obs = norm(ts.obs_stats, env_state.obs)  # [N, D]
             logits, value = network.apply(ts.params, obs)
             action = dist.sample(k_act, logits)  # [N] or [N, A]
-            nxt = step(env_state, action)
+            nxt = step(env_state, action, fresh)
             tr = Transition(
                 env_state.obs,
                 obs,
@@ -165,8 +165,11 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             )
             return (nxt, key), tr
 
+        env_state, fresh = ts.env_state, None  # fresh: the rollout's new episodes, drawn ahead
+        if cfg.reset_ahead:
+            env_state, fresh = env.draw(env_state, cfg.rollout_length)
         (env_state, key), traj = jax.lax.scan(
-            _env_step, (ts.env_state, ts.key), None, cfg.rollout_length
+            _env_step, (env_state, ts.key), fresh, cfg.rollout_length
         )
         return env_state, key, traj
 

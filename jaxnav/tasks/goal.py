@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxnav.core.checks import require_finite
-from jaxnav.core.goals import GRID_HALF, geodesic, goal_field, goal_grid, sample_goal
+from jaxnav.core.goals import GRID_HALF, geodesic, goal_grid, sample_goal
 from jaxnav.core.randomize import sample
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
@@ -143,8 +143,8 @@ class GoalEnv(NavTask):
         t, radius = self.task, self.robot.radius
         params = sample(k_scene, self.randomize, self.bank, radius)
         clearance = self.randomize.spawn_clearance
-        grid = goal_grid(params, self._grid_half)  # the goal draw's and the field's
-        params, goal = sample_goal(
+        grid = goal_grid(params, self._grid_half)
+        params, goal, field = sample_goal(
             k_goal,
             params,
             grid,
@@ -156,7 +156,7 @@ class GoalEnv(NavTask):
         )
         info = {"goal": goal, "steps": jnp.int32(0), "key": key}
         if t.progress == "geodesic":  # the still room's: movers do not stay where they start
-            info["field"] = goal_field(params, grid, goal, radius)  # [n, n]
+            info["field"] = field  # [n, n]
         params = self.with_movers(k_scene, params, goal)
         data = self.place(params)
         command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)

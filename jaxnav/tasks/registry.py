@@ -48,7 +48,7 @@ register("avoid", AvoidEnv, AvoidConfig)
 # goal's draw and its distance field), so the goal task draws new episodes for 1/64 of the robots
 # per step rather than 1/16: 1.8x the env's pace on an H200 and the time-to-solve bar in about
 # half the training time (benchmarks/RESULTS.md, "Point-goal navigation").
-register("goal", GoalEnv, GoalConfig, ppo_defaults={"reset_share": 1 / 64})
+register("goal", GoalEnv, GoalConfig, ppo_defaults={"reset_share": 1 / 64, "reset_ahead": True})
 
 
 def task_entry(name: str) -> TaskEntry:
