@@ -78,9 +78,8 @@ class AutoReset(Wrapper):
     Drawing ahead: `draw(state, steps)` draws the pools of the next `steps` steps in one batch
     (steps x P episodes), and `step(state, action, fresh)` takes one step's pool from it (a scan
     over the steps with the draws as its xs). The draws do not depend on the state, so the
-    episodes come from the same distribution as the per-step draws, from other keys. On an
-    accelerator one large batch costs far less than many small ones (a `goal` reset floods the
-    room's grid: benchmarks/RESULTS.md times its batches).
+    episodes come from the same distribution as the per-step draws, from other keys: one large
+    batch instead of many small ones (benchmarks/RESULTS.md has what it changes for `goal`).
     """
 
     def __init__(self, env, pool: int | None = None, in_place: bool = False, groups: int = 1):

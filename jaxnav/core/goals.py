@@ -215,8 +215,8 @@ def _free(params: SceneParams, grid, radius: float):
 
 
 def _uniform(key, ok: jax.Array) -> jax.Array:
-    """Flat index of a uniform True cell of `ok` [n, n] (arbitrary where none is): one random
-    number (a Gumbel draw per cell costs more than the rest of a goal reset on a CPU)."""
+    """Flat index of a uniform True cell of `ok` [n, n] (arbitrary where none is), from one
+    random number rather than one per cell."""
     count = jnp.cumsum(ok.ravel())  # [n * n]
     return jnp.argmax(count > jax.random.randint(key, (), 0, jnp.maximum(count[-1], 1)))
 

@@ -62,9 +62,8 @@ class PPOConfig:
     longer episodes). See `jaxnav.wrappers.AutoReset`."""
     reset_ahead: bool = False
     """Draw the new episodes of a whole rollout at its start, in one batch of rollout_length x
-    pool draws, instead of a pool at every step: the same distribution from other keys, and on
-    an accelerator far cheaper for a costly reset (the goal task's default; see
-    `jaxnav.wrappers.AutoReset.draw`)."""
+    pool draws, instead of a pool at every step: the same distribution from other keys (the goal
+    task's default; see `jaxnav.wrappers.AutoReset.draw`)."""
     reset_in_place: bool = True
     """Write the new episodes into the rows of the robots that finished only, instead of selecting
     between old and new state for every robot: the same result bit for bit (tested; see
