@@ -87,9 +87,9 @@ def episode_metrics(traj: Transition) -> dict[str, jax.Array]:
     return {**{log_name(k): mean(v) for k, v in traj.episode.items()}, "episodes": n}
 
 
-def shard_envs(num_envs: int, devices=None):
+def shard_envs(num_envs: int, devices=None, axis: int = 0):
     """A function placing [num_envs, ...] arrays across `devices` (default: every device of every
-    process, `jax.devices()`).
+    process, `jax.devices()`), split along `axis` (1: the robot blocks of `AutoReset.draw`).
 
     Robots are split evenly between devices, so each device (and each process) simulates only its
     own; parameters stay replicated, and XLA inserts the all-reduce of the gradients. With one
@@ -100,7 +100,8 @@ def shard_envs(num_envs: int, devices=None):
         return lambda tree: tree
     if num_envs % len(devices):
         raise ValueError(f"--num-envs {num_envs} must be a multiple of the {len(devices)} devices")
-    sharding = NamedSharding(Mesh(np.array(devices), ("envs",)), PartitionSpec("envs"))
+    spec = PartitionSpec(*[None] * axis, "envs")
+    sharding = NamedSharding(Mesh(np.array(devices), ("envs",)), spec)
     return lambda tree: jax.lax.with_sharding_constraint(tree, sharding)
 
 
@@ -129,6 +130,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     env = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place, groups=g)
     reset = lambda keys: shard(env.reset(keys))  # noqa: E731
     step = lambda state, action, fresh: shard(env.step(state, action, fresh))  # noqa: E731
+    shard_draws = shard_envs(cfg.num_envs, devices, axis=1)  # [T, G, P/G, ...]: by block
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
 
     def init(key: jax.Array) -> TrainState:
@@ -168,6 +170,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         env_state, fresh = ts.env_state, None  # fresh: the rollout's new episodes, drawn ahead
         if cfg.reset_ahead:
             env_state, fresh = env.draw(env_state, cfg.rollout_length)
+            fresh = shard_draws(fresh)
         (env_state, key), traj = jax.lax.scan(
             _env_step, (env_state, ts.key), fresh, cfg.rollout_length
         )

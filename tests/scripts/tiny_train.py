@@ -13,7 +13,8 @@ from jaxnav.ppo.config import preset
 from jaxnav.ppo.train import make_train
 
 env = jaxnav.make_env("avoid", max_steps=50)
-# Two robot blocks whatever the device count: one device then computes what two devices do.
+# Two robot blocks whatever the device count: one device then computes what two devices do,
+# each rollout's new episodes drawn ahead (sharded by block).
 cfg = preset(
     "cpu",
     num_envs=16,
@@ -22,6 +23,7 @@ cfg = preset(
     num_epochs=2,
     total_steps=16 * 8 * 3,
     groups=2,
+    reset_ahead=True,
 )
 ts, metrics = make_train(cfg, env).train(jax.random.PRNGKey(0))
 leaves = jax.tree_util.tree_leaves(jax.device_get(ts.params))
