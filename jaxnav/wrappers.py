@@ -99,12 +99,15 @@ class AutoReset(Wrapper):
         """P/G: the new episodes each block draws per step, for `total` envs."""
         return max(1, min(self.pool or total, total) // self.groups)
 
+    def _pool_keys(self, k_reset: jax.Array) -> jax.Array:
+        """[G, P/G, 2]: the keys of one step's draws, each block's from its first envs' keys."""
+        return _blocks(k_reset, self.groups)[:, : self.draws_per_block(k_reset.shape[0])]
+
     def draw(self, state: EnvState, steps: int) -> tuple[EnvState, EnvState]:
         """(state with its keys advanced, the new episodes of the next `steps` steps: leaves
         [steps, G, P/G, ...]), for `step(..., fresh=draws[t])`."""
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
-        g = self.groups
-        first = _blocks(k_reset, g)[:, : self.draws_per_block(keys.shape[0])]  # [G, P/G, 2]
+        first = self._pool_keys(k_reset)  # [G, P/G, 2]
         per_step = jax.vmap(lambda t: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, t)))(first))
         fresh = jax.vmap(jax.vmap(jax.vmap(self.env.reset)))(per_step(jnp.arange(steps)))
         return state.replace(info={**state.info, RESET_KEY: keys}), fresh
@@ -118,7 +121,7 @@ class AutoReset(Wrapper):
         g, total = self.groups, action.shape[0]
         pool = self.draws_per_block(total)
         if fresh is None:
-            fresh = jax.vmap(jax.vmap(self.env.reset))(_blocks(k_reset, g)[:, :pool])  # [G, P/G]
+            fresh = jax.vmap(jax.vmap(self.env.reset))(self._pool_keys(k_reset))  # [G, P/G]
         # What a new episode replaces: physics, observation and info, except the finished
         # episode's statistics, which carry over.
         part = lambda s: (s.data, s.obs, {k: v for k, v in s.info.items() if k != EPISODE})  # noqa: E731

@@ -240,7 +240,6 @@ def test_goal_success_rises_above_random(tmp_path):
     with open(tmp_path / "run" / "metrics.csv") as fh:
         success = [float(r["success"]) for r in csv.DictReader(fh) if r["success"] != "nan"]
     first, last = np.mean(success[:5]), np.mean(success[-5:])
-    print(f"success: first {first:.3f}, last {last:.3f}")
     assert last > first + 0.3 and last > 0.5, (first, last)
 
 

@@ -221,10 +221,11 @@ def _uniform(key, ok: jax.Array) -> jax.Array:
     return jnp.argmax(count > jax.random.randint(key, (), 0, jnp.maximum(count[-1], 1)))
 
 
-def _cell_of(n: int, xy: jax.Array) -> jax.Array:
-    """[2] (row, col) of the traced grid's cell (`_grid`, n x n) containing `xy` [2]."""
-    col_row = jnp.floor(xy / GRID_CELL + 0.5 * n).astype(jnp.int32)
-    return jnp.clip(col_row, 0, n - 1)[::-1]
+def _grid_cell(n: int, xy: jax.Array) -> jax.Array:
+    """[2] int32 (col, row) of the traced grid's cell (`_grid`, n x n) containing `xy` [2]
+    (outside 0..n-1 beyond the grid)."""
+    half = 0.5 * n * GRID_CELL  # the grid's half extent
+    return jnp.round((xy + half) / GRID_CELL - 0.5).astype(jnp.int32)
 
 
 def _flood(free: jax.Array, centres: jax.Array, goal: jax.Array) -> jax.Array:
@@ -246,7 +247,7 @@ def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array) -> jax.Array:
     the straight line where none of them reaches the goal (a robot pressed against a wall)."""
     n = field.shape[0]
     half = 0.5 * n * GRID_CELL  # the grid's half extent (`_grid`)
-    ij = jnp.round((xy + half) / GRID_CELL - 0.5).astype(jnp.int32)  # [2] col, row
+    ij = _grid_cell(n, xy)  # [2] col, row
     offsets = jnp.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])  # [9, 2]
     cells = jnp.clip(ij + offsets, 0, n - 1)  # [9, 2]
     centres = (cells + 0.5) * GRID_CELL - half
@@ -327,7 +328,8 @@ def sample_goal(
     # A sampled spawn the flood does not reach moves to a reached cell far from the goal that
     # keeps `clearance`; where there is none (rare), the path is cleared after the flood.
     reached = jnp.isfinite(field)
-    row, col = _cell_of(centres.shape[0], spawn)
+    n = centres.shape[0]
+    col, row = jnp.clip(_grid_cell(n, spawn), 0, n - 1)
     spots = reached & roomy & (jnp.linalg.norm(centres - goal, axis=-1) >= min_distance)
     move = sampled & found & ~reached[row, col]
     moved = room.spawn.at[:2].set(pick(k_spawn, spots))
