@@ -3,16 +3,21 @@
 # benchmarks/time_to_solve_goal.py; the variants share the GPU, so compare env steps, not seconds.
 #   OUT=dir MAXS=120 bash benchmarks/gpu_goal_sweep.sh "base" "sample --sample" \
 #       "hist16 --set task.history=16"
-# Each argument: a name, then that variant's extra flags. Writes $OUT/goal_<name>.json, and the
-# printout to $LOGS/goal_<name>.log (default $OUT).
+# Each argument: a name, then that variant's extra flags; $EXTRA are every variant's and $PRESET
+# the preset (default gpu); with $GPUS set, variant i runs on GPU i mod $GPUS. Writes $OUT/goal_<name>.json, and the printout to $LOGS/goal_<name>.log
+# (default $OUT).
 export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEMFRAC:-0.12} PYTHONUNBUFFERED=1
 out=${OUT:-/tmp}
 logs=${LOGS:-$out}
+i=0
 for variant in "$@"; do
   read -r name flags <<<"$variant"
+  if [ -n "${GPUS:-}" ]; then export CUDA_VISIBLE_DEVICES=$((i % GPUS)); fi
+  i=$((i + 1))
   # shellcheck disable=SC2086
-  python benchmarks/time_to_solve_goal.py --preset gpu --eval-every 2 --max-seconds "${MAXS:-90}" \
-    --json "$out/goal_$name.json" --set randomize.families=all $flags >"$logs/goal_$name.log" 2>&1 &
+  python benchmarks/time_to_solve_goal.py --preset "${PRESET:-gpu}" --eval-every "${EVERY:-2}" \
+    --max-seconds "${MAXS:-90}" --json "$out/goal_$name.json" --set randomize.families=all \
+    ${EXTRA:-} $flags >"$logs/goal_$name.log" 2>&1 &
 done
 wait
 for variant in "$@"; do

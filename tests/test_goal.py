@@ -351,8 +351,8 @@ SMALL_RING = dataclasses.replace(RING, name="small_ring", size=(2.6, 2.6))
 def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     """A reset floods the grid once, from the goal: the field reaches the spawn, which moves out
     of a pocket the goal is not in; where no cell is far enough the path is cleared first. The
-    goals, rooms and fields are bit for bit those of recomputing the signed distance for every
-    use of the grid (`goals.goal_grid` shares one), and the field is `goal_field`'s."""
+    goals, rooms and fields are bit for bit those of the signed distance over the whole grid at
+    once (`goals.clearance` computes it in blocks of rows), and the field is `goal_field`'s."""
     rooms = [OPEN, RING, SMALL_RING, POCKET]
     spawns = [(-1.5, -1.5), (0.0, 0.0), (0.0, 0.0), (-2.0, 1.0)]
     bank = make_bank(rooms, 8, 4)
@@ -363,18 +363,18 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     )
 
     def draw(key, params):
-        grid = goals.goal_grid(params, goals.GRID_HALF)
-        room, goal, field = goals.sample_goal(key, params, grid, cells, R, 0.3, 1.5, 0.15)
-        return room, goal, field, goals.goal_field(room, grid, goal, R)
+        half = goals.GRID_HALF
+        room, goal, field = goals.sample_goal(key, params, half, cells, R, 0.3, 1.5, 0.15)
+        return room, goal, field, goals.goal_field(room, half, goal, R)
 
     keys = jax.random.split(jax.random.PRNGKey(0), len(rooms))
     shared = jax.jit(jax.vmap(draw))(keys, params)
 
-    def recomputed(params, grid, radius):  # each call its own signed distance
-        gap = signed_distance(params, grid[0]) - radius
+    def whole(params, half_extent, radius):  # the whole grid in one computation
+        gap = signed_distance(params, goals._grid(half_extent)) - radius
         return gap, gap >= 0.5 * GRID_CELL
 
-    monkeypatch.setattr(goals, "_free", recomputed)
+    monkeypatch.setattr(goals, "_free", whole)
     chex.assert_trees_all_equal(shared, jax.jit(jax.vmap(draw))(keys, params))
     room, goal, field, again = (np.asarray(x) if not hasattr(x, "spawn") else x for x in shared)
     np.testing.assert_array_equal(field, again)

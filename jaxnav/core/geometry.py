@@ -11,6 +11,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 
+def planar_distance(a, b):
+    """[...] floor-plane distance between points a [..., 2] and b [..., 2] (broadcast), per
+    component: over a grid of points, a reduction over an axis of 2 costs XLA's CPU backend
+    several times the arithmetic (benchmarks/RESULTS.md)."""
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    return jnp.sqrt(jnp.square(a[..., 0] - b[..., 0]) + jnp.square(a[..., 1] - b[..., 1]))
+
+
 def box_distance(p, pos, yaw, half):
     """[..., N] signed floor-plane distance from points p [..., 2] to N boxes (<0 inside).
 
@@ -29,7 +37,7 @@ def box_distance(p, pos, yaw, half):
 
 def disc_distance(p, pos, radius):
     """[..., N] signed floor-plane distance from points p [..., 2] to N discs (<0 inside)."""
-    return jnp.linalg.norm(jnp.asarray(p)[..., None, :] - pos, axis=-1) - radius
+    return planar_distance(jnp.asarray(p)[..., None, :], pos) - radius
 
 
 def wall_distance(p, room_half):
@@ -63,7 +71,7 @@ def shape_distances(room, p, z=None):
     the least of (the nearest wall, and every obstacle slot, active or not)."""
     walls = wall_distance(p, room.room_half).min(-1)
     box = box_distance(p, room.box_pos, room.box_yaw, room.box_half)  # [..., Sb]
-    cyl = jnp.linalg.norm(jnp.asarray(p)[..., None, :] - room.cyl_pos, axis=-1)  # [..., Sc]
+    cyl = planar_distance(jnp.asarray(p)[..., None, :], room.cyl_pos)  # [..., Sc]
     if z is None:
         return walls, box, cyl - room.cyl_radius
     dz = _vertical(z, room.box_bottom, room.box_height)
@@ -116,26 +124,22 @@ def _ray_walls(o, d, half):
 def _ray_boxes(o, d, room):
     """[..., Sb] slab test of each ray against each yawed box (inf: missed or inactive)."""
     c, s = jnp.cos(room.box_yaw), jnp.sin(room.box_yaw)  # [Sb]
-    rel = o[:2] - room.box_pos  # [Sb, 2]
-    centre_z = 0.5 * (room.box_bottom + room.box_height)
-    half = jnp.stack([room.box_half[:, 0], room.box_half[:, 1], centre_z - room.box_bottom], -1)
-    # Origin and directions in each box's frame: [Sb, 3] and [..., Sb, 3].
-    ol = jnp.stack(
-        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], o[2] - centre_z], -1
+    rx, ry = o[0] - room.box_pos[:, 0], o[1] - room.box_pos[:, 1]  # [Sb]
+    centre_z = 0.5 * (room.box_bottom + room.box_height)  # [Sb]
+    dx, dy, dz = d[..., 0, None], d[..., 1, None], d[..., 2, None]  # [..., 1] each
+    # One slab per axis of the box's frame: (origin [Sb], direction [..., Sb], half extent [Sb]).
+    # Each axis its own array, no stacked [..., Sb, 3]: reductions over an axis of 3 cost XLA's
+    # CPU backend several times the arithmetic (benchmarks/RESULTS.md).
+    slabs = (
+        (c * rx + s * ry, c * dx + s * dy, room.box_half[:, 0]),
+        (c * ry - s * rx, c * dy - s * dx, room.box_half[:, 1]),
+        (o[2] - centre_z, dz, centre_z - room.box_bottom),
     )
-    dx, dy = d[..., None, 0], d[..., None, 1]
-    dl = jnp.stack(
-        [
-            c * dx + s * dy,
-            -s * dx + c * dy,
-            jnp.broadcast_to(d[..., None, 2], dx.shape[:-1] + c.shape),
-        ],
-        -1,
-    )
-    inv = 1.0 / _safe(dl)
-    t1, t2 = (-half - ol) * inv, (half - ol) * inv
-    near = jnp.minimum(t1, t2).max(-1)
-    far = jnp.maximum(t1, t2).min(-1)
+    near, far = -jnp.inf, jnp.inf
+    for ol, dl, half in slabs:
+        inv = 1.0 / _safe(dl)
+        t1, t2 = (-half - ol) * inv, (half - ol) * inv
+        near, far = jnp.maximum(near, jnp.minimum(t1, t2)), jnp.minimum(far, jnp.maximum(t1, t2))
     hit = (far >= near) & (near >= 0) & room.box_active
     return jnp.where(hit, near, jnp.inf)
 
@@ -143,21 +147,21 @@ def _ray_boxes(o, d, room):
 def _ray_capsules(o, d, room):
     """[..., Sc] first hit of each ray on each upright capsule (inf: missed or inactive)."""
     r = room.cyl_radius  # [Sc]
-    rel = o[:2] - room.cyl_pos  # [Sc, 2]
-    dxy = d[..., None, :2]  # [..., 1, 2]
+    rx, ry = o[0] - room.cyl_pos[:, 0], o[1] - room.cyl_pos[:, 1]  # [Sc] each
+    dx, dy, dz = d[..., 0, None], d[..., 1, None], d[..., 2, None]  # [..., 1] each
     # Side: |rel + t d_xy| = r, the nearer root, where it lies between the two ends.
-    a = jnp.sum(dxy * dxy, -1)  # [..., 1]
-    b = jnp.sum(rel * dxy, -1)  # [..., Sc]
-    disc = b * b - a * (jnp.sum(rel * rel, -1) - r * r)
+    a = dx * dx + dy * dy  # [..., 1]
+    b = rx * dx + ry * dy  # [..., Sc]
+    disc = b * b - a * (rx * rx + ry * ry - r * r)
     t_side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / _safe(a)
-    z = o[2] + t_side * d[..., None, 2]
+    z = o[2] + t_side * dz
     side_ok = (disc >= 0) & (t_side >= 0) & (z >= room.cyl_bottom) & (z <= room.cyl_height)
     best = jnp.where(side_ok, t_side, jnp.inf)
     # Ends: spheres of radius r at the segment's two end points.
     for end in (room.cyl_bottom, room.cyl_height):
-        m = jnp.concatenate([rel, (o[2] - end)[:, None]], -1)  # [Sc, 3]
-        md = jnp.sum(m * d[..., None, :], -1)  # [..., Sc]
-        disc = md * md - (jnp.sum(m * m, -1) - r * r)
+        rz = o[2] - end  # [Sc]
+        md = b + rz * dz  # [..., Sc]: (rel, rz) . d
+        disc = md * md - (rx * rx + ry * ry + rz * rz - r * r)
         t = -md - jnp.sqrt(jnp.maximum(disc, 0.0))
         best = jnp.minimum(best, jnp.where((disc >= 0) & (t >= 0), t, jnp.inf))
     return jnp.where(room.cyl_active, best, jnp.inf)

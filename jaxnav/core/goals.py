@@ -36,7 +36,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from jaxnav.core import families
-from jaxnav.core.geometry import nearest, shape_distances, signed_distance
+from jaxnav.core.geometry import planar_distance, signed_distance
 from jaxnav.core.randomize import SceneParams
 from jaxnav.io import layouts as lay
 
@@ -46,6 +46,7 @@ PATH_POINTS = 64  # points per leg of a sampled room's cleared L-shaped path
 GRID_CELL = 0.2  # m, cell of the traced reachability grid of sampled rooms
 GRID_HALF = 5.25  # m, half extent the traced grid covers at least (the largest family room)
 SWEEPS = 8  # rounds of the traced flood; each follows a path through two turns, so 16 turns
+GRID_BLOCKS = 2  # blocks of rows of the traced grid whose clearance is computed in a loop
 
 
 @struct.dataclass
@@ -196,21 +197,25 @@ def _grid(half_extent: float):
     return jnp.asarray(np.stack(np.meshgrid(axis, axis), -1), jnp.float32)
 
 
-def goal_grid(params: SceneParams, half_extent: float):
-    """The traced grid of a sampled room: ([n, n, 2] centres of its cells, covering
-    +-half_extent m; (walls [n, n], boxes [n, n, Sb], cylinders [n, n, Sc]) m from them to the
-    nearest wall and to every obstacle slot of `params`, `geometry.shape_distances`). Computed
-    once per reset: the goal draw and the goal's field share it, as their rooms differ at most in
-    which obstacles are active (the cleared L-shaped path)."""
+def clearance(params: SceneParams, half_extent: float) -> jax.Array:
+    """[n, n] m from the centre of every cell of the traced grid (`_grid(half_extent)`) to the
+    nearest wall or active obstacle of the room `params` (`geometry.signed_distance`).
+
+    Computed in `GRID_BLOCKS` blocks of rows, in a loop: a loop's operands are computed once,
+    where XLA's CPU backend otherwise fuses the room sampler that drew `params` into the
+    per-cell computation and repeats it for every cell (six times the time over a batch of
+    resets, benchmarks/RESULTS.md).
+    """
     centres = _grid(half_extent)
-    return centres, shape_distances(params, centres)
+    blocks = centres.reshape(GRID_BLOCKS, -1, *centres.shape[1:])  # [B, n/B, n, 2]
+    per_block = jax.lax.map(lambda c: signed_distance(params, c), blocks)
+    return per_block.reshape(centres.shape[:2])
 
 
-def _free(params: SceneParams, grid, radius: float):
-    """([n, n] clearance beyond the robot m, [n, n] bool free) of the room `params` on `grid`
-    (`goal_grid`): a cell is free where the robot clears everything by half a cell (module
-    doc)."""
-    gap = nearest(params, *grid[1]) - radius
+def _free(params: SceneParams, half_extent: float, radius: float):
+    """([n, n] clearance beyond the robot m, [n, n] bool free) of the room `params` on the
+    traced grid: a cell is free where the robot clears everything by half a cell (module doc)."""
+    gap = clearance(params, half_extent) - radius
     return gap, gap >= 0.5 * GRID_CELL
 
 
@@ -230,15 +235,15 @@ def _grid_cell(n: int, xy: jax.Array) -> jax.Array:
 
 def _flood(free: jax.Array, centres: jax.Array, goal: jax.Array) -> jax.Array:
     """[n, n] grid steps from the cell nearest `goal` to every `free` cell (`grid_steps`)."""
-    straight = jnp.linalg.norm(centres - goal, axis=-1)
+    straight = planar_distance(centres, goal)
     return grid_steps(free, straight == straight.min())
 
 
-def goal_field(params: SceneParams, grid, goal: jax.Array, radius: float):
-    """[n, n] float32 grid steps from every cell of the traced grid to the goal's cell (inf
-    where the robot cannot reach it): the geodesic distance `geodesic` reads. `grid` is the
-    `goal_grid` of the room `params`."""
-    return _flood(_free(params, grid, radius)[1], grid[0], goal)
+def goal_field(params: SceneParams, half_extent: float, goal: jax.Array, radius: float):
+    """[n, n] float32 grid steps from every cell of the traced grid (`_grid(half_extent)`) to
+    the goal's cell (inf where the robot cannot reach it): the geodesic distance `geodesic`
+    reads."""
+    return _flood(_free(params, half_extent, radius)[1], _grid(half_extent), goal)
 
 
 def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array) -> jax.Array:
@@ -285,7 +290,7 @@ def _clear_path(key, params: SceneParams, goal, radius, path_clearance) -> Scene
 def sample_goal(
     key: jax.Array,
     params: SceneParams,
-    grid,
+    half_extent: float,
     goals: GoalCells,
     radius: float,
     clearance: float,
@@ -293,8 +298,8 @@ def sample_goal(
     path_clearance: float,
 ) -> tuple[SceneParams, jax.Array, jax.Array]:
     """(the episode's params, [2] goal m, [n, n] its `goal_field`) for the room `params` drew
-    (`randomize.sample`), with one flood of the traced `grid` (`goal_grid(params, half_extent)`,
-    half_extent static: at least half the largest sampled room).
+    (`randomize.sample`), with one flood of the traced grid (`_grid(half_extent)`, half_extent
+    static: at least half the largest sampled room).
 
     Layout rooms (layout_id >= 0) take their goal from `goals` (`_layout_goal`). Sampled rooms:
     the goal is a uniform cell at least `min_distance` from the spawn that keeps `clearance` from
@@ -306,14 +311,14 @@ def sample_goal(
     `geodesic` takes the straight line elsewhere.
     """
     k_layout, k_goal, k_spawn, k_room, k_path = jax.random.split(key, 5)
-    centres, spawn = grid[0], params.spawn[:2]  # [n, n, 2], [2]
+    centres, spawn = _grid(half_extent), params.spawn[:2]  # [n, n, 2], [2]
     pick = lambda k, ok: centres.reshape(-1, 2)[_uniform(k, ok)]  # noqa: E731
     where = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
     # Sampled rooms: the goal is a uniform far cell that keeps `clearance`, else (none is far
     # enough) a point of the interior, the path to it cleared before the flood.
-    gap, free = _free(params, grid, radius)
+    gap, free = _free(params, half_extent, radius)
     roomy = free & (gap >= clearance)  # [n, n] cells a goal or a moved spawn may take
-    far = roomy & (jnp.linalg.norm(centres - spawn, axis=-1) >= min_distance)
+    far = roomy & (planar_distance(centres, spawn) >= min_distance)
     found = far.any()
     interior = _interior_goal(k_room, params, radius, clearance, min_distance)
     room_goal = jnp.where(found, pick(k_goal, far), interior)
@@ -324,13 +329,13 @@ def sample_goal(
     sampled = params.layout_id < 0
     room = where(sampled, where(found, params, cleared), layout_room)
     goal = jnp.where(sampled, room_goal, layout_goal)
-    field = _flood(_free(room, grid, radius)[1], centres, goal)  # [n, n]: the one flood
+    field = _flood(_free(room, half_extent, radius)[1], centres, goal)  # [n, n]: the one flood
     # A sampled spawn the flood does not reach moves to a reached cell far from the goal that
     # keeps `clearance`; where there is none (rare), the path is cleared after the flood.
     reached = jnp.isfinite(field)
     n = centres.shape[0]
     col, row = jnp.clip(_grid_cell(n, spawn), 0, n - 1)
-    spots = reached & roomy & (jnp.linalg.norm(centres - goal, axis=-1) >= min_distance)
+    spots = reached & roomy & (planar_distance(centres, goal) >= min_distance)
     move = sampled & found & ~reached[row, col]
     moved = room.spawn.at[:2].set(pick(k_spawn, spots))
     room = room.replace(spawn=jnp.where(move & spots.any(), moved, room.spawn))

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxnav.core.checks import require_finite
-from jaxnav.core.goals import GRID_HALF, geodesic, goal_grid, sample_goal
+from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal
 from jaxnav.core.randomize import sample
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
@@ -143,11 +143,10 @@ class GoalEnv(NavTask):
         t, radius = self.task, self.robot.radius
         params = sample(k_scene, self.randomize, self.bank, radius)
         clearance = self.randomize.spawn_clearance
-        grid = goal_grid(params, self._grid_half)
         params, goal, field = sample_goal(
             k_goal,
             params,
-            grid,
+            self._grid_half,
             self.bank.goals,
             radius,
             clearance,
