@@ -54,7 +54,9 @@ def build_config(
     """A RunConfig of task `env` from a preset, layout files and {group: {field: value}}
     overrides (the randomisation's start from the training distribution)."""
     overrides = overrides or {}
-    ppo = {**task_entry(env).ppo_defaults, **overrides.get("ppo", {})}
+    entry = task_entry(env)
+    task_ppo = {**entry.ppo_defaults, **entry.preset_defaults.get(preset_name, {})}
+    ppo = {**task_ppo, **overrides.get("ppo", {})}
     groups = {"ppo": preset(preset_name, **ppo)}
     defaults = {"randomize": RunConfig.randomize, "robot": RunConfig.robot}
     for attr, cls, _ in GROUPS[1:]:

@@ -393,14 +393,18 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
 
 def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     """The goal task's own PPO defaults (1/64 of the robots draw a new episode per step, each
-    rollout's drawn at its start) go over every preset and under the user's settings; other
-    tasks keep the preset's."""
+    rollout's drawn at its start) go over every preset, and its cpu defaults (512 robots) over the
+    cpu preset's, all under the user's settings; other tasks keep the preset's."""
     from jaxnav.train import build_config
 
     for name in ("cpu", "gpu", "paper"):
         goal, avoid = build_config(name, env="goal").ppo, build_config(name, env="avoid").ppo
         assert (goal.reset_share, goal.reset_ahead) == (1 / 64, True)
         assert (avoid.reset_share, avoid.reset_ahead) == (1 / 16, False)
+        robots = {"cpu": 512, "gpu": 8192, "paper": 1}[name]
+        assert (goal.num_envs, avoid.num_envs) == (robots, 256 if name == "cpu" else robots)
+    cpu = build_config("cpu", env="goal", overrides={"ppo": {"num_envs": 128}}).ppo
+    assert (cpu.num_envs, cpu.minibatch_size, cpu.total_steps) == (128, 4096, 16_000_000)
     told = build_config(
         "gpu", env="goal", overrides={"ppo": {"reset_share": 0.25, "reset_ahead": False}}
     )
