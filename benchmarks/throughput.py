@@ -9,7 +9,8 @@ For each size: (a) env-only random rollouts of the training distribution (sim-to
 (b) full PPO updates of the `cpu` preset shape (rollout 32, 4 epochs, 4 minibatches), and the split of
 one control step into physics / sensor / reset sampling / a whole reset / policy forward, and of
 one PPO update into rollout and learning. `--env goal` times the `goal` task instead (its reset
-also draws the goal and its distance field). Every timing is the best of `--repeats` runs of a
+also draws the goal and its distance field), with the task's own PPO defaults (new episodes for
+1/64 of the robots, drawn ahead in training; the env step draws them per step). Every timing is the best of `--repeats` runs of a
 jitted scan, after compiling it, with `block_until_ready`.
 
 `--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
@@ -39,6 +40,7 @@ from jaxnav.core.scene import SceneConfig
 from jaxnav.ppo.config import PPOConfig, preset
 from jaxnav.ppo.train import make_network, make_train
 from jaxnav.tasks.avoid import AvoidConfig
+from jaxnav.tasks.registry import task_entry
 from jaxnav.wrappers import AutoReset
 
 # The training distribution (sim-to-real ranges on) with every obstacle slot in use.
@@ -198,7 +200,7 @@ def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
     levers = VARIANTS[variant]
     scene = SceneConfig(**levers.get("scene", {}))
     env = jaxnav.make_env(args.env, randomize=FULL, scene=scene)
-    ppo = levers.get("ppo", {})
+    ppo = {**task_entry(args.env).ppo_defaults, **levers.get("ppo", {})}
     state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     size = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
     row = {"num_envs": n, "variant": variant, "state_bytes": int(size)}  # one robot's EnvState

@@ -203,8 +203,8 @@ def clearance(params: SceneParams, half_extent: float) -> jax.Array:
 
     Computed in `GRID_BLOCKS` blocks of rows, in a loop: a loop's operands are computed once,
     where XLA's CPU backend otherwise fuses the room sampler that drew `params` into the
-    per-cell computation and repeats it for every cell (six times the time over a batch of
-    resets, benchmarks/RESULTS.md).
+    per-cell computation and repeats it for every cell (benchmarks/RESULTS.md, "A goal reset and
+    a sensor the CPU computes once").
     """
     centres = _grid(half_extent)
     blocks = centres.reshape(GRID_BLOCKS, -1, *centres.shape[1:])  # [B, n/B, n, 2]

@@ -52,8 +52,9 @@ register("avoid", AvoidEnv, AvoidConfig)
 # task draws new episodes for 1/64 of the robots per step rather than 1/16 (1.8x the env's pace on
 # an H200 when a reset flooded twice), each rollout's at its start: with both, every one of four
 # seeds met the time-to-solve bar within 20 s (benchmarks/RESULTS.md, "Point-goal navigation").
-# On the CPU the goal task trains 512 robots (the 2-core CPU's best pace, 1.4x that of 256) for
-# 16 M steps, about ten minutes there; per step, 512 robots learn as 256 do (RESULTS.md).
+# On the CPU the goal task trains 512 robots for 16 M steps: 2 cores simulate them at a better
+# pace per robot than 256, and per step the success on the benchmark rooms settles higher than
+# 256's (benchmarks/RESULTS.md, "A goal reset and a sensor the CPU computes once").
 register(
     "goal",
     GoalEnv,
