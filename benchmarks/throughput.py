@@ -10,8 +10,8 @@ For each size: (a) env-only random rollouts of the training distribution (sim-to
 one control step into physics / sensor / reset sampling / a whole reset / policy forward, and of
 one PPO update into rollout and learning. `--env goal` times the `goal` task instead (its reset
 also draws the goal and its distance field), with the task's own PPO defaults (new episodes for
-1/64 of the robots, drawn ahead in training; the env step draws them per step). Every timing is the best of `--repeats` runs of a
-jitted scan, after compiling it, with `block_until_ready`.
+1/64 of the robots, drawn ahead in training; the env step draws them per step). Every timing is
+the best of `--repeats` runs of a jitted scan, after compiling it, with `block_until_ready`.
 
 `--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
 contact pass in every physics step, the auto-reset selecting in every row), `default` the

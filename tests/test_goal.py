@@ -352,7 +352,7 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     """A reset floods the grid once, from the goal: the field reaches the spawn, which moves out
     of a pocket the goal is not in; where no cell is far enough the path is cleared first. The
     goals, rooms and fields are bit for bit those of the signed distance over the whole grid at
-    once (`goals.clearance` computes it in blocks of rows), and the field is `goal_field`'s."""
+    once (`goals.grid_clearance` computes it in blocks of rows), and the field is `goal_field`'s."""
     rooms = [OPEN, RING, SMALL_RING, POCKET]
     spawns = [(-1.5, -1.5), (0.0, 0.0), (0.0, 0.0), (-2.0, 1.0)]
     bank = make_bank(rooms, 8, 4)

@@ -197,7 +197,7 @@ def _grid(half_extent: float):
     return jnp.asarray(np.stack(np.meshgrid(axis, axis), -1), jnp.float32)
 
 
-def clearance(params: SceneParams, half_extent: float) -> jax.Array:
+def grid_clearance(params: SceneParams, half_extent: float) -> jax.Array:
     """[n, n] m from the centre of every cell of the traced grid (`_grid(half_extent)`) to the
     nearest wall or active obstacle of the room `params` (`geometry.signed_distance`).
 
@@ -215,7 +215,7 @@ def clearance(params: SceneParams, half_extent: float) -> jax.Array:
 def _free(params: SceneParams, half_extent: float, radius: float):
     """([n, n] clearance beyond the robot m, [n, n] bool free) of the room `params` on the
     traced grid: a cell is free where the robot clears everything by half a cell (module doc)."""
-    gap = clearance(params, half_extent) - radius
+    gap = grid_clearance(params, half_extent) - radius
     return gap, gap >= 0.5 * GRID_CELL
 
 

@@ -43,8 +43,13 @@ def register(
     """Makes task `name` available to `make_env`, the CLIs and saved runs. `ppo_defaults` go over
     every preset, `preset_defaults[preset]` over that preset's, both under the user's own
     settings."""
-    entry = (env_cls, config_cls, tuple(default_layouts), dict(ppo_defaults or {}))
-    TASKS[name] = TaskEntry(*entry, dict(preset_defaults or {}))
+    TASKS[name] = TaskEntry(
+        env_cls,
+        config_cls,
+        tuple(default_layouts),
+        dict(ppo_defaults or {}),
+        dict(preset_defaults or {}),
+    )
 
 
 register("avoid", AvoidEnv, AvoidConfig)
