@@ -2,12 +2,15 @@
 
     python benchmarks/latency.py --json benchmarks/latency.json
     python benchmarks/latency.py --checkpoint runs/avoid-cpu --calls 50000
+    python benchmarks/latency.py --env goal --preset gpu   # 221 inputs, 2 x 256 units
 
-What the robot does every control step: one observation [8] (numpy float32) in, one action (a Python
-int) out. Each call is timed on its own (perf_counter_ns) and the median, p90 and p99 are reported.
+What the robot does every control step: one observation (numpy float32; [8] for `avoid`, [221] for
+`goal`: 17 frames of sectors, goal and last command) in, one action (a Python int) out. Each call
+is timed on its own (perf_counter_ns) and the median, p90 and p99 are reported.
 Everything runs single-threaded (OMP_NUM_THREADS=1, onnxruntime with one intra-/inter-op thread, XLA
 without its thread pool) and the process is pinned to one core (`--core`). Without --checkpoint a
-freshly initialised network of the default size is used: latency does not depend on the weights.
+freshly initialised network of the task's size on `--preset` is used (`--env`, `--preset`):
+latency does not depend on the weights.
 """
 
 from __future__ import annotations
@@ -54,18 +57,19 @@ def time_calls(fn, obs: np.ndarray, calls: int, warmup: int = 1000) -> dict:
     }
 
 
-def fresh_run(root: Path) -> Path:
-    """A run folder holding a freshly initialised network of the default preset."""
+def fresh_run(root: Path, env: str, preset: str) -> Path:
+    """A run folder holding a freshly initialised network of task `env` on `preset`."""
     import jax
     import jax.numpy as jnp
 
     from jaxnav.io import checkpoint
-    from jaxnav.io.runconfig import RunConfig
     from jaxnav.ppo.networks import init_stats
     from jaxnav.ppo.train import TrainState, make_network
+    from jaxnav.tasks.registry import observation_size
+    from jaxnav.train import build_config
 
-    config = RunConfig()
-    size = config.sensor.num_sectors
+    config = build_config(preset, env=env)
+    size = observation_size(config.task, config.sensor)
     init = jax.jit(make_network(config.ppo, config.task.action_spec).init)
     params = init(jax.random.PRNGKey(0), jnp.zeros((1, size)))
     ts = TrainState(params, (), init_stats(size), (), jax.random.PRNGKey(1), jnp.int32(0))
@@ -103,18 +107,20 @@ def main() -> None:
     parser.add_argument("--checkpoint", type=Path, help="run or checkpoint folder (default: fresh)")
     parser.add_argument("--calls", type=int, default=20000, help="timed calls per backend")
     parser.add_argument("--core", type=int, default=0, help="CPU core to pin to (-1: no pinning)")
+    parser.add_argument("--env", default="avoid", help="the task of a fresh network")
+    parser.add_argument("--preset", default="cpu", help="the preset of a fresh network")
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args()
     if args.core >= 0 and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {args.core})
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        run = args.checkpoint or fresh_run(tmp / "run")
+        run = args.checkpoint or fresh_run(tmp / "run", args.env, args.preset)
         fns = backends(run, tmp)
-        sensor = fns["numpy"].sensor  # the observation the policy was trained on
+        policy = fns["numpy"]  # the observation the policy was trained on
+        sensor, size = policy.sensor, policy.observation_size
         rng = np.random.default_rng(0)
-        obs = rng.uniform(sensor.range_min, sensor.range_max, (256, sensor.num_sectors))
-        obs = obs.astype(np.float32)
+        obs = rng.uniform(sensor.range_min, sensor.range_max, (256, size)).astype(np.float32)
         actions = {name: [fn(o) for o in obs] for name, fn in fns.items()}
         assert all(a == actions["numpy"] for a in actions.values()), "backends disagree"
         results = {name: time_calls(fn, obs, args.calls) for name, fn in fns.items()}
@@ -133,6 +139,9 @@ def main() -> None:
             **run_info("python"),
             "pinned_core": args.core,
             "checkpoint": str(args.checkpoint) if args.checkpoint else "fresh (untrained)",
+            "env": args.env if not args.checkpoint else None,
+            "preset": args.preset if not args.checkpoint else None,
+            "observation_size": size,
             "target_us": TARGET_US,
             "results": results,
         }
