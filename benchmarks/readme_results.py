@@ -70,7 +70,8 @@ def train(run: Path, *flags: str) -> float:
     return time.perf_counter() - tick
 
 
-def evaluate(run: Path, out: Path, *flags: str) -> dict:
+def evaluate(run: Path, out: Path, *flags: str, pictures: str = "readme_pictures") -> dict:
+    """The JSON of `python -m jaxnav.evaluate` on `run`, its pictures in RESULTS/pictures."""
     sh(
         sys.executable,
         "-m",
@@ -79,6 +80,8 @@ def evaluate(run: Path, out: Path, *flags: str) -> dict:
         str(run),
         "--json",
         str(out),
+        "--plots",
+        str(RESULTS / pictures),
         *flags,
     )
     return json.loads(out.read_text())
