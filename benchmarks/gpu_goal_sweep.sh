@@ -28,6 +28,6 @@ import json, sys
 rows = [json.loads(line) for line in open(sys.argv[1]) if line.startswith("{")]
 for r in rows[-4:]:
     print(r["env_steps"], r["train_s"], round(r["train_success"], 3), round(r["success_rate"], 3),
-          round(r["spl"], 3), r["families"])
+          round(r["spl"], 3), r.get("collision_rate"), r["families"])
 PY
 done

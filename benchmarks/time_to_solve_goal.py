@@ -43,13 +43,17 @@ def goal_judge(evaluate, family):
     def judge_state(ts, metrics, record):
         out = evaluate((ts.params, ts.obs_stats), jax.random.PRNGKey(record["update"]))
         success = out["success"]  # [E] bool
-        per = {f: round(float(success[family == f].mean()), 3) for f in dict.fromkeys(family)}
+        names = dict.fromkeys(family)
+        per = {f: round(float(success[family == f].mean()), 3) for f in names}
+        hit = out["collided"]  # [E] bool; the other failures ran out of time
         entry = {
             **record,
             "train_success": float(jnp.nanmean(metrics["success"])),
             "success_rate": float(success.mean()),
             "spl": float(out["spl"].mean()),
+            "collision_rate": float(hit.mean()),
             "families": per,
+            "families_collided": {f: round(float(hit[family == f].mean()), 3) for f in names},
         }
         print(json.dumps(entry), flush=True)
         return entry, entry["success_rate"] >= SUCCESS_BAR and entry["spl"] >= SPL_BAR
