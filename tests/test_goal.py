@@ -393,9 +393,9 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
 
 def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     """The goal task's own PPO defaults (1/64 of the robots draw a new episode per step, each
-    rollout's drawn at its start) go over every preset, its cpu defaults (512 robots) over the cpu
-    preset's and its gpu defaults (256 x 256 networks) over the gpu preset's, all under the
-    user's settings; other tasks keep the preset's."""
+    rollout's drawn at its start) go over every preset, its cpu defaults (512 robots, 2 epochs)
+    over the cpu preset's and its gpu defaults (256 x 256 networks) over the gpu preset's, all
+    under the user's settings; other tasks keep the preset's."""
     from jaxnav.train import build_config
 
     for name in ("cpu", "gpu", "paper"):
@@ -405,7 +405,8 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
         robots = {"cpu": 512, "gpu": 8192, "paper": 1}[name]
         assert (goal.num_envs, avoid.num_envs) == (robots, 256 if name == "cpu" else robots)
     cpu = build_config("cpu", env="goal", overrides={"ppo": {"num_envs": 128}}).ppo
-    assert (cpu.num_envs, cpu.minibatch_size, cpu.total_steps) == (128, 4096, 16_000_000)
+    assert (cpu.num_envs, cpu.minibatch_size, cpu.num_epochs) == (128, 4096, 2)
+    assert cpu.total_steps == 16_000_000 and build_config("cpu").ppo.num_epochs == 4
     widths = {name: build_config(name, env="goal").ppo.hidden for name in ("cpu", "gpu")}
     assert widths == {"cpu": (64, 64), "gpu": (256, 256)}
     assert build_config("gpu", env="avoid").ppo.hidden == (64, 64)
