@@ -60,7 +60,7 @@ register("avoid", AvoidEnv, AvoidConfig)
 # On the CPU the goal task trains 512 robots for 16 M steps: 2 cores simulate them at a better
 # pace per robot than 256, and per step the success on the benchmark rooms settles higher than
 # 256's (benchmarks/RESULTS.md, "A goal reset and a sensor the CPU computes once"), in 2 epochs
-# per update: per step they learn as 4 do, and 2 cores train 1.2x as many steps in 10 minutes. On
+# per update: per step they learn as 4 do, and 2 cores train 1.3x as many steps in 10 minutes. On
 # the gpu preset its networks are 256 x 256: on an H200 they meet the bar in half the time of
 # 64 x 64, at 0.8-0.9 x the pace (benchmarks/RESULTS.md, "Wider networks for the goal task").
 register(
