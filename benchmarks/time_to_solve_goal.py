@@ -37,14 +37,18 @@ SUCCESS_BAR, SPL_BAR = 0.9, 0.7
 
 
 def goal_judge(evaluate, family):
-    """`train_to_bar`'s judge_state: success rate, SPL and per-family success on the suite,
-    printed as one JSON line, and whether they meet the bar."""
+    """`train_to_bar`'s judge_state: success rate, SPL, collision rate and per-family success and
+    collisions on the suite, printed as one JSON line, and whether they meet the bar."""
+
+    names = dict.fromkeys(family)
+
+    def per_family(flags):
+        """{family: share of its episodes where flags [E]}."""
+        return {f: round(float(flags[family == f].mean()), 3) for f in names}
 
     def judge_state(ts, metrics, record):
         out = evaluate((ts.params, ts.obs_stats), jax.random.PRNGKey(record["update"]))
         success = out["success"]  # [E] bool
-        names = dict.fromkeys(family)
-        per = {f: round(float(success[family == f].mean()), 3) for f in names}
         hit = out["collided"]  # [E] bool; the other failures ran out of time
         entry = {
             **record,
@@ -52,8 +56,8 @@ def goal_judge(evaluate, family):
             "success_rate": float(success.mean()),
             "spl": float(out["spl"].mean()),
             "collision_rate": float(hit.mean()),
-            "families": per,
-            "families_collided": {f: round(float(hit[family == f].mean()), 3) for f in names},
+            "families": per_family(success),
+            "families_collided": per_family(hit),
         }
         print(json.dumps(entry), flush=True)
         return entry, entry["success_rate"] >= SUCCESS_BAR and entry["spl"] >= SPL_BAR
