@@ -415,7 +415,7 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
         assert (goal.num_envs, avoid.num_envs) == (robots, 256 if name == "cpu" else robots)
     cpu = build_config("cpu", env="goal", overrides={"ppo": {"num_envs": 128}}).ppo
     assert (cpu.num_envs, cpu.minibatch_size, cpu.num_epochs) == (128, 4096, 2)
-    assert cpu.total_steps == 16_000_000 and build_config("cpu").ppo.num_epochs == 4
+    assert cpu.total_steps == 28_000_000 and build_config("cpu").ppo.num_epochs == 4
     widths = {name: build_config(name, env="goal").ppo.hidden for name in ("cpu", "gpu")}
     assert widths == {"cpu": (64, 64), "gpu": (256, 256)}
     assert build_config("gpu", env="avoid").ppo.hidden == (64, 64)

@@ -175,25 +175,25 @@ def grid_steps(free: jax.Array, seed: jax.Array, sweeps: int = SWEEPS) -> jax.Ar
     west, north and south: along a scan a free cell takes min(its own, its predecessor's + 1) and
     a blocked one stays unreached.
 
-    Under `jax.vmap` a rule of its own (`jax.custom_batching.custom_vmap`) hands the whole batch
-    to one flood, which on the CPU loops over the rows with the batch on the arrays' minor axis
-    (`_flood_rows`: a reset's flood in 1/7 of the time of the vmapped scans) and elsewhere runs
-    the log-depth `associative_scan` (`_flood_scans`: a loop of single rows would be a GPU kernel
-    a row). Both give the same steps, bit for bit."""
+    On the CPU, under `jax.vmap`, a rule of its own (`jax.custom_batching.custom_vmap`) hands
+    the whole batch to one flood that loops over the rows with the batch on the arrays' minor axis
+    (`_flood_rows`; benchmarks/RESULTS.md, "A flood a row at a time"); on an accelerator,
+    where a loop over single rows would be a kernel a row, every scan is a log-depth
+    `associative_scan` (`_flood_scans`). Both give the same steps, bit for bit."""
+    if jax.default_backend() != "cpu":
+        return _flood_scans(free, seed, sweeps)
     free, seed = jnp.broadcast_arrays(free, seed)
     return _batched_steps(sweeps)(free, seed)
 
 
 @functools.cache
 def _batched_steps(sweeps: int):
-    """`grid_steps` with `sweeps` rounds, whose vmap passes the batch to a single flood."""
+    """The CPU's `grid_steps` with `sweeps` rounds, whose vmap passes the batch to one
+    `_flood_rows`."""
 
     @jax.custom_batching.custom_vmap
     def steps(free, seed):
-        flood = lambda platform: lambda f, s: platform(f, s, sweeps)  # noqa: E731
-        return jax.lax.platform_dependent(
-            free, seed, cpu=flood(_flood_rows), default=flood(_flood_scans)
-        )
+        return _flood_rows(free, seed, sweeps)
 
     @steps.def_vmap
     def _batched(axis_size, in_batched, free, seed):
@@ -231,9 +231,10 @@ def _flood_rows(free: jax.Array, seed: jax.Array, sweeps: int) -> jax.Array:
     """`grid_steps` of grids [..., H, W], computed as [H, W, batch], a scan a loop over rows."""
     lead, (h, w) = free.shape[:-2], free.shape[-2:]
     free, seed = (jnp.moveaxis(x.reshape(-1, h, w), 0, -1) for x in (free, seed))  # [H, W, B]
-    # Unreached cells hold `far` or a little more (a scan adds at most one a cell and starts
-    # from `far`), so every reachable count (< h * w) stays below it.
-    dtype, far = (jnp.int16, 30_000) if h * w + max(h, w) < 30_000 else (jnp.int32, 2**30)
+    # Unreached cells hold `far` or up to a row's length more (a scan starts from `far` and adds
+    # one a cell), and every reachable count (< h * w) stays below it: int16 where both fit.
+    small = h * w < 30_000 and max(h, w) < 2_000
+    dtype, far = (jnp.int16, 30_000) if small else (jnp.int32, 2**30)
 
     def scan(steps, free, reverse):  # along axis 0 of [L, M, B]
         length = steps.shape[0]

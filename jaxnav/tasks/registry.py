@@ -57,10 +57,11 @@ register("avoid", AvoidEnv, AvoidConfig)
 # task draws new episodes for 1/64 of the robots per step rather than 1/16 (1.8x the env's pace on
 # an H200 when a reset flooded twice), each rollout's at its start: with both, every one of four
 # seeds met the time-to-solve bar within 20 s (benchmarks/RESULTS.md, "Point-goal navigation").
-# On the CPU the goal task trains 512 robots for 16 M steps: 2 cores simulate them at a better
-# pace per robot than 256, and per step the success on the benchmark rooms settles higher than
-# 256's (benchmarks/RESULTS.md, "A goal reset and a sensor the CPU computes once"), in 2 epochs
-# per update: per step they learn as 4 do, and 2 cores train 1.3x as many steps in 10 minutes. On
+# On the CPU the goal task trains 512 robots for 28 M steps (about 10 minutes of 2 cores,
+# benchmarks/RESULTS.md, "A flood a row at a time"): 2 cores simulate them at a better pace per
+# robot than 256, and per step the success on the benchmark rooms settles higher than 256's
+# (benchmarks/RESULTS.md, "A goal reset and a sensor the CPU computes once"), in 2 epochs per
+# update: per step they learn as 4 do, and 2 cores train 1.3x as many steps in 10 minutes. On
 # the gpu preset its networks are 256 x 256: on an H200 they meet the bar in half the time of
 # 64 x 64, at 0.8-0.9 x the pace (benchmarks/RESULTS.md, "Wider networks for the goal task").
 register(
@@ -73,7 +74,7 @@ register(
             "num_envs": 512,
             "minibatch_size": 4096,
             "num_epochs": 2,
-            "total_steps": 16_000_000,
+            "total_steps": 28_000_000,
         },
         "gpu": {"hidden": (256, 256)},
     },
