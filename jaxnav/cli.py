@@ -19,6 +19,7 @@ import sys
 import threading
 import types
 from collections.abc import Callable
+from pathlib import Path
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a Ctrl-C
 COMMANDS = ("jaxnav.train", "jaxnav.evaluate", "jaxnav.export")
@@ -93,9 +94,25 @@ class Interrupts:
             return
         if self.cleanup is not None:
             self.cleanup()
+        end_children()
         sys.stdout.flush()
         print(f"interrupted ({name}): {self.note}", file=sys.stderr, flush=True)
         os._exit(EXIT_INTERRUPTED)
+
+
+def end_children() -> None:
+    """Kills this process's child processes (Linux; elsewhere nothing): a probe a library runs
+    while it is imported (`import mujoco` starts pyGLFW's, a Python that prints the library's
+    version to a pipe back to this process) would otherwise outlive it and print a
+    BrokenPipeError traceback under the one line."""
+    me = os.getpid()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:  # pid (comm) state ppid ...; comm may hold spaces and parentheses
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == me:
+                os.kill(int(stat.parent.name), signal.SIGKILL)
+        except (OSError, ValueError, IndexError):
+            continue
 
 
 def interruptible(fn: Callable, *args):

@@ -223,6 +223,22 @@ def test_sigint_while_importing_exits_at_once(tmp_path, delay):
     assert not (tmp_path / "run").exists()
 
 
+def test_an_interrupt_ends_the_children_a_library_started():
+    """`import mujoco` starts pyGLFW's version probe, a Python that prints to a pipe back to its
+    parent: ended with its parent, it would print a BrokenPipeError traceback (`cli.end_children`)."""
+    script = (
+        "import subprocess, sys; from jaxnav import cli\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
+        "cli.end_children()\n"
+        "print(child.wait(timeout=10))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == str(-signal.SIGKILL)
+
+
 def test_sigint_while_compiling_exits_at_once_and_removes_the_folder(tmp_path):
     out = tmp_path / "run"
     proc = _launch(out)
