@@ -250,9 +250,11 @@ def _flood_rows(free: jax.Array, seed: jax.Array, sweeps: int) -> jax.Array:
         start = jnp.full(steps.shape[1:], far, dtype)
         return jax.lax.fori_loop(0, length, cell, (steps, start))[0]
 
+    free_t = jnp.swapaxes(free, 0, 1)  # [W, H, B]: the columns' scans run along its rows
+
     def round_(_, steps):
-        across, free_t = jnp.swapaxes(steps, 0, 1), jnp.swapaxes(free, 0, 1)  # [W, H, B]
-        steps = jnp.swapaxes(scan(scan(across, free_t, False), free_t, True), 0, 1)
+        across = scan(scan(jnp.swapaxes(steps, 0, 1), free_t, False), free_t, True)
+        steps = jnp.swapaxes(across, 0, 1)
         return scan(scan(steps, free, False), free, True)
 
     steps = jax.lax.fori_loop(0, sweeps, round_, jnp.where(seed & free, 0, far).astype(dtype))
