@@ -40,7 +40,7 @@ from jaxnav.core.scene import SceneConfig
 from jaxnav.ppo.config import PPOConfig, preset
 from jaxnav.ppo.train import make_network, make_train
 from jaxnav.tasks.avoid import AvoidConfig
-from jaxnav.tasks.registry import task_entry
+from jaxnav.tasks.registry import task_defaults
 from jaxnav.wrappers import AutoReset
 
 # The training distribution (sim-to-real ranges on) with every obstacle slot in use.
@@ -200,7 +200,7 @@ def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
     levers = VARIANTS[variant]
     scene = SceneConfig(**levers.get("scene", {}))
     env = jaxnav.make_env(args.env, randomize=FULL, scene=scene)
-    ppo = {**task_entry(args.env).ppo_defaults, **levers.get("ppo", {})}
+    ppo = {**task_defaults(args.env).get("ppo", {}), **levers.get("ppo", {})}
     state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     size = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
     row = {"num_envs": n, "variant": variant, "state_bytes": int(size)}  # one robot's EnvState

@@ -45,24 +45,24 @@ from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overr
 from jaxnav.ppo.config import PRESETS, preset
 from jaxnav.ppo.train import make_train
 from jaxnav.tasks.base import ACTIONS
-from jaxnav.tasks.registry import TASKS, make_env, task_entry
+from jaxnav.tasks.registry import TASKS, make_env, task_defaults
 
 
 def build_config(
     preset_name="cpu", seed=0, layout_files=None, overrides=None, env="avoid"
 ) -> RunConfig:
     """A RunConfig of task `env` from a preset, layout files and {group: {field: value}}
-    overrides (the randomisation's start from the training distribution)."""
+    overrides (the randomisation's start from the task's training distribution)."""
     overrides = overrides or {}
-    entry = task_entry(env)
-    task_ppo = {**entry.ppo_defaults, **entry.preset_defaults.get(preset_name, {})}
-    ppo = {**task_ppo, **overrides.get("ppo", {})}
+    task = task_defaults(env, preset_name)
+    ppo = {**task.get("ppo", {}), **overrides.get("ppo", {})}
     groups = {"ppo": preset(preset_name, **ppo)}
     defaults = {"randomize": RunConfig.randomize, "robot": RunConfig.robot}
     for attr, cls, _ in GROUPS[1:]:
         cls = group_class(attr, cls, env)
         base = defaults.get(attr) or cls()
-        groups[attr] = dataclasses.replace(base, **overrides.get(attr, {}))
+        fields = {**task.get(attr, {}), **overrides.get(attr, {})}
+        groups[attr] = dataclasses.replace(base, **fields)
     layouts = None
     if layout_files:
         layouts = tuple(layout_to_dict(lay) for f in layout_files for lay in load_layout(f))

@@ -14,7 +14,7 @@ import jaxnav
 from jaxnav.core import families, goals
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.goals import GRID_CELL, grid_steps, shortest_paths
-from jaxnav.core.randomize import TRAINING, make_bank
+from jaxnav.core.randomize import TRAINING, RandomizeConfig, family_weights, make_bank
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.evaluate import spl_values
 from jaxnav.io.layouts import Box, LayoutError, RoomLayout, parse_layouts
@@ -398,6 +398,32 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
         col, row = np.floor(spawn[e] / GRID_CELL + 0.5 * field.shape[1]).astype(int)
         assert np.isfinite(field[e, row, col])
     assert np.linalg.norm(goal[:2] - spawn[:2], axis=-1).min() >= 1.5
+
+
+def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_hard_ones():
+    """The goal task's training distribution is `TRAINING` with its sampled rooms drawn from the
+    room families and the 'random' rooms alike, and on the cpu preset from the families only,
+    corridors and clutter most often; in runs and in `make_env` without layouts, under the
+    user's settings; `avoid` keeps `TRAINING` as it is."""
+    from jaxnav.tasks.registry import GOAL_CPU_FAMILIES, training_randomize
+    from jaxnav.train import build_config
+
+    cpu, gpu = (build_config(p, env="goal").randomize for p in ("cpu", "gpu"))
+    assert (cpu.families, gpu.families) == (GOAL_CPU_FAMILIES, "all")
+    for r in (cpu, gpu):
+        assert dataclasses.replace(r, families="") == TRAINING  # only the families differ
+    w = family_weights(cpu.families)
+    assert "random" not in w and abs(sum(w.values()) - 1) < 1e-9
+    assert w["corridor"] > w["clutter"] > w["pillars"] > w["joined"] > w["open"] == w["ltu"]
+    assert set(w) == set(family_weights("all")) - {"random"}
+    for name in ("cpu", "gpu", "paper"):
+        assert build_config(name, env="avoid").randomize == TRAINING
+    told = build_config(env="goal", overrides={"randomize": {"families": "random"}}).randomize
+    assert told.families == "random"
+    assert jaxnav.make_env("goal").randomize == training_randomize("goal") == gpu
+    assert jaxnav.make_env("avoid").randomize == TRAINING
+    room = RoomLayout(name="r", size=(4.0, 4.0), robot_pos=(0.0, 0.0), robot_yaw=0.0)
+    assert jaxnav.make_env("goal", layouts=[room]).randomize == RandomizeConfig()
 
 
 def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
