@@ -4,8 +4,10 @@
 #   OUT=dir MAXS=120 bash benchmarks/gpu_goal_sweep.sh "base" "sample --sample" \
 #       "hist16 --set task.history=16"
 # Each argument: a name, then that variant's extra flags; $EXTRA are every variant's and $PRESET
-# the preset (default gpu); with $GPUS set, variant i runs on GPU i mod $GPUS. Writes
-# $OUT/goal_<name>.json, and the printout to $LOGS/goal_<name>.log (default $OUT).
+# the preset (default gpu); with $GPUS set, variant i runs on GPU i mod $GPUS. Every variant trains
+# in `--set randomize.families=all` (the cpu preset's own mixture too) unless its flags set the
+# families again. Writes $OUT/goal_<name>.json, and the printout to $LOGS/goal_<name>.log (default
+# $OUT).
 export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEMFRAC:-0.12} PYTHONUNBUFFERED=1
 out=${OUT:-/tmp}
 logs=${LOGS:-$out}
