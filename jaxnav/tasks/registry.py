@@ -115,10 +115,10 @@ def task_defaults(name: str, preset: str | None = None) -> dict[str, dict]:
     return merged
 
 
-def training_randomize(name: str = "avoid", preset: str | None = None) -> RandomizeConfig:
-    """Task `name`'s training distribution (with `preset`'s defaults): `randomize.TRAINING` with
-    the task's own settings over it."""
-    return dataclasses.replace(TRAINING, **task_defaults(name, preset).get("randomize", {}))
+def training_randomize(name: str = "avoid") -> RandomizeConfig:
+    """Task `name`'s training distribution: `randomize.TRAINING` with the task's own settings of
+    every preset over it (a preset's own settings are `build_config`'s)."""
+    return dataclasses.replace(TRAINING, **task_defaults(name).get("randomize", {}))
 
 
 def observation_size(task, sensor: SensorConfig) -> int:
