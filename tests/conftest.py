@@ -36,9 +36,11 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 import jaxnav  # noqa: E402
-from jaxnav.core.randomize import RandomizeConfig  # noqa: E402
+from jaxnav.core.randomize import TRAINING, RandomizeConfig  # noqa: E402
+from jaxnav.core.scene import SCENES_DIR  # noqa: E402
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout  # noqa: E402
 from jaxnav.viz import render  # noqa: E402
+from jaxnav.wrappers import AutoReset, EpisodeStats  # noqa: E402
 
 # Deterministic physics and sensing: no randomisation of gain, traction or noise.
 EXACT = RandomizeConfig(
@@ -78,6 +80,23 @@ def probe_env():
         RoomLayout(name="wall", size=(3.0, 3.0), robot_pos=(0.0, 0.0), robot_yaw=0.0),
     ]
     env = jaxnav.make_env("avoid", layouts=layouts, randomize=EXACT)
+    return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+@pytest.fixture(scope="session")
+def mixed_env():
+    """`avoid` in the training and inference rooms and sampled rooms, 20-step episodes."""
+    layouts = jaxnav.load_layout(SCENES_DIR / "train_room.json") + jaxnav.load_layout(
+        SCENES_DIR / "inference_room.json"
+    )
+    return jaxnav.make_env("avoid", layouts=layouts, randomize=TRAINING, max_steps=20)
+
+
+@pytest.fixture(scope="session")
+def wrapped_mixed(mixed_env):
+    """`mixed_env` under AutoReset(EpisodeStats(...)): (env, jitted reset, jitted step), compiled
+    once for the tests that step a batch of it (keep their batch at 16 to share the program)."""
+    env = AutoReset(EpisodeStats(mixed_env))
     return env, jax.jit(env.reset), jax.jit(env.step)
 
 

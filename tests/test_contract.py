@@ -21,7 +21,7 @@ from jaxnav.export import export
 from jaxnav.policy import forward_policy
 from jaxnav.robot_side.policy import NumpyPolicy
 from jaxnav.tasks import registry
-from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
+from jaxnav.wrappers import EPISODE
 
 
 @pytest.fixture
@@ -83,10 +83,10 @@ def test_default_env_is_the_training_mixture():
     assert np.asarray(params.accel).min() > 0
 
 
-def _mujoco_touching(env, params, qpos) -> bool:
-    """MuJoCo's own collision (CPU, not MJX) of the bumper with the room `params` at `qpos`."""
+def _mujoco_touching(env, fields, qpos) -> bool:
+    """MuJoCo's own collision (CPU, not MJX) of the bumper at `qpos` in the room whose geom fields
+    (`scene.geom_fields`, as numpy) are `fields`."""
     m = env.scene.mj_model
-    fields = jax.device_get(env.scene.geom_fields(params))
     m.geom_pos[:], m.geom_quat[:], m.geom_size[:] = (
         fields["geom_pos"], fields["geom_quat"], fields["geom_size"],
     )  # fmt: skip
@@ -110,23 +110,29 @@ def test_analytic_collision_agrees_with_mujoco():
     env = jaxnav.make_env("avoid", layouts=[], scene=SceneConfig(fast_contacts=True))
     cfg = RandomizeConfig(sampled_room_prob=1.0, num_boxes=(6, 8), num_cylinders=(3, 4))
     keys = jax.random.split(jax.random.PRNGKey(1), 12)
-    rooms = jax.vmap(lambda k: sample(k, cfg, env.bank, env.robot.radius))(keys)
+    rooms = jax.jit(jax.vmap(lambda k: sample(k, cfg, env.bank, env.robot.radius)))(keys)
     # Low obstacles too, some under the bumper's centre height, so the test is 3-D.
     heights = jax.random.uniform(jax.random.PRNGKey(2), (12, 12), minval=0.05, maxval=0.6)
     rooms = rooms.replace(box_height=heights[:, :8], cyl_height=heights[:, 8:])
     rng = np.random.default_rng(0)
-    touching = jax.jit(lambda room, qpos: env.touching(room, SimpleNamespace(qpos=qpos)))
+
+    @jax.jit
+    def ours(room, qpos):  # (touching, the bumper's gap) by the env's analytic test
+        gap = signed_distance(room, qpos[:2], env.scene.bumper_z)
+        return env.touching(room, SimpleNamespace(qpos=qpos)), gap
+
+    fields = jax.device_get(jax.jit(jax.vmap(env.scene.geom_fields))(rooms))
     agree = checked = 0
     for i in range(12):
         room = jax.tree_util.tree_map(lambda x, i=i: x[i], rooms)
         half = np.asarray(room.room_half)
         for _ in range(40):
             qpos = np.array([*rng.uniform(-half, half), rng.uniform(-np.pi, np.pi)], np.float32)
-            gap = float(signed_distance(room, qpos[:2], env.scene.bumper_z))
-            if abs(gap - env.scene.bumper_radius) < 1e-3:
+            touching, gap = ours(room, jnp.asarray(qpos))
+            if abs(float(gap) - env.scene.bumper_radius) < 1e-3:
                 continue  # within float32 round-off of touching: either answer is right
-            ours = bool(touching(room, jnp.asarray(qpos)))
-            agree += ours == _mujoco_touching(env, room, qpos)
+            room_fields = {k: v[i] for k, v in fields.items()}
+            agree += bool(touching) == _mujoco_touching(env, room_fields, qpos)
             checked += 1
     assert checked > 400 and agree == checked
 
@@ -140,7 +146,7 @@ def test_analytic_rays_agree_with_mjx_ray():
         overhang_prob=0.3,
     )  # fmt: skip
     keys = jax.random.split(jax.random.PRNGKey(5), 16)
-    rooms = jax.vmap(lambda k: sample(k, cfg, env.bank, env.robot.radius))(keys)
+    rooms = jax.jit(jax.vmap(lambda k: sample(k, cfg, env.bank, env.robot.radius)))(keys)
     groups = tuple(int(g == OBSTACLE_GROUP) for g in range(6))
 
     @jax.jit
@@ -168,16 +174,15 @@ def test_analytic_rays_agree_with_mjx_ray():
     assert hits > 500  # most rays above are not walls: the obstacles are really tested
 
 
-def test_wrappers_publish_finished_episode_sums():
-    env = jaxnav.make_env("avoid", max_steps=5, randomize=RandomizeConfig(sampled_room_prob=1.0))
-    wrapped = AutoReset(EpisodeStats(env))
-    state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(3), 8))
-    step = jax.jit(wrapped.step)
-    returns = np.zeros(8)
-    for _ in range(5):
-        state = step(state, jnp.full(8, 1, jnp.int32))  # turning in place never collides
+def test_wrappers_publish_finished_episode_sums(wrapped_mixed):
+    wrapped, reset, step = wrapped_mixed  # 20-step episodes; batch 16, as the fixture's other test
+    assert wrapped.task.max_steps == 20
+    state = reset(jax.random.split(jax.random.PRNGKey(3), 16))
+    returns = np.zeros(16)
+    for _ in range(20):
+        state = step(state, jnp.full(16, 1, jnp.int32))  # turning in place never collides
         returns += np.asarray(state.reward)
     assert np.asarray(state.done).all() and np.asarray(state.truncated).all()
     np.testing.assert_allclose(np.asarray(state.info[EPISODE]["return"]), returns, rtol=1e-5)
-    np.testing.assert_array_equal(np.asarray(state.info[EPISODE]["length"]), 5)
+    np.testing.assert_array_equal(np.asarray(state.info[EPISODE]["length"]), 20)
     assert (np.asarray(state.info["steps"]) == 0).all()  # a new episode has started

@@ -7,19 +7,9 @@ import pytest
 from conftest import start_in, traced_once
 
 import jaxnav
-from jaxnav.core.randomize import TRAINING, RandomizeConfig, clearance, sample
+from jaxnav.core.randomize import RandomizeConfig, clearance, sample
 from jaxnav.core.robot import TURTLEBOT2I
-from jaxnav.core.scene import SCENES_DIR
 from jaxnav.core.sensors import SensorConfig
-from jaxnav.wrappers import AutoReset, EpisodeStats
-
-
-@pytest.fixture(scope="module")
-def mixed_env():
-    layouts = jaxnav.load_layout(SCENES_DIR / "train_room.json") + jaxnav.load_layout(
-        SCENES_DIR / "inference_room.json"
-    )
-    return jaxnav.make_env("avoid", layouts=layouts, randomize=TRAINING, max_steps=20)
 
 
 def test_api_sizes(mixed_env):
@@ -31,10 +21,9 @@ def test_unknown_env_lists_valid_names():
         jaxnav.make_env("fly")
 
 
-def test_batch_of_mixed_layouts_shapes_and_finite(mixed_env):
+def test_batch_of_mixed_layouts_shapes_and_finite(wrapped_mixed):
+    _, reset, step = wrapped_mixed
     batch = 16
-    env = AutoReset(EpisodeStats(mixed_env))
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
     state = reset(jax.random.split(jax.random.PRNGKey(0), batch))
     ids = set(np.asarray(state.info["params"].layout_id).tolist())
     assert {-1, 0, 1} <= ids, ids  # sampled rooms and both layouts in one batch
@@ -105,7 +94,7 @@ def test_spawn_never_overlaps(mixed_env):
     params = jax.jit(jax.vmap(lambda k: sample(k, cfg, mixed_env.bank, TURTLEBOT2I.radius)))(
         jax.random.split(jax.random.PRNGKey(3), 4000)
     )
-    gap = jax.vmap(clearance)(params, params.spawn[:, :2]) - TURTLEBOT2I.radius
+    gap = jax.jit(jax.vmap(clearance))(params, params.spawn[:, :2]) - TURTLEBOT2I.radius
     assert float(gap.min()) > 0.0
     # Nearly all spawns also keep the configured clearance (crowded layouts may fall back).
     assert float(jnp.mean(gap >= cfg.spawn_clearance - 1e-4)) > 0.99
@@ -131,12 +120,18 @@ def test_batched_model_matches_per_env_model(mixed_env):
     params = jax.jit(jax.vmap(mixed_env.reset))(jax.random.split(jax.random.PRNGKey(5), 4)).info[
         "params"
     ]
-    model, in_axes = scene.batched_model(params)
-    assert model.geom_pos.shape == (4, scene.model.ngeom, 3)
-    data = jax.vmap(lambda p: mjx.make_data(scene.model).replace(qpos=p.spawn))(params)
-    out = jax.vmap(mjx.kinematics, in_axes=(in_axes, 0))(model, data)
-    single = mjx.kinematics(
-        scene.model_for(jax.tree_util.tree_map(lambda x: x[2], params)),
-        jax.tree_util.tree_map(lambda x: x[2], data),
-    )
-    np.testing.assert_allclose(out.geom_xpos[2], single.geom_xpos, atol=1e-6)
+
+    @jax.jit
+    def batched(params):  # [4, G, 3] geom positions of the batched model, and its kinematics'
+        model, in_axes = scene.batched_model(params)
+        data = jax.vmap(lambda p: mjx.make_data(scene.model).replace(qpos=p.spawn))(params)
+        return model.geom_pos, jax.vmap(mjx.kinematics, in_axes=(in_axes, 0))(model, data)
+
+    @jax.jit
+    def single(p):  # one env's own model, kinematics at its spawn
+        return mjx.kinematics(scene.model_for(p), mjx.make_data(scene.model).replace(qpos=p.spawn))
+
+    geom_pos, out = batched(params)
+    assert geom_pos.shape == (4, scene.model.ngeom, 3)
+    alone = single(jax.tree_util.tree_map(lambda x: x[2], params))
+    np.testing.assert_allclose(out.geom_xpos[2], alone.geom_xpos, atol=1e-6)

@@ -189,9 +189,10 @@ def _cautious():
 
 
 def test_one_batch_matches_per_room_rollouts():
-    """Three rooms in one compiled batch give each room the metrics of its own env's rollout."""
+    """Two rooms of different families in one compiled batch give each room the metrics of its
+    own env's rollout."""
     suite = load_suite("benchmark")
-    rooms = [suite["corridor"][0], suite["clutter"][1], suite["joined"][2]]
+    rooms = [suite["corridor"][0], suite["clutter"][1]]
     episodes, steps = 3, 120
     batch = evaluate(
         _cautious(), rooms, episodes=episodes, steps=steps, seed=1, stochastic_env=False

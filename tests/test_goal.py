@@ -297,8 +297,9 @@ def test_family_goals_are_reachable_and_often_behind_walls():
             )
         ),
     )
+    rooms = jax.device_get(params)  # numpy: the loop below indexes it per env
     for e in range(len(goals)):
-        room = jax.tree_util.tree_map(lambda x, e=e: x[e], params)
+        room = jax.tree_util.tree_map(lambda x, e=e: x[e], rooms)
         layout = families.to_layout(room, "family")
         start = np.asarray(room.spawn[:2])
         assert float(families.lay.clearance(layout, goals[e])) > R
@@ -327,18 +328,15 @@ def test_geodesic_progress_pays_for_a_detour():
     env = jaxnav.make_env("goal", layouts=[wall], randomize=EXACT)
     reset, step = jax.jit(env.reset), jax.jit(env.step)
     state = start_in(env, reset, 0)
-    start_geo = float(
-        jaxnav.core.goals.geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2])
-    )
+    geodesic = jax.jit(jaxnav.core.goals.geodesic)
+    start_geo = float(geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2]))
     assert start_geo > 5.0  # 1.9 m north, 3 m east, 1.9 m south (the straight line is 3 m)
     total = 0.0
     for _ in range(15):  # 0.75 m north, away from the goal in a straight line
         state = step(state, jnp.int32(0))
         total += float(state.reward) - env.task.time_reward
     assert total > 0.6  # the geodesic shrank by about the distance driven
-    geo = float(
-        jaxnav.core.goals.geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2])
-    )
+    geo = float(geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2]))
     np.testing.assert_allclose(total, start_geo - geo, atol=1e-4)
 
 

@@ -184,7 +184,7 @@ def test_goal_task_movers_keep_clear_and_change_without_recompiling():
     assert (np.linalg.norm(centre - goal, axis=-1) - r)[on].min() > env.robot.radius
     static = p.cyl_active.copy()
     static[:, movers] = False
-    clear = np.asarray(jax.vmap(signed_distance)(p.replace(cyl_active=static), centre))
+    clear = np.asarray(jax.jit(jax.vmap(signed_distance))(p.replace(cyl_active=static), centre))
     assert (clear[on] > r[on]).all()
     # Two steps later each has moved 2 v dt (less where it bounced and waited).
     after = np.asarray(states.info["params"].cyl_pos)[:, movers]

@@ -35,7 +35,11 @@ def interrupt(out, sig):
     return proc.returncode, stdout, stderr
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+# SIGINT's own handling (one line, the folder kept or removed) is tested in test_reliability.py;
+# its checkpoint-and-resume is the same path as SIGTERM's, so it runs with the slow tests.
+@pytest.mark.parametrize(
+    "sig", [pytest.param(signal.SIGINT, marks=pytest.mark.slow), signal.SIGTERM]
+)
 def test_signal_checkpoints_then_resume_matches_uninterrupted(tiny_run, tmp_path, sig):
     reference, _ = tiny_run  # the same flags, never interrupted
     out = tmp_path / "run"
@@ -96,6 +100,7 @@ def test_crash_during_checkpoint_write_keeps_previous(tmp_path, monkeypatch):
     assert all(np.array_equal(before[k], after[k]) for k in before)
 
 
+@pytest.mark.slow
 def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch):
     real = train_module.make_train
 
