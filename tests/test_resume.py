@@ -35,8 +35,9 @@ def interrupt(out, sig):
     return proc.returncode, stdout, stderr
 
 
-# SIGINT's own handling (one line, the folder kept or removed) is tested in test_reliability.py;
-# its checkpoint-and-resume is the same path as SIGTERM's, so it runs with the slow tests.
+# SIGINT's own handling (exit at once in one line, an unfinished folder removed) is tested in
+# test_reliability.py; its checkpoint-and-resume is the same path as SIGTERM's, so it runs with
+# the slow tests.
 @pytest.mark.parametrize(
     "sig", [pytest.param(signal.SIGINT, marks=pytest.mark.slow), signal.SIGTERM]
 )
