@@ -340,6 +340,52 @@ def test_geodesic_progress_pays_for_a_detour():
     np.testing.assert_allclose(total, start_geo - geo, atol=1e-4)
 
 
+def test_privileged_critic_sees_the_way_to_go():
+    """What only the critic sees (`state.info["critic"]`): the distance to go as the progress
+    reward measures it, how much closer a 0.3 m step in each of 8 directions would bring the
+    robot, and the share of the time limit used. Behind a wall the best step is away from the
+    goal's straight line; in the open it is the straight line."""
+    from jaxnav.tasks.goal import CRITIC_FEATURES, LOOK
+
+    detour = RoomLayout(
+        name="detour",
+        size=(6.0, 4.0),
+        obstacles=(Box(pos=(0.0, -0.5), size=(0.2, 3.0)),),  # open 1 m at the north end
+        robot_pos=(-1.53, -1.07),  # off the 0.2 m grid's lines, which probes could round across
+        robot_yaw=np.pi / 2,  # north, along the wall
+        goal_pos=(1.5, -1.0),  # east, behind the wall
+    )
+    env = jaxnav.make_env("goal", layouts=[detour], randomize=EXACT, max_steps=200)
+    assert env.task.critic_observations == CRITIC_FEATURES == 10
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    state = start_in(env, reset, 0)
+    geodesic = jax.jit(jaxnav.core.goals.geodesic)
+    goal, field = state.info["goal"], state.info["field"]
+    for n in range(4):
+        xy, yaw = np.asarray(state.data.qpos[:2]), float(state.data.qpos[2])
+        critic = np.asarray(state.info["critic"])
+        here = float(geodesic(field, goal, xy))
+        np.testing.assert_allclose(critic[0] * 5.0, here, rtol=1e-6)
+        angles = yaw + np.arange(8) * np.pi / 4
+        probes = xy + LOOK * np.stack([np.cos(angles), np.sin(angles)], -1)
+        around = [float(geodesic(field, goal, p)) for p in probes]
+        np.testing.assert_allclose(critic[1:9], (here - np.array(around)) / LOOK, atol=1e-5)
+        np.testing.assert_allclose(critic[9], n / 200)
+        state = step(state, jnp.int32(0))  # north, towards the wall's open end
+    ahead, behind = critic[1], critic[5]  # north, south
+    assert ahead > 0.5 and behind < -0.5  # round the wall's north end, not back south
+    assert critic[1:9].argmax() == 7  # north-east: towards the opening's corner
+    assert here > 5.0 > np.linalg.norm(np.asarray(goal) - xy) + 1.5  # the detour, not the line
+    open_env = jaxnav.make_env("goal", layouts=[OPEN], randomize=EXACT, progress="straight")
+    state = jax.jit(open_env.reset)(jax.random.PRNGKey(0))
+    xy, goal = np.asarray(state.data.qpos[:2]), np.asarray(state.info["goal"])
+    critic = np.asarray(state.info["critic"])
+    np.testing.assert_allclose(critic[0] * 5.0, np.linalg.norm(goal - xy), rtol=1e-6)
+    bearing = np.arctan2(*(goal - xy)[::-1]) - float(state.data.qpos[2])
+    best = int(np.round(bearing / (np.pi / 4))) % 8  # the probe nearest the goal's bearing
+    assert critic[1 + best] > 0.9 * np.cos(bearing - best * np.pi / 4)
+
+
 # A 5 x 5 m room whose centre is walled in (a ring of boxes 1.2 m across): a goal 1.5 m away lies
 # outside, so a spawn inside must move out. In a 2.6 x 2.6 m room no cell 1.5 m from the centre
 # keeps its clearance, so the L-shaped path to a goal is cleared through the ring instead.
@@ -440,6 +486,9 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     cpu = build_config("cpu", env="goal", overrides={"ppo": {"num_envs": 128}}).ppo
     assert (cpu.num_envs, cpu.minibatch_size, cpu.num_epochs) == (128, 4096, 2)
     assert cpu.total_steps == 28_000_000 and build_config("cpu").ppo.num_epochs == 4
+    for name in ("cpu", "gpu", "paper"):  # the goal task's critic sees its own inputs too
+        assert build_config(name, env="goal").ppo.privileged_critic
+        assert not build_config(name, env="avoid").ppo.privileged_critic
     widths = {name: build_config(name, env="goal").ppo.hidden for name in ("cpu", "gpu")}
     assert widths == {"cpu": (64, 64), "gpu": (256, 256)}
     assert build_config("gpu", env="avoid").ppo.hidden == (64, 64)

@@ -233,6 +233,30 @@ def test_network_shapes_and_separate_trunks():
     assert float(jnp.max(jnp.abs(logits))) < 0.1
 
 
+def test_privileged_critic_inputs_reach_the_value_only():
+    """With critic inputs C the critic's first layer takes D + C; the actor's logits do not
+    depend on them (acting may leave them out), the value does."""
+    model = ActorCritic(action_size=3, critic_output="linear", critic_inputs=4)
+    obs = jax.random.normal(jax.random.key(0), (5, 8))
+    extra = jax.random.normal(jax.random.key(2), (5, 4))
+    params = model.init(jax.random.key(1), obs, extra)
+    assert params["params"]["critic"]["Dense_0"]["kernel"].shape == (12, 64)
+    assert params["params"]["actor"]["Dense_0"]["kernel"].shape == (8, 64)
+    logits, value = model.apply(params, obs, extra)
+    acting, zero_extra = model.apply(params, obs)  # what a robot runs: no critic inputs
+    np.testing.assert_array_equal(logits, acting)
+    np.testing.assert_allclose(zero_extra, model.apply(params, obs, 0 * extra)[1], rtol=1e-6)
+    assert float(jnp.max(jnp.abs(value - zero_extra))) > 1e-3
+    plain = ActorCritic(action_size=3, critic_output="linear")
+    trunk = {
+        "params": {
+            **params["params"],
+            "critic": plain.init(jax.random.key(1), obs)["params"]["critic"],
+        }
+    }
+    np.testing.assert_array_equal(plain.apply(trunk, obs)[0], logits)  # the same actor
+
+
 def test_tanh_critic_bounded_linear_not():
     obs = 1e3 * jax.random.normal(jax.random.key(0), (64, 8))  # large inputs saturate tanh
     linear = ActorCritic(action_size=3, critic_output="linear")

@@ -287,8 +287,10 @@ class SavedPolicy:
     def network(self):
         """The ActorCritic module the weights belong to."""
         from jaxnav.ppo.train import make_network
+        from jaxnav.tasks.registry import critic_size
 
-        return make_network(self.config.ppo, self.config.task.action_spec)
+        ppo, task = self.config.ppo, self.config.task
+        return make_network(ppo, task.action_spec, critic_size(task, ppo.privileged_critic))
 
     @property
     def observation_size(self) -> int:

@@ -13,7 +13,7 @@ from jaxnav.core.scene import SceneConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.tasks.avoid import AvoidConfig
-from jaxnav.tasks.registry import task_entry
+from jaxnav.tasks.registry import critic_size, task_entry
 
 # Config groups of a run: (attribute, class, flag prefix). PPO flags have no prefix; the task's
 # class (None here) is the config class of the run's task (`group_class`).
@@ -65,6 +65,7 @@ class RunConfig:
         # Limits that need two groups at once, checked before anything is written.
         self.task.check_robot(self.robot)
         self.randomize.check_robot(self.robot.radius)
+        critic_size(self.task, self.ppo.privileged_critic)  # the task has critic-only inputs
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -54,6 +54,10 @@ class PPOConfig:
     """'tanh' (paper: values in [-1, 1]) or 'linear' (unbounded, fits Table I's -100)."""
     reward_scale: float = 1.0
     """Rewards are multiplied by this for learning (use 0.01 with a tanh critic); logs stay raw."""
+    privileged_critic: bool = False
+    """Give the critic the task's training-only features too (`state.info["critic"]`, e.g. the
+    goal task's distance to go along the free space); the actor, and so the exported policy,
+    sees the observation only."""
     normalize_obs: bool = True
     """Standardise observations with running mean/variance."""
     reset_share: float = 0.0625

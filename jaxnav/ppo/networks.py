@@ -52,6 +52,11 @@ class ActorCritic(nn.Module):
         (a learned parameter `log_std` [A], the same for every observation, starting at
         INIT_LOG_STD), read by `jaxnav.ppo.distributions.Gaussian`.
 
+    critic_inputs: C > 0 gives the critic `critic_obs` [..., C] after the observation (inputs from
+        the simulator that the robot lacks, `PPOConfig.privileged_critic`); the actor never sees
+        them. Acting needs only the logits, so `critic_obs` may be left out: the critic then
+        reads zeros and its value means nothing.
+
     critic_output:
         "tanh" (the paper's): value = value_scale * tanh(v). With value_scale = 1.0, the
             paper's setting, values lie in [-1, 1] although returns can reach -100.
@@ -64,10 +69,11 @@ class ActorCritic(nn.Module):
     critic_output: str = "tanh"
     value_scale: float = 1.0  # 1.0 is the paper's (plain tanh)
     continuous: bool = False  # A Gaussian's means and log-stds instead of A logits
+    critic_inputs: int = 0  # C, inputs only the critic sees (a privileged critic)
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """obs [..., D] -> (logits [..., A], value [...])."""
+    def __call__(self, obs: jax.Array, critic_obs: jax.Array | None = None):
+        """obs [..., D] (critic_obs [..., C], the critic's own) -> (logits [..., A], value [...])."""
         if self.critic_output not in CRITIC_OUTPUTS:
             raise ValueError(
                 f"critic_output must be one of {CRITIC_OUTPUTS}, got {self.critic_output!r}"
@@ -78,6 +84,10 @@ class ActorCritic(nn.Module):
             init = jax.nn.initializers.constant(INIT_LOG_STD)
             log_std = self.param("log_std", init, (self.action_size,))  # [A]
             logits = jnp.concatenate([logits, jnp.broadcast_to(log_std, logits.shape)], -1)
+        if self.critic_inputs:
+            if critic_obs is None:
+                critic_obs = jnp.zeros((*obs.shape[:-1], self.critic_inputs), obs.dtype)
+            obs = jnp.concatenate([obs, critic_obs], -1)  # [..., D + C]
         value = MLP(self.hidden, 1, 1.0, name="critic")(obs)[..., 0]  # [...]
         if self.critic_output == "tanh":
             value = self.value_scale * jnp.tanh(value)

@@ -21,6 +21,7 @@ from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
 from jaxnav.ppo.networks import ActorCritic, RunningStats, init_stats, normalize, update_stats
+from jaxnav.tasks.registry import critic_size
 from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
 
 
@@ -46,6 +47,7 @@ class Transition(NamedTuple):
     done: jax.Array  # [T, N]
     truncated: jax.Array  # [T, N]
     episode: dict  # {"return", "length", *metric_names}: [T, N] sums of the episode that ended
+    critic: jax.Array | None  # [T, N, C] what only the critic sees (None: it sees obs alone)
 
 
 class Trainer(NamedTuple):
@@ -63,13 +65,18 @@ def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(lr, eps=1e-5))
 
 
-def make_network(cfg: PPOConfig, action_spec) -> ActorCritic:
+def make_network(cfg: PPOConfig, action_spec, critic_inputs: int = 0) -> ActorCritic:
     """The actor-critic for an env's `action_spec`: logits for a table of commands, a Gaussian's
-    means and log-stds for continuous commands (`jaxnav.ppo.distributions`)."""
+    means and log-stds for continuous commands (`jaxnav.ppo.distributions`). `critic_inputs`: C,
+    the task's critic-only inputs (`registry.critic_size`), used with `cfg.privileged_critic`."""
     continuous = isinstance(action_spec, ContinuousActions)
     size = action_spec.size if continuous else make_distribution(action_spec).out_size
     return ActorCritic(
-        size, hidden=tuple(cfg.hidden), critic_output=cfg.critic_output, continuous=continuous
+        size,
+        hidden=tuple(cfg.hidden),
+        critic_output=cfg.critic_output,
+        continuous=continuous,
+        critic_inputs=critic_inputs,
     )
 
 
@@ -122,7 +129,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
 
     The robots are sharded over `devices` (default: every device of every process).
     """
-    network = make_network(cfg, env.action_spec)
+    network = make_network(cfg, env.action_spec, critic_size(env.task, cfg.privileged_critic))
     dist = make_distribution(env.action_spec)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
@@ -132,11 +139,15 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     step = lambda state, action, fresh: shard(env.step(state, action, fresh))  # noqa: E731
     shard_draws = shard_envs(cfg.num_envs, devices, axis=1)  # [T, G, P/G, ...]: by block
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
+    # The critic's own inputs [N, C] of a state, or None; the loss's inputs are (obs, those).
+    critic_in = lambda state: state.info["critic"] if cfg.privileged_critic else None  # noqa: E731
+    apply = lambda params, inputs: network.apply(params, *inputs)  # noqa: E731
 
     def init(key: jax.Array) -> TrainState:
         k_net, k_env, key = jax.random.split(key, 3)
-        params = network.init(k_net, jnp.zeros((1, env.observation_size)))
         env_state = reset(jax.random.split(k_env, cfg.num_envs))
+        extra = critic_in(env_state)
+        params = network.init(k_net, env_state.obs[:1], None if extra is None else extra[:1])
         return TrainState(
             params=params,
             opt_state=optimizer.init(params),
@@ -151,7 +162,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             env_state, key = carry
             key, k_act = jax.random.split(key)
             obs = norm(ts.obs_stats, env_state.obs)  # [N, D]
-            logits, value = network.apply(ts.params, obs)
+            extra = critic_in(env_state)
+            logits, value = network.apply(ts.params, obs, extra)
             action = dist.sample(k_act, logits)  # [N] or [N, A]
             nxt = step(env_state, action, fresh)
             tr = Transition(
@@ -164,6 +176,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
                 nxt.done,
                 nxt.truncated,
                 nxt.info[EPISODE],
+                extra,
             )
             return (nxt, key), tr
 
@@ -180,7 +193,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         params, opt_state = carry
         grads, metrics = jax.grad(ppo_loss, has_aux=True)(
             params,
-            network.apply,
+            apply,
             batch,
             clip_eps=cfg.clip_eps,
             vf_coef=cfg.vf_coef,
@@ -208,7 +221,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
 
     def _update(ts: TrainState) -> tuple[TrainState, dict]:
         env_state, key, traj = _rollout(ts)
-        last_value = network.apply(ts.params, norm(ts.obs_stats, env_state.obs))[1]  # [N]
+        last_obs = norm(ts.obs_stats, env_state.obs)
+        last_value = network.apply(ts.params, last_obs, critic_in(env_state))[1]  # [N]
         adv, targets = compute_gae(
             traj.reward * cfg.reward_scale,
             traj.value,
@@ -223,8 +237,10 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             x = x.reshape(x.shape[0], g, cfg.num_envs // g, *x.shape[2:]).swapaxes(0, 1)
             return x.reshape(g, cfg.batch_size // g, *x.shape[3:])
 
+        critic = None if traj.critic is None else blocks(traj.critic)
         batch = Batch(
-            *map(blocks, (traj.obs, traj.action, traj.log_prob, traj.value, adv, targets))
+            (blocks(traj.obs), critic),
+            *map(blocks, (traj.action, traj.log_prob, traj.value, adv, targets)),
         )
         key, k_epochs = jax.random.split(key)
         (params, opt_state, _, _), losses = jax.lax.scan(

@@ -19,6 +19,9 @@ term, it sums to the geodesic distance covered whatever the path. The
 episode ends on success (within success_radius of the goal), on a collision or at the time limit.
 Metrics (per step, summed per episode): `collision`, `success`, `path_length` (m travelled).
 Goals: a layout's own `goal`, else a reachable one drawn every episode (`jaxnav.core.goals`).
+The critic may see more than the policy (`PPOConfig.privileged_critic`, the goal task's default):
+`state.info["critic"]` holds the distance to go along the free space and how it changes around
+the robot, which no sensor on the robot gives; training uses it, the exported policy does not.
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ from jaxnav.tasks.base import Actuator, NavTask, check_velocity_config, velocity
 
 GOAL_FEATURES = 3  # distance, sin and cos of the bearing
 COMMAND_FEATURES = 2  # the last command, scaled by forward_speed and turn_rate
+LOOK = 0.3  # m, how far the critic's look-around probes (`GoalEnv._critic_features`)
+LOOK_DIRECTIONS = 8  # probes, 45 degrees apart, the first straight ahead
+CRITIC_FEATURES = 1 + LOOK_DIRECTIONS + 1  # distance to go, the look-around, time used
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +114,11 @@ class GoalConfig:
         stacked earlier observations, sectors included: `num_sectors` is the sensor's)."""
         return GOAL_FEATURES + COMMAND_FEATURES
 
+    @property
+    def critic_observations(self) -> int:
+        """The critic's own inputs (`GoalEnv._critic_features`; with `PPOConfig.privileged_critic`)."""
+        return CRITIC_FEATURES
+
 
 def goal_features(qpos: jax.Array, goal: jax.Array) -> jax.Array:
     """[3] the goal seen from pose qpos [3] (x, y, yaw): distance m, sin and cos of its bearing
@@ -160,6 +171,7 @@ class GoalEnv(NavTask):
         data = self.place(params)
         command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
         info["params"] = params
+        info["critic"] = self._critic_features({**info, "steps": jnp.int32(0)}, data.qpos[:3])
         frame = self._observe(params, data, goal, command, k_obs)
         return EnvState(
             data=data,
@@ -203,6 +215,7 @@ class GoalEnv(NavTask):
                 "key": key,
                 "actuator": actuator,
                 "command": target,
+                "critic": self._critic_features({**info, "steps": steps}, data.qpos[:3]),
             },
         )
 
@@ -215,6 +228,19 @@ class GoalEnv(NavTask):
         if self.task.progress == "geodesic":
             return geodesic(info["field"], info["goal"], xy)
         return jnp.linalg.norm(info["goal"] - xy)
+
+    def _critic_features(self, info, qpos) -> jax.Array:
+        """[CRITIC_FEATURES] what only the critic sees (`state.info["critic"]`, training only): the
+        distance to go as `progress` measures it (/ 5 m), how much closer a LOOK step in each of
+        LOOK_DIRECTIONS directions from the heading would bring the robot (/ LOOK: about +1 along
+        the way to go, -1 away from it), and the share of the time limit used. With them the value
+        of a pose behind a partition need not be inferred from the sectors."""
+        angles = qpos[2] + jnp.arange(LOOK_DIRECTIONS) * (2 * jnp.pi / LOOK_DIRECTIONS)
+        probes = qpos[:2] + LOOK * jnp.stack([jnp.cos(angles), jnp.sin(angles)], -1)  # [8, 2]
+        here = self._to_go(info, qpos[:2])
+        around = jax.vmap(lambda xy: self._to_go(info, xy))(probes)  # [LOOK_DIRECTIONS]
+        steps = info["steps"].astype(jnp.float32) / self.task.max_steps
+        return jnp.concatenate([here[None] / 5.0, (here - around) / LOOK, steps[None]])
 
     def _observe(self, params, data, goal, command, key) -> jax.Array:
         """[observation_size]: sectors, goal features, the last command scaled to [-1, 1]."""

@@ -81,7 +81,7 @@ register(
     GoalEnv,
     GoalConfig,
     defaults={
-        "ppo": {"reset_share": 1 / 64, "reset_ahead": True},
+        "ppo": {"reset_share": 1 / 64, "reset_ahead": True, "privileged_critic": True},
         "randomize": {"families": "all"},
     },
     preset_defaults={
@@ -127,6 +127,19 @@ def observation_size(task, sensor: SensorConfig) -> int:
     (`history`: the goal task's earlier observations)."""
     frame = sensor.num_sectors + getattr(task, "extra_observations", 0)
     return frame * (1 + getattr(task, "history", 0))
+
+
+def critic_size(task, privileged: bool = True) -> int:
+    """C, the inputs only a privileged critic sees: the task config's `critic_observations` (the
+    goal task's) with `privileged` (`PPOConfig.privileged_critic`), else 0. A task without them
+    and `privileged` is an error naming the flag."""
+    size = getattr(task, "critic_observations", 0)
+    if privileged and not size:
+        raise ValueError(
+            "--privileged-critic: this task has no inputs for the critic alone (the goal task "
+            "has); leave it off"
+        )
+    return size if privileged else 0
 
 
 def default_layouts(name: str = "avoid") -> list[RoomLayout]:
