@@ -16,7 +16,7 @@ from jaxnav.ppo.distributions import Categorical, Distribution
 class Batch(NamedTuple):
     """A (mini)batch of N transitions collected by the behaviour policy."""
 
-    obs: jax.Array  # [N, D]
+    obs: object  # what apply_fn reads: obs [N, D], or a tuple (the trainer's: obs, critic inputs)
     action: jax.Array  # [N] int (discrete) or [N, A] float (continuous commands)
     log_prob: jax.Array  # [N] log pi_old(action | obs)
     value: jax.Array  # [N] V_old(obs), used for value clipping
@@ -91,7 +91,7 @@ def ppo_loss(
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """PPO loss = -surrogate + vf_coef * value_loss - ent_coef * entropy (Eq. 3).
 
-    apply_fn(params, obs [N, D]) -> (actor output [N, K], value [N]), e.g. `ActorCritic.apply`;
+    apply_fn(params, batch.obs) -> (actor output [N, K], value [N]), e.g. `ActorCritic.apply`;
     `dist` reads the actor output (default: a categorical over K logits).
     Value clipping (when clip_value) keeps the new value within clip_eps of batch.value; it
     uses the same clip_eps as the policy, so with returns of order 100 it slows the critic.

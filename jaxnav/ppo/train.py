@@ -68,7 +68,7 @@ def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
 def make_network(cfg: PPOConfig, action_spec, critic_inputs: int = 0) -> ActorCritic:
     """The actor-critic for an env's `action_spec`: logits for a table of commands, a Gaussian's
     means and log-stds for continuous commands (`jaxnav.ppo.distributions`). `critic_inputs`: C,
-    the task's critic-only inputs (`registry.critic_size`), used with `cfg.privileged_critic`."""
+    what only the critic sees (`registry.critic_size`: 0 unless `cfg.privileged_critic`)."""
     continuous = isinstance(action_spec, ContinuousActions)
     size = action_spec.size if continuous else make_distribution(action_spec).out_size
     return ActorCritic(
