@@ -343,8 +343,9 @@ def test_geodesic_progress_pays_for_a_detour():
 def test_privileged_critic_sees_the_way_to_go():
     """What only the critic sees (`state.info["critic"]`): the distance to go as the progress
     reward measures it, how much closer a 0.3 m step in each of 8 directions would bring the
-    robot, and the share of the time limit used. Behind a wall the best step is away from the
-    goal's straight line; in the open it is the straight line."""
+    robot, and the share of the time limit used. Behind a wall a step along it towards its open
+    end brings the robot closer, where the straight line to the goal says it would not; in the
+    open the best step is along the straight line."""
     from jaxnav.tasks.goal import CRITIC_FEATURES, LOOK
 
     detour = RoomLayout(

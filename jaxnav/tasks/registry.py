@@ -132,7 +132,7 @@ def observation_size(task, sensor: SensorConfig) -> int:
     return frame * (1 + getattr(task, "history", 0))
 
 
-def critic_size(task, privileged: bool = True) -> int:
+def critic_size(task, privileged: bool) -> int:
     """C, the inputs only a privileged critic sees: the task config's `critic_observations` (the
     goal task's) with `privileged` (`PPOConfig.privileged_critic`), else 0. A task without them
     and `privileged` is an error naming the flag."""
