@@ -65,12 +65,13 @@ def fresh_run(root: Path, env: str, preset: str) -> Path:
     from jaxnav.io import checkpoint
     from jaxnav.ppo.networks import init_stats
     from jaxnav.ppo.train import TrainState, make_network
-    from jaxnav.tasks.registry import observation_size
+    from jaxnav.tasks.registry import critic_size, observation_size
     from jaxnav.train import build_config
 
     config = build_config(preset, env=env)
     size = observation_size(config.task, config.sensor)
-    init = jax.jit(make_network(config.ppo, config.task.action_spec).init)
+    critic = critic_size(config.task, config.ppo.privileged_critic)
+    init = jax.jit(make_network(config.ppo, config.task.action_spec, critic).init)
     params = init(jax.random.PRNGKey(0), jnp.zeros((1, size)))
     ts = TrainState(params, (), init_stats(size), (), jax.random.PRNGKey(1), jnp.int32(0))
     checkpoint.save(root, ts, config, {})

@@ -356,7 +356,8 @@ def test_privileged_critic_sees_the_way_to_go():
         robot_yaw=np.pi / 2,  # north, along the wall
         goal_pos=(1.5, -1.0),  # east, behind the wall
     )
-    env = jaxnav.make_env("goal", layouts=[detour], randomize=EXACT, max_steps=200)
+    at_wall = dataclasses.replace(detour, name="at_wall", robot_pos=(-0.35, -1.07), robot_yaw=0.0)
+    env = jaxnav.make_env("goal", layouts=[detour, at_wall], randomize=EXACT, max_steps=200)
     assert env.task.critic_observations == CRITIC_FEATURES == 10
     reset, step = jax.jit(env.reset), jax.jit(env.step)
     state = start_in(env, reset, 0)
@@ -369,14 +370,19 @@ def test_privileged_critic_sees_the_way_to_go():
         np.testing.assert_allclose(critic[0] * 5.0, here, rtol=1e-6)
         angles = yaw + np.arange(8) * np.pi / 4
         probes = xy + LOOK * np.stack([np.cos(angles), np.sin(angles)], -1)
-        around = [float(geodesic(field, goal, p)) for p in probes]
-        np.testing.assert_allclose(critic[1:9], (here - np.array(around)) / LOOK, atol=1e-5)
+        around = np.array([float(geodesic(field, goal, p, here + LOOK)) for p in probes])
+        want = np.clip((here - around) / LOOK, -2.0, 2.0)
+        np.testing.assert_allclose(critic[1:9], want, atol=1e-5)
         np.testing.assert_allclose(critic[9], n / 200)
         state = step(state, jnp.int32(0))  # north, towards the wall's open end
     ahead, behind = critic[1], critic[5]  # north, south
     assert ahead > 0.5 and behind < -0.5  # round the wall's north end, not back south
     assert critic[1:9].argmax() == 7  # north-east: towards the opening's corner
     assert here > 5.0 > np.linalg.norm(np.asarray(goal) - xy) + 1.5  # the detour, not the line
+    wall = start_in(env, reset, 1)  # 0.07 m from the partition, facing it
+    critic = np.asarray(wall.info["critic"])
+    np.testing.assert_allclose(critic[1], -1.0, atol=1e-5)  # a step into the wall: no closer
+    assert np.abs(critic[1:9]).max() <= 2.0 and critic[1:9].argmax() in (1, 2, 3)  # north-ish
     open_env = jaxnav.make_env("goal", layouts=[OPEN], randomize=EXACT, progress="straight")
     state = jax.jit(open_env.reset)(jax.random.PRNGKey(0))
     xy, goal = np.asarray(state.data.qpos[:2]), np.asarray(state.info["goal"])

@@ -318,10 +318,11 @@ def goal_field(params: SceneParams, half_extent: float, goal: jax.Array, radius:
     return _flood(_free(params, half_extent, radius)[1], _grid(half_extent), goal)
 
 
-def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array) -> jax.Array:
+def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array, blocked=None) -> jax.Array:
     """[] m from `xy` [2] to the goal along the grid of `goal_field`: the least of (a cell's
     steps x GRID_CELL + the straight line to its centre) over the 3 x 3 cells around `xy`;
-    the straight line where none of them reaches the goal (a robot pressed against a wall)."""
+    where none of them reaches the goal (a robot pressed against a wall, a point inside one),
+    `blocked` [], or by default the straight line."""
     n = field.shape[0]
     half = 0.5 * n * GRID_CELL  # the grid's half extent (`_grid`)
     ij = _grid_cell(n, xy)  # [2] col, row
@@ -330,7 +331,8 @@ def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array) -> jax.Array:
     centres = (cells + 0.5) * GRID_CELL - half
     via = field[cells[:, 1], cells[:, 0]] * GRID_CELL + jnp.linalg.norm(centres - xy, axis=-1)
     best = via.min()
-    return jnp.where(jnp.isfinite(best), best, jnp.linalg.norm(goal - xy))
+    fallback = jnp.linalg.norm(goal - xy) if blocked is None else blocked
+    return jnp.where(jnp.isfinite(best), best, fallback)
 
 
 def _interior_goal(key, params: SceneParams, radius, clearance, min_distance):

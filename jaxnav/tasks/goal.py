@@ -223,24 +223,28 @@ class GoalEnv(NavTask):
         """[observation_size]: the new frame, then the newest `history` frames of `obs`."""
         return jnp.concatenate([frame, obs[: self.observation_size - self._frame]])
 
-    def _to_go(self, info, xy) -> jax.Array:
-        """[] m from `xy` to the goal, as `GoalConfig.progress` measures it."""
+    def _to_go(self, info, xy, blocked=None) -> jax.Array:
+        """[] m from `xy` to the goal, as `GoalConfig.progress` measures it (`blocked`: the
+        geodesic's value where `xy` is walled in, see `jaxnav.core.goals.geodesic`)."""
         if self.task.progress == "geodesic":
-            return geodesic(info["field"], info["goal"], xy)
+            return geodesic(info["field"], info["goal"], xy, blocked)
         return jnp.linalg.norm(info["goal"] - xy)
 
     def _critic_features(self, info, qpos) -> jax.Array:
         """[CRITIC_FEATURES] what only the critic sees (`state.info["critic"]`, training only): the
         distance to go as `progress` measures it (/ 5 m), how much closer a LOOK step in each of
         LOOK_DIRECTIONS directions from the heading would bring the robot (/ LOOK: about +1 along
-        the way to go, -1 away from it), and the share of the time limit used. With them the value
-        of a pose behind a partition need not be inferred from the sectors."""
+        the way to go, -1 away from it; -1 into an obstacle or a wall, clipped to +-2 where the
+        grid's steps or a robot pressed against a wall would give more), and the share of the
+        time limit used. With them the value of a pose behind a partition need not be inferred
+        from the sectors."""
         angles = qpos[2] + jnp.arange(LOOK_DIRECTIONS) * (2 * jnp.pi / LOOK_DIRECTIONS)
         probes = qpos[:2] + LOOK * jnp.stack([jnp.cos(angles), jnp.sin(angles)], -1)  # [8, 2]
         here = self._to_go(info, qpos[:2])
-        around = jax.vmap(lambda xy: self._to_go(info, xy))(probes)  # [LOOK_DIRECTIONS]
+        around = jax.vmap(lambda xy: self._to_go(info, xy, blocked=here + LOOK))(probes)  # [8]
+        closer = jnp.clip((here - around) / LOOK, -2.0, 2.0)  # [LOOK_DIRECTIONS]
         steps = info["steps"].astype(jnp.float32) / self.task.max_steps
-        return jnp.concatenate([here[None] / 5.0, (here - around) / LOOK, steps[None]])
+        return jnp.concatenate([here[None] / 5.0, closer, steps[None]])
 
     def _observe(self, params, data, goal, command, key) -> jax.Array:
         """[observation_size]: sectors, goal features, the last command scaled to [-1, 1]."""
