@@ -235,7 +235,10 @@ def load_tree(file: Path, template):
     extra = sorted(set(saved) - set(keys))
     if missing or extra:
         what = f"no entry {missing[0]}" if missing else f"unexpected entry {extra[0]}"
-        raise CheckpointError(f"{file}: {what} (the saved state does not match this configuration)")
+        raise CheckpointError(
+            f"{file}: {what} (the saved state does not match this configuration, or an older "
+            "jaxnav wrote it: evaluate and export still read the run's policy.msgpack)"
+        )
     for key, (_, leaf) in zip(keys, named, strict=True):
         dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
         want = (np.shape(leaf), np.dtype(dtype))
