@@ -171,7 +171,8 @@ class GoalEnv(NavTask):
         data = self.place(params)
         command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
         info["params"] = params
-        info["critic"] = self._critic_features({**info, "steps": jnp.int32(0)}, data.qpos[:3])
+        here = self._to_go(info, data.qpos[:2])
+        info["critic"] = self._critic_features(info, data.qpos[:3], here, jnp.int32(0))
         frame = self._observe(params, data, goal, command, k_obs)
         return EnvState(
             data=data,
@@ -215,7 +216,7 @@ class GoalEnv(NavTask):
                 "key": key,
                 "actuator": actuator,
                 "command": target,
-                "critic": self._critic_features({**info, "steps": steps}, data.qpos[:3]),
+                "critic": self._critic_features(info, data.qpos[:3], after, steps),
             },
         )
 
@@ -230,21 +231,21 @@ class GoalEnv(NavTask):
             return geodesic(info["field"], info["goal"], xy, blocked)
         return jnp.linalg.norm(info["goal"] - xy)
 
-    def _critic_features(self, info, qpos) -> jax.Array:
+    def _critic_features(self, info, qpos, here, steps) -> jax.Array:
         """[CRITIC_FEATURES] what only the critic sees (`state.info["critic"]`, training only): the
         distance to go as `progress` measures it (/ 5 m), how much closer a LOOK step in each of
         LOOK_DIRECTIONS directions from the heading would bring the robot (/ LOOK: about +1 along
         the way to go, -1 away from it; -1 into an obstacle or a wall, clipped to +-2 where the
         grid's steps or a robot pressed against a wall would give more), and the share of the
-        time limit used. With them the value of a pose behind a partition need not be inferred
-        from the sectors."""
+        time limit used (`steps` of `max_steps`). `here`: the distance to go from qpos, which the
+        caller has already measured. With them the value of a pose behind a partition need not be
+        inferred from the sectors."""
         angles = qpos[2] + jnp.arange(LOOK_DIRECTIONS) * (2 * jnp.pi / LOOK_DIRECTIONS)
         probes = qpos[:2] + LOOK * jnp.stack([jnp.cos(angles), jnp.sin(angles)], -1)  # [8, 2]
-        here = self._to_go(info, qpos[:2])
         around = jax.vmap(lambda xy: self._to_go(info, xy, blocked=here + LOOK))(probes)  # [8]
         closer = jnp.clip((here - around) / LOOK, -2.0, 2.0)  # [LOOK_DIRECTIONS]
-        steps = info["steps"].astype(jnp.float32) / self.task.max_steps
-        return jnp.concatenate([here[None] / 5.0, closer, steps[None]])
+        used = jnp.asarray(steps, jnp.float32) / self.task.max_steps
+        return jnp.concatenate([here[None] / 5.0, closer, used[None]])
 
     def _observe(self, params, data, goal, command, key) -> jax.Array:
         """[observation_size]: sectors, goal features, the last command scaled to [-1, 1]."""
