@@ -64,6 +64,7 @@ class Interrupts:
         self.requested: list[str] = []  # signal names received while deferred
         self.deferred = deferred
         self.note, self.cleanup = "nothing was written", None
+        self.on_repeat: Callable[[], str] | None = None  # while deferred: a second signal's note
         self._previous: dict = {}
 
     def install(self) -> Interrupts:
@@ -83,15 +84,26 @@ class Interrupts:
         """From now on a signal runs `cleanup`, prints `interrupted (SIG...): note` and exits 130."""
         self.note, self.cleanup, self.deferred = note, cleanup, False
 
-    def defer(self) -> None:
-        """From now on a signal is only recorded in `requested`."""
-        self.deferred = True
+    def defer(self, on_repeat: Callable[[], str] | None = None) -> None:
+        """From now on a signal is only recorded in `requested`; with `on_repeat`, a second one
+        ends the process at once, its line saying `on_repeat()` (what is kept)."""
+        self.deferred, self.on_repeat = True, on_repeat
 
     def _handle(self, signum, frame) -> None:
         name = signal.Signals(signum).name
         if self.deferred:
             self.requested.append(name)
-            return
+            if self.on_repeat is None:
+                return
+            if len(self.requested) == 1:
+                print(
+                    f"\njaxnav: {name}: stopping after the chunk under way and its checkpoint; "
+                    "send it again to stop at once",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                return
+            self.note, self.cleanup = self.on_repeat(), None
         if self.cleanup is not None:
             self.cleanup()
         end_children()

@@ -99,17 +99,21 @@ def memory_check(config: RunConfig, env, trainer) -> None:
     """Refuses a --num-envs whose robots cannot fit in memory, before anything is written.
 
     Bytes per robot come from the shapes of a fresh TrainState (`jax.eval_shape`: nothing is
-    allocated) and of the rollout buffers; compared with MemAvailable on the CPU (all devices share
-    it) or the first accelerator's `bytes_limit`. Where neither is known, nothing is checked.
+    allocated) and of the rollout buffers, plus the network's own (`--hidden`); compared with
+    MemAvailable on the CPU (all devices share it) or the first accelerator's `bytes_limit`. Where
+    neither is known, nothing is checked.
     """
     cfg, devices = config.ppo, jax.local_devices()
     shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
-    leaves = jax.tree_util.tree_leaves(shapes.env_state)
-    state = sum(x.size * x.dtype.itemsize for x in leaves) / cfg.num_envs
+    state = _bytes(shapes.env_state) / cfg.num_envs
+    # The network on every device: weights, optimizer state, the gradient and update of a step,
+    # and a minibatch's activations (actor and critic, forward and backward).
+    width = 4 * 2 * sum(cfg.hidden)
+    model = _bytes(shapes.params) * 3 + _bytes(shapes.opt_state) + 2 * width * cfg.minibatch_size
     # A Transition per step: raw and normalised obs, 6 scalars, the episode sums (float32/int32).
     step = 4 * (2 * env.observation_size + 8 + len(env.metric_names))
     # The state, the next one and its auto-reset draw; the rollout and its shuffled copy.
-    per_robot = 3 * state + 2 * cfg.rollout_length * step
+    per_robot = 3 * state + 2 * cfg.rollout_length * step + width  # + the acting forward pass
     # `share`: robots per memory = num_envs / share. The CPU's devices share this process's memory
     # (one process per host); an accelerator holds its own device's robots.
     if devices[0].platform == "cpu":
@@ -119,25 +123,77 @@ def memory_check(config: RunConfig, env, trainer) -> None:
         stats = devices[0].memory_stats() or {}
         available, share = stats.get("bytes_limit"), jax.device_count()
         where = f"memory of one {devices[0].device_kind}"
-    if available is None or per_robot * cfg.num_envs / share <= available:
+    if available is None or per_robot * cfg.num_envs / share + model <= available:
         return
+    if model > available / 2:
+        raise ValueError(
+            f"--hidden {' '.join(map(str, cfg.hidden))}: the network alone needs about "
+            f"{model / 1e9:.1f} GB (weights, optimizer state, gradients) but the {where} is "
+            f"{available / 1e9:.1f} GB; choose smaller layers"
+        )
+    available -= model
     fits = int(available * share / per_robot) // jax.device_count() * jax.device_count()
     raise ValueError(
         f"--num-envs {cfg.num_envs}: needs about {per_robot * cfg.num_envs / share / 1e9:.1f} GB "
-        f"({per_robot / 1e3:.1f} kB per robot) but the {where} is {available / 1e9:.1f} GB; "
+        f"({per_robot / 1e3:.1f} kB per robot) but the {where} holds {available / 1e9:.1f} GB "
+        "beside the network; "
         f"the largest --num-envs that fits is about {fits:,}"
     )
 
 
-class _NewRunFolder:
-    """The start of a new run folder: made with its lock and config.json; `remove()` takes back
-    what the start made while no checkpoint exists (a failed or interrupted start). With
-    `write=False` (processes other than 0 of a run) it touches nothing."""
+def _bytes(tree) -> int:
+    return sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(tree))
 
-    def __init__(self, out: Path, config: RunConfig, write: bool = True):
-        self.out, self.config, self.write = out, config, write
+
+# What a run writes at the top of its folder; an interrupted start removes these and nothing else.
+RUN_ENTRIES = ("config.json", "metrics.csv", "tb", "reward_curve.png", checkpoint.CKPT_DIR)
+
+
+def check_new_out(out: Path) -> None:
+    """Refuses an `--out` that holds anything: a run (continue it with --resume) or files that
+    are not jaxnav's, which a new run must never overwrite or delete."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    try:
+        entries = sorted(p.name for p in out.iterdir())
+    except OSError as err:
+        raise ValueError(f"--out {out}: cannot read the folder ({err.strerror})") from None
+    if not entries:
+        return
+    if checkpoint.list_checkpoints(out) or _is_run_config(out / "config.json"):
+        raise ValueError(
+            f"--out {out}: already holds a training run; use --resume {out} or choose another folder"
+        )
+    shown = ", ".join(repr(name) for name in entries[:3]) + (", ..." if len(entries) > 3 else "")
+    raise ValueError(
+        f"--out {out}: not empty and not a jaxnav run ({len(entries)} entries: {shown}); "
+        "choose a new or empty folder"
+    )
+
+
+def _is_run_config(path: Path) -> bool:
+    try:
+        checkpoint.load_config(path.parent)
+    except (ValueError, OSError, KeyError, TypeError):
+        return False
+    return True
+
+
+class _RunFolder:
+    """A run folder as this process starts it: the lock, then config.json.
+
+    `remove()` takes back what a failed or interrupted start wrote while no checkpoint exists: for
+    a new run (`fresh`), the entries of `RUN_ENTRIES` that this process created, then the folder if
+    this process made it and nothing else is in it; a resumed run keeps everything. With
+    `write=False` (processes other than 0 of a run) it touches nothing.
+    """
+
+    def __init__(self, out: Path, config: RunConfig, write: bool = True, fresh: bool = True):
+        self.out, self.config, self.write, self.fresh = out, config, write, fresh
         self.lock = files.RunLock(out)
-        self.made = False
+        self.made, self.found = False, set()
 
     def create(self) -> None:
         if not self.write:
@@ -145,29 +201,31 @@ class _NewRunFolder:
         try:
             self.made = not self.out.exists()
             self.out.mkdir(parents=True, exist_ok=True)
+            self.found = {p.name for p in self.out.iterdir()}
             self.lock.acquire()
             files.write_atomic(
                 self.out / "config.json", json.dumps(self.config.to_dict(), indent=2)
             )
         except OSError as err:
             self.remove()
+            flag = "--out" if self.fresh else "--resume"
             raise ValueError(
-                f"--out {self.out}: cannot write the run folder ({err.strerror})"
+                f"{flag} {self.out}: cannot write the run folder ({err.strerror or err})"
             ) from None
 
     def remove(self) -> None:
-        if not self.write or not self.out.is_dir() or checkpoint.list_checkpoints(self.out):
-            return  # something was saved: the folder is a run that --resume continues
-        if self.made:
-            shutil.rmtree(self.out, ignore_errors=True)
-            return
-        for name in ("config.json", "metrics.csv", "tb", checkpoint.CKPT_DIR):
-            path = self.out / name
-            if path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
+        if self.write and self.fresh and not checkpoint.list_checkpoints(self.out):
+            for name in set(RUN_ENTRIES) - self.found:
+                path = self.out / name
+                with contextlib.suppress(OSError):
+                    if path.is_dir() and not path.is_symlink():
+                        shutil.rmtree(path)
+                    elif path.exists() or path.is_symlink():
+                        path.unlink()
         self.release()
+        if self.write and self.fresh and self.made:
+            with contextlib.suppress(OSError):
+                self.out.rmdir()  # only if empty: never what someone else put there
 
     def release(self) -> None:
         if self.write:
@@ -178,31 +236,33 @@ class _NewRunFolder:
 
 
 def run(
-    config: RunConfig, out: Path, progress: bool = True, stop: Interrupts | None = None
+    config: RunConfig,
+    out: Path,
+    progress: bool = True,
+    stop: Interrupts | None = None,
+    fresh: bool = True,
 ) -> Path:
-    """Trains `config` into a new run folder `out`; returns the final checkpoint folder.
+    """Trains `config` into run folder `out`; returns the final checkpoint folder.
 
-    The env is built and the memory need checked before anything is written; a start that fails or
-    is interrupted before the first checkpoint removes what it wrote. `stop` is the command line's
-    `Interrupts` (None: the loop listens to SIGINT/SIGTERM itself once training runs).
+    A new run (`fresh`) needs `out` missing or empty. The env is built and the memory need checked
+    before anything is written; a new run that fails or is interrupted before its first checkpoint
+    removes what it wrote, and nothing else. `fresh=False` starts a run folder that holds only its
+    config.json (a run killed before its first checkpoint), which is never removed. `stop` is the
+    command line's `Interrupts` (None: the loop listens to SIGINT/SIGTERM itself once training runs).
     """
     out = Path(out)
-    folder, created = _NewRunFolder(out, config, write=distributed.is_main()), False
+    folder = _RunFolder(out, config, write=distributed.is_main(), fresh=fresh)
+    created = False
     try:
-        if out.exists() and not out.is_dir():
-            raise ValueError(f"--out {out}: exists and is not a folder")
-        if checkpoint.list_checkpoints(out):
-            raise ValueError(
-                f"--out {out}: already holds a training run; use --resume {out} or "
-                "choose another folder"
-            )
+        if fresh and distributed.is_main():
+            check_new_out(out)
         env, trainer = interruptible(_build, config)
         memory_check(config, env, trainer)
         folder.create()
         created = True
         distributed.ready()
         if stop is not None:
-            stop.at_once(f"removed the unfinished run folder {out}", folder.remove)
+            stop.at_once(_start_note(folder), folder.remove)
         ts = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
         return _loop(config, out, trainer, ts, [], 0.0, progress, stop, env.metric_names)
     except BaseException:
@@ -212,6 +272,16 @@ def run(
     finally:
         if created:
             folder.release()
+
+
+def _start_note(folder: _RunFolder) -> str:
+    """What an interrupt before the first checkpoint leaves (the `interrupted (...)` line)."""
+    out = folder.out
+    if not folder.fresh:
+        return f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
+    if folder.made:
+        return f"removed the unfinished run folder {out}"
+    return f"removed what this run had written in {out}; nothing else there was touched"
 
 
 def _build(config: RunConfig):
@@ -254,24 +324,30 @@ def resume(
     if not checkpoint.list_checkpoints(out) and (out / "config.json").is_file():
         config = _with_budget(checkpoint.load_config(out), total_steps)
         print(f"jaxnav: {out} has no checkpoint yet; starting it from its config.json", flush=True)
-        return run(config, out, progress, stop)
+        return run(config, out, progress, stop, fresh=False)
     main, lock, locked = distributed.is_main(), files.RunLock(out), False
     try:
         ckpt, config, meta = _resume_point(out, total_steps)  # every process reads it
         env, trainer = interruptible(_build, config)
         if main:
-            lock.acquire()
-            locked = True
-            checkpoint.remove_stale_writes(out)
-            files.write_atomic(out / "config.json", json.dumps(config.to_dict(), indent=2))
+            try:
+                lock.acquire()
+                locked = True
+                checkpoint.remove_stale_writes(out)
+                files.write_atomic(out / "config.json", json.dumps(config.to_dict(), indent=2))
+            except OSError as err:
+                raise RunFailed(
+                    f"{err.filename or out}: cannot write ({err.strerror or err}); the run is as "
+                    "it was: free space or fix permissions, then continue with: "
+                    f"python -m jaxnav.train --resume {out}"
+                ) from None
         distributed.ready()
         if stop is not None:
             note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
             stop.at_once(note, lock.release if main else None)
         template = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
         ts = checkpoint.restore_train_state(ckpt, template)
-        rows = runlog.read_rows(out / "metrics.csv") if main else []
-        rows = [r for r in rows if r["update"] <= meta["update"]]
+        rows = runlog.read_rows(out / "metrics.csv", upto=meta["update"]) if main else []
         elapsed = meta.get("elapsed_s", 0.0)
         return _loop(config, out, trainer, ts, rows, elapsed, progress, stop, env.metric_names)
     finally:
@@ -313,7 +389,7 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names)
     cfg, main = config.ppo, distributed.is_main()
     start = time.perf_counter() - elapsed
     last_ckpt = (checkpoint.list_checkpoints(out) or [None])[-1]
-    update = int(distributed.to_host(ts.update))
+    update = int(interruptible(distributed.to_host, ts.update))  # waits for init: interruptible
     bar = tqdm(
         total=cfg.num_updates * cfg.batch_size,
         initial=update * cfg.batch_size,
@@ -330,12 +406,20 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names)
         runlog.MetricsLog(out, fields, rows, write=main) as log,
         listen as stop,
     ):
+
+        def kept() -> str:  # a second signal's line
+            saved = f"kept checkpoint {last_ckpt}" if last_ckpt else "no checkpoint yet"
+            return (
+                f"stopped at once, without the chunk under way; {saved}; "
+                f"continue with: python -m jaxnav.train --resume {out}"
+            )
+
         first = True
         while update < cfg.num_updates:
             before, tick = update, time.perf_counter()
-            ts, metrics = _first_chunk(trainer, ts, stop) if first else trainer.run_chunk(ts)
+            ts, metrics = _first_chunk(trainer, ts, stop, kept) if first else trainer.run_chunk(ts)
             first = False
-            metrics = distributed.to_host(metrics)
+            metrics = interruptible(distributed.to_host, metrics)  # a second signal ends it
             update = int(distributed.to_host(ts.update))
             rate = (update - before) * cfg.batch_size / (time.perf_counter() - tick)
             _check_finite(metrics, ts, last_ckpt)
@@ -373,13 +457,13 @@ def _save(out: Path, ts, config: RunConfig, meta: dict, main: bool) -> Path:
     return ckpt
 
 
-def _first_chunk(trainer, ts, stop: Interrupts):
+def _first_chunk(trainer, ts, stop: Interrupts, kept):
     """The first chunk of a session (XLA compiles it), interruptible at once; then signals wait
     for the end of a chunk."""
     print("jaxnav: compiling the training step (the first chunk)...", flush=True)
     tick = time.perf_counter()
     out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)))
-    stop.defer()  # before the line: a signal after it must wait for the chunk and checkpoint
+    stop.defer(kept)  # before the line: a signal after it waits for the chunk and checkpoint
     print(
         f"jaxnav: compiled and ran the first chunk in {time.perf_counter() - tick:.1f} s",
         flush=True,

@@ -7,6 +7,7 @@ processes (tiny flags, the session's shared XLA cache).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -196,7 +197,7 @@ def test_too_many_robots_refused_before_anything_is_written(tmp_path, monkeypatc
 
 
 def test_unwritable_run_folder_is_one_line(tmp_path):
-    folder = train_module._NewRunFolder(Path("/proc"), train_module.build_config())
+    folder = train_module._RunFolder(Path("/proc"), train_module.build_config())
     with pytest.raises(ValueError, match="--out /proc: cannot write"):
         folder.create()
 
@@ -259,11 +260,38 @@ def test_sigint_while_compiling_exits_at_once_and_removes_the_folder(tmp_path):
 
 
 def test_garbage_metrics_row_names_the_file(fake, tmp_path, capsys):
+    """A damaged row up to the checkpoint is the user's to see, named by file and line."""
+    assert fake("--out", "run", *TINY_FLAGS) == 0
+    log = tmp_path / "run" / "metrics.csv"
+    lines = log.read_text().splitlines(keepends=True)
+    log.write_text("".join(lines[:3] + ["3,768,abc\n"] + lines[4:]))
+    assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 2
+    one_error_line(capsys.readouterr().err, "metrics.csv", "line 4")
+
+
+@pytest.mark.parametrize("tail", ["7,1792,0.1234,0", "7,1792,abc\n", "\x00\x00", "7,17"])
+def test_rows_past_the_checkpoint_are_dropped_whatever_they_hold(fake, tmp_path, tail):
+    """A full disk stops a run mid-row (`MetricsLog.add`): its resume rewrites those updates."""
     assert fake("--out", "run", *TINY_FLAGS) == 0
     with open(tmp_path / "run" / "metrics.csv", "a") as fh:
-        fh.write("7,1792,abc\n")
-    assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 2
-    one_error_line(capsys.readouterr().err, "metrics.csv", "line 8")
+        fh.write(tail)
+    assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 0
+    assert rows(tmp_path / "run") == list(range(1, 9))
+
+
+def test_a_metrics_log_over_16_mib_resumes(tmp_path):
+    fields = runlog.columns(("collision",))
+    ints = ("update", "env_steps", "steps_per_second")
+    many = [{k: (i if k in ints else 0.123456789 * i) for k in fields} for i in range(1, 130_001)]
+    with runlog.MetricsLog(tmp_path, fields, many, write=True):
+        pass
+    log = tmp_path / "metrics.csv"
+    assert log.stat().st_size > 16 * 2**20
+    kept = runlog.read_rows(log, upto=120_000)
+    assert len(kept) == 120_000 and kept[-1] == many[119_999]
+    with runlog.MetricsLog(tmp_path, fields, kept):
+        pass
+    assert runlog.read_rows(log)[-1]["update"] == 120_000
 
 
 def test_truncated_meta_json_names_the_file(fake, tmp_path, capsys):
@@ -292,21 +320,76 @@ def test_resume_names_changed_flags_as_typed(fake, tmp_path, capsys, flags):
     one_error_line(capsys.readouterr().err, f"drop {flags[0]}")
 
 
+HOLD_LOCK = """
+import sys, time
+from pathlib import Path
+from jaxnav.io import files
+folder, go = Path(sys.argv[1]), Path(sys.argv[2])
+while not go.exists():
+    time.sleep(0.005)
+lock = files.RunLock(folder)
+try:
+    lock.acquire()
+except ValueError:
+    print("lost", flush=True)
+    sys.exit(0)
+print("won", flush=True)
+time.sleep(float(sys.argv[3]))
+lock.release()
+"""
+
+
+def hold_lock(folder: Path, go: Path, seconds: float = 60.0) -> subprocess.Popen:
+    cmd = [sys.executable, "-c", HOLD_LOCK, str(folder), str(go), str(seconds)]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
 def test_lock_refuses_a_second_writer_and_takes_over_a_dead_one(fake, tmp_path, capsys):
     assert fake("--out", "run", *TINY_FLAGS) == 0
     lock = tmp_path / "run" / files.LOCK
-    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    (tmp_path / "go").touch()
+    holder = hold_lock(tmp_path / "run", tmp_path / "go")
     try:
-        lock.write_text(f"{live.pid}\n")
+        assert holder.stdout.readline() == "won\n"
         assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8)) == 2
-        one_error_line(capsys.readouterr().err, str(live.pid), "in use")
+        one_error_line(capsys.readouterr().err, f"process {holder.pid}", "in use")
         assert fake("--out", "run2", *TINY_FLAGS) == 0  # another folder is not locked
     finally:
-        live.kill()
-        live.wait()
+        holder.kill()  # as kill -9: the kernel drops its flock, the file stays
+        holder.wait()
+    assert lock.read_text() == f"{holder.pid}\n"
     assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 0
-    assert f"process {live.pid} is gone" in capsys.readouterr().err
+    assert f"process {holder.pid} no longer holds it" in capsys.readouterr().err
     assert not lock.exists()  # released at the end
+
+
+def test_a_lock_naming_a_reused_live_pid_does_not_block(fake, tmp_path, capsys):
+    """A lock file left by a dead run whose pid now belongs to another live process."""
+    assert fake("--out", "run", *TINY_FLAGS) == 0
+    (tmp_path / "run" / files.LOCK).write_text(f"{os.getppid()}\n")
+    assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 0
+
+
+def test_processes_racing_for_a_stale_lock_one_wins(tmp_path):
+    (tmp_path / files.LOCK).write_text("999999999\n")  # left by a dead process
+    go = tmp_path / "go"
+    racers = [hold_lock(tmp_path, go, seconds=3.0) for _ in range(8)]
+    time.sleep(1.0)  # all started and waiting
+    go.touch()
+    results = sorted(p.communicate(timeout=60)[0].strip() for p in racers)
+    assert results == ["lost"] * 7 + ["won"]
+
+
+def test_stale_temporary_rewrites_are_removed_on_resume(fake, tmp_path):
+    assert fake("--out", "run", *TINY_FLAGS) == 0
+    run = tmp_path / "run"
+    dead = [run / "metrics.csv.999999999.0123abcd.tmp", run / "config.json.999999999.deadbeef.tmp"]
+    live = run / f"config.json.{os.getpid()}.0123abcd.tmp"  # a write under way: left alone
+    other = run / "eval.json.999999999.0123abcd.tmp"  # not the run's own file
+    for path in (*dead, live, other):
+        path.write_text("half")
+    assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 0
+    assert [p.exists() for p in (*dead, live, other)] == [False, False, True, True]
 
 
 def test_resume_starts_a_run_killed_before_its_first_checkpoint(fake, tmp_path, capsys):
@@ -319,3 +402,138 @@ def test_resume_starts_a_run_killed_before_its_first_checkpoint(fake, tmp_path, 
     assert "no checkpoint yet" in capsys.readouterr().out
     assert checkpoint.load_meta(checkpoint.resolve(run))["update"] == UPDATES
     assert rows(run) == list(range(1, UPDATES + 1))
+
+
+# ------------------------------------------------------------------------------
+# Nothing the user owns is lost: --out, interrupted starts and resumes
+
+
+def user_files(folder: Path) -> dict[str, str]:
+    (folder / "tb").mkdir(parents=True)
+    mine = {"config.json": "mine", "metrics.csv": "mine", "tb/notes.txt": "mine"}
+    for name, text in mine.items():
+        (folder / name).write_text(text)
+    return mine
+
+
+def test_out_refuses_a_folder_that_is_not_a_jaxnav_run(fake, tmp_path, capsys):
+    mine = user_files(tmp_path / "D")
+    assert fake("--out", "D", *TINY_FLAGS) == 2
+    one_error_line(capsys.readouterr().err, "--out D", "not empty and not a jaxnav run")
+    assert {n: (tmp_path / "D" / n).read_text() for n in mine} == mine
+    assert sorted(p.name for p in (tmp_path / "D").iterdir()) == [
+        "config.json",
+        "metrics.csv",
+        "tb",
+    ]
+    (tmp_path / "E").mkdir()  # an empty folder is fine
+    assert fake("--out", "E", *TINY_FLAGS) == 0
+
+
+def test_out_holding_a_run_without_checkpoint_points_to_resume(fake, tmp_path, capsys):
+    assert fake("--out", "run", *TINY_FLAGS) == 0
+    shutil.rmtree(tmp_path / "run" / "checkpoints")
+    assert fake("--out", "run", *TINY_FLAGS) == 2
+    one_error_line(capsys.readouterr().err, "already holds a training run", "--resume run")
+
+
+def test_a_failed_start_removes_only_what_it_created(tmp_path):
+    """The user's own file in an empty --out, added while the run starts, is never removed."""
+    out = tmp_path / "D"
+    out.mkdir()
+    folder = train_module._RunFolder(out, train_module.build_config())
+    folder.create()
+    (out / "metrics.csv").write_text("rows")  # as the loop would
+    (out / "notes.txt").write_text("mine")
+    folder.remove()
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    made = train_module._RunFolder(tmp_path / "new", train_module.build_config())
+    made.create()
+    made.remove()
+    assert not (tmp_path / "new").exists()
+    assert "removed the unfinished run folder" in train_module._start_note(made)
+
+
+def test_an_interrupted_resume_keeps_the_run(fake, tmp_path, capsys):
+    """A run killed before its first checkpoint holds config.json: a resume that is stopped
+    (here by a KeyboardInterrupt in its first chunk) leaves it, and the next resume finishes it."""
+    assert fake("--out", "run", *TINY_FLAGS) == 0
+    run = tmp_path / "run"
+    shutil.rmtree(run / "checkpoints")
+    config = (run / "config.json").read_text()
+
+    def stop(update):
+        raise KeyboardInterrupt
+
+    fake.state["fail_at"] = stop
+    assert fake("--resume", "run", "--no-progress") == 130
+    assert (run / "config.json").read_text() == config and not (run / files.LOCK).exists()
+    fake.state["fail_at"] = None
+    assert fake("--resume", "run", "--no-progress") == 0
+    assert rows(run) == list(range(1, UPDATES + 1))
+
+
+def test_resume_on_a_full_disk_is_one_line_and_changes_nothing(fake, tmp_path, capsys, monkeypatch):
+    assert fake("--out", "run", *TINY_FLAGS) == 0
+    before = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()}
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(files, "write_atomic", full)
+    assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 1
+    one_error_line(capsys.readouterr().err, "No space left", "--resume run")
+    after = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()}
+    assert after == before
+
+
+def test_out_on_a_read_only_filesystem_is_one_line(fake, tmp_path, capsys, monkeypatch):
+    real_open = os.open
+
+    def read_only(path, flags, *args):
+        if flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *args)
+
+    (tmp_path / "ro").mkdir()
+    monkeypatch.setattr(files.os, "open", read_only)
+    monkeypatch.setattr(train_module.Path, "unlink", _refuse_unlink)  # as a read-only mount does
+    assert fake("--out", "ro", *TINY_FLAGS) == 2
+    one_error_line(capsys.readouterr().err, "--out ro", "Read-only file system")
+
+
+def _refuse_unlink(self, missing_ok=False):
+    raise OSError(errno.EROFS, "Read-only file system", str(self))
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A 1 MiB tmpfs at tmp_path/mnt (root and a kernel that lets it mount; else skipped)."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    if subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True
+    ).returncode:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    yield mnt
+    subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_a_real_read_only_and_full_filesystem(fake, small_tmpfs, capsys):
+    assert fake("--out", small_tmpfs / "run", *TINY_FLAGS) == 0
+    with contextlib.suppress(OSError), open(small_tmpfs / "fill", "wb") as fh:
+        while True:  # fill what is left
+            fh.write(b"\0" * 4096)
+            fh.flush()
+    more = str(16 * 16 * 8)
+    code = fake("--resume", small_tmpfs / "run", "--total-steps", more, "--no-progress")
+    assert code == 1
+    one_error_line(capsys.readouterr().err, "No space left", "--resume")
+    (small_tmpfs / "fill").unlink()
+    assert fake("--resume", small_tmpfs / "run", "--total-steps", more, "--no-progress") == 0
+    assert rows(small_tmpfs / "run") == list(range(1, 9))
+    subprocess.run(["mount", "-o", "remount,ro", str(small_tmpfs)], check=True)
+    assert fake("--out", small_tmpfs / "new", *TINY_FLAGS) == 2
+    one_error_line(capsys.readouterr().err, "Read-only file system")
+    assert fake("--resume", small_tmpfs / "run", "--total-steps", str(16 * 16 * 10)) == 1
+    one_error_line(capsys.readouterr().err, "Read-only file system")

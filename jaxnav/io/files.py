@@ -10,8 +10,10 @@ crash) sees the old content or the new one, never half of either.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
+import re
 import stat
 import sys
 import uuid
@@ -19,7 +21,7 @@ from pathlib import Path
 
 MAX_TEXT_BYTES = 16 * 2**20  # layout, config and metrics files: far larger than any real one
 MAX_BINARY_BYTES = 2**30  # checkpoint weights (policy.msgpack)
-LOCK = "run.lock"  # in a run folder: the pid of the process writing it
+LOCK = "run.lock"  # in a run folder: flock-held by the process writing it (and its pid)
 
 
 class FileProblem(ValueError):
@@ -129,49 +131,99 @@ def check_writable(folder, flag: str) -> None:
 # ---------------------------------------------------------------- the lock of a run folder
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's live process
-        return True
-    return True
+def _read_pid(fd: int) -> int | None:
+    with contextlib.suppress(OSError, ValueError):
+        return int(os.pread(fd, 64, 0).decode("ascii").strip())
+    return None
 
 
 class RunLock:
-    """`run.lock` in a run folder: the pid of the one process that writes it.
+    """`run.lock` in a run folder, held with `flock` by the one process that writes the run.
 
-    A lock whose process is gone (a kill -9, a power cut) is taken over with a warning; a live one
-    is a ValueError naming the folder and the process.
+    The kernel releases a flock when its process ends, however it ends (kill -9, a power cut), so
+    a lock file left by a dead process is free and the next process takes it, with a warning naming
+    the pid the file held; a pid reused by an unrelated live process never blocks a run. Two
+    processes that race for the lock: exactly one wins, the other gets a ValueError naming the
+    folder and the holder. The pid in the file is for messages only.
     """
 
     def __init__(self, folder):
         self.file = Path(folder) / LOCK
+        self.fd: int | None = None
 
     def acquire(self) -> None:
-        try:
-            fd = os.open(self.file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            self._take_over()
-            return
-        with os.fdopen(fd, "w") as fh:
-            fh.write(f"{os.getpid()}\n")
-
-    def _take_over(self) -> None:
-        try:
-            pid = int(read_text(self.file, 64).strip())
-        except (FileProblem, ValueError):
-            pid = None
-        if pid is not None and pid != os.getpid() and _alive(pid):
-            raise ValueError(
-                f"{self.file.parent}: in use by process {pid} (its {LOCK}); wait for it to end "
-                f"or stop it first"
+        fd = self._locked_fd()
+        previous = _read_pid(fd)
+        if previous is not None and previous != os.getpid():
+            print(
+                f"warning: {self.file}: process {previous} no longer holds it; taking the run over",
+                file=sys.stderr,
             )
-        owner = f"process {pid}" if pid is not None else "an unreadable lock"
-        print(f"warning: {self.file}: {owner} is gone; taking the run over", file=sys.stderr)
-        write_atomic(self.file, f"{os.getpid()}\n")
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        except OSError:
+            os.close(fd)
+            raise
+        self.fd = fd
+        remove_stale_temps(self.file.parent)
+
+    def _locked_fd(self) -> int:
+        """An open fd of `run.lock` holding its flock; the file it names is still the lock file
+        (a holder that releases unlinks it: a lock taken on the unlinked file would be no lock)."""
+        while True:
+            fd = os.open(self.file, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _read_pid(fd)
+                os.close(fd)
+                who = f"process {holder}" if holder else "another process"
+                raise ValueError(
+                    f"{self.file.parent}: in use by {who} (its {LOCK}); wait for it to end "
+                    "or stop it first"
+                ) from None
+            except OSError:
+                os.close(fd)
+                raise
+            try:
+                if os.path.samestat(os.fstat(fd), os.stat(self.file)):
+                    return fd
+            except FileNotFoundError:
+                pass
+            os.close(fd)
 
     def release(self) -> None:
+        if self.fd is None:
+            return
         with contextlib.suppress(OSError):
-            self.file.unlink()
+            self.file.unlink()  # while still holding it: a waiting process retries on the new file
+        os.close(self.fd)
+        self.fd = None
+
+
+# `write_atomic`'s temporary files of the files a run folder's lock holder rewrites.
+_TEMP = re.compile(r"^(config\.json|metrics\.csv)\.(\d+)\.[0-9a-f]{8}\.tmp$")
+
+
+def remove_stale_temps(folder) -> None:
+    """Removes temporary files that a killed rewrite of config.json or metrics.csv left in run
+    folder `folder`: only those whose writer (the pid in the name) is gone."""
+    with contextlib.suppress(OSError):
+        for path in Path(folder).iterdir():
+            match = _TEMP.match(path.name)
+            if match and not _alive(int(match.group(2))):
+                with contextlib.suppress(OSError):
+                    path.unlink()
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # gone, or no pid at all
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True

@@ -20,6 +20,9 @@ import numpy as np
 
 from jaxnav.io.files import FileProblem, read_text, write_atomic
 
+# metrics.csv grows by ~140 bytes an update: 256 MB is about 1.9 M updates, far beyond any run.
+MAX_METRICS_BYTES = 256 * 2**20
+
 LOSSES = ("total_loss", "policy_loss", "value_loss", "entropy", "approx_kl")
 _LOSS_KEYS = {"total_loss": "total"}  # metrics key of a column where the two differ
 _INTEGER = ("update", "env_steps", "steps_per_second")
@@ -48,16 +51,21 @@ def chunk_rows(metrics, fields, first_update, batch_size, rate, elapsed) -> list
     return rows
 
 
-def read_rows(path: Path) -> list[dict]:
+def read_rows(path: Path, upto: int | None = None) -> list[dict]:
     """The rows of an existing metrics.csv (numbers; empty cells nan); [] if there is none.
 
-    A row that is not numbers is a FileProblem naming the file, its line and column.
+    With `upto` (a checkpoint's update), the rows up to that update: whatever follows it is
+    dropped unread, as a resume from that checkpoint writes those updates anew (a half row that a
+    full disk left included). A row before it that is not numbers is a FileProblem naming the
+    file, its line and column.
     """
     if not Path(path).exists():
         return []
-    reader = csv.DictReader(io.StringIO(read_text(path), newline=""))
+    reader = csv.DictReader(io.StringIO(read_text(path, MAX_METRICS_BYTES), newline=""))
     rows = []
     for row in reader:
+        if upto is not None and rows and rows[-1]["update"] >= upto:
+            break
         try:
             rows.append({k: _cell(k, v) for k, v in row.items()})
         except (TypeError, ValueError) as err:
@@ -95,8 +103,8 @@ class MetricsLog:
             return self
         file = self.out / "metrics.csv"
         text = _csv_text(self.fields, self.rows)
-        if not file.exists() or read_text(file) != text:  # atomically: the old rows stay on
-            write_atomic(file, text)  # disk until the kept ones replace them
+        if not file.exists() or read_text(file, MAX_METRICS_BYTES) != text:  # atomically: the
+            write_atomic(file, text)  # old rows stay on disk until the kept ones replace them
         self.fh = open(file, "a", newline="")
         self.writer = csv.DictWriter(self.fh, self.fields)
         self.tb = _tensorboard(self.out / "tb")
