@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from conftest import TINY_FLAGS
 
+from jaxnav import cli
 from jaxnav import train as train_module
 from jaxnav.io import checkpoint, files, runlog
 from jaxnav.ppo.networks import init_stats
@@ -537,3 +538,31 @@ def test_a_real_read_only_and_full_filesystem(fake, small_tmpfs, capsys):
     one_error_line(capsys.readouterr().err, "Read-only file system")
     assert fake("--resume", small_tmpfs / "run", "--total-steps", str(16 * 16 * 10)) == 1
     one_error_line(capsys.readouterr().err, "Read-only file system")
+
+
+def test_a_network_too_large_for_memory_is_refused_first(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    code = train_module.main(["--out", "run", "--hidden", "100000000", "100000000"])
+    assert code == 2
+    one_error_line(capsys.readouterr().err, "--hidden 100000000 100000000", "network alone")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_second_signal_while_a_chunk_runs_stops_at_once(monkeypatch, capsys):
+    """The first SIGINT waits for the chunk and its checkpoint; a second one exits at once,
+    saying what is kept (the loop waits on the device in `interruptible`, so the handler runs)."""
+
+    class Exited(Exception):
+        pass
+
+    def exit_(code):
+        raise Exited(code)
+
+    monkeypatch.setattr(cli.os, "_exit", exit_)
+    stop = cli.Interrupts()
+    stop.defer(lambda: "kept checkpoint C")
+    stop._handle(signal.SIGINT, None)
+    assert stop.requested == ["SIGINT"] and "send it again" in capsys.readouterr().err
+    with pytest.raises(Exited, match="130"):
+        stop._handle(signal.SIGTERM, None)
+    assert capsys.readouterr().err.strip() == "interrupted (SIGTERM): kept checkpoint C"
