@@ -42,7 +42,7 @@ from jaxnav.cli import (
 from jaxnav.io import checkpoint, files, runlog
 from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layout, parse_layouts
 from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overrides_from_args
-from jaxnav.ppo.config import PRESETS, preset
+from jaxnav.ppo.config import PRESETS, derived_minibatch, preset
 from jaxnav.ppo.train import make_train
 from jaxnav.tasks.base import ACTIONS
 from jaxnav.tasks.registry import TASKS, make_env, task_defaults
@@ -56,6 +56,11 @@ def build_config(
     overrides = overrides or {}
     task = task_defaults(env, preset_name)
     ppo = {**task.get("ppo", {}), **overrides.get("ppo", {})}
+    if "minibatch_size" not in overrides.get("ppo", {}):  # follows --num-envs, --rollout-length
+        base = preset(preset_name, **task.get("ppo", {}))
+        sizes = [ppo.get(k, getattr(base, k)) for k in ("num_envs", "rollout_length")]
+        if min(sizes) >= 1 and sizes != [base.num_envs, base.rollout_length]:
+            ppo["minibatch_size"] = derived_minibatch(base, *sizes)
     groups = {"ppo": preset(preset_name, **ppo)}
     defaults = {"randomize": RunConfig.randomize, "robot": RunConfig.robot}
     for attr, cls, _ in GROUPS[1:]:
@@ -639,7 +644,20 @@ def _start(args, stop: Interrupts) -> tuple[Path, Path]:
         f"{jax.devices()[0].platform} device(s){processes}",
         flush=True,
     )
+    if "minibatch_size" not in overrides["ppo"] and cfg.minibatch_size != _preset_minibatch(config):
+        print(
+            f"jaxnav: --minibatch-size {cfg.minibatch_size}: {cfg.num_minibatches} minibatches "
+            f"of the {cfg.batch_size}-step batch, as the preset splits its own (give "
+            "--minibatch-size to choose)",
+            flush=True,
+        )
     return out, run(config, out, not args.no_progress, stop)
+
+
+def _preset_minibatch(config: RunConfig) -> int:
+    return preset(
+        config.preset, **task_defaults(config.env, config.preset).get("ppo", {})
+    ).minibatch_size
 
 
 def _out_of_memory(err: Exception) -> str | None:

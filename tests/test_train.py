@@ -140,3 +140,19 @@ def test_default_run_folder_never_collides(tmp_path):
     (tmp_path / "avoid-cpu").mkdir()
     (tmp_path / "avoid-cpu-2").mkdir()
     assert _new_run_dir(tmp_path, "avoid-cpu") == tmp_path / "avoid-cpu-3"
+
+
+@pytest.mark.parametrize("env", ["avoid", "goal"])
+def test_minibatch_follows_num_envs_unless_given(env):
+    """A small run never fails on a minibatch size the user did not set: the preset's number of
+    minibatches is kept; one the user set is theirs, and its error lists sizes that work."""
+    from jaxnav.train import build_config
+
+    base = build_config("cpu", env=env).ppo
+    small = build_config("cpu", env=env, overrides={"ppo": {"num_envs": 32}}).ppo
+    assert small.batch_size % small.minibatch_size == 0
+    assert small.num_minibatches == base.num_minibatches
+    odd = build_config("cpu", env=env, overrides={"ppo": {"num_envs": 3, "rollout_length": 7}})
+    assert odd.ppo.batch_size % odd.ppo.minibatch_size == 0
+    with pytest.raises(ValueError, match="values that do: 64, 128, 256, 512"):
+        build_config("cpu", overrides={"ppo": {"num_envs": 32, "minibatch_size": 300}})

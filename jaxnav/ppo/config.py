@@ -96,9 +96,11 @@ class PPOConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"{_flag(name)}: must be >= 1, got {getattr(self, name)}")
         if self.batch_size % self.minibatch_size:
+            near = sorted(divisors(self.batch_size), key=lambda d: abs(d - self.minibatch_size))
             raise ValueError(
                 f"--minibatch-size {self.minibatch_size} must divide --num-envs x --rollout-length = "
-                f"{self.num_envs} x {self.rollout_length} = {self.batch_size}"
+                f"{self.num_envs} x {self.rollout_length} = {self.batch_size}; values that do: "
+                f"{', '.join(map(str, sorted(near[:4])))}"
             )
         if self.total_steps < self.batch_size:
             raise ValueError(
@@ -188,3 +190,17 @@ def preset(name: str, **overrides) -> PPOConfig:
     if name not in PRESETS:
         raise ValueError(f"--preset: unknown preset '{name}'; valid: {', '.join(PRESETS)}")
     return PPOConfig(**{**PRESETS[name], **overrides})
+
+
+def divisors(n: int) -> list[int]:
+    """The divisors of n >= 1, ascending."""
+    small = [d for d in range(1, int(n**0.5) + 1) if n % d == 0]
+    return sorted({*small, *(n // d for d in small)})
+
+
+def derived_minibatch(base: PPOConfig, num_envs: int, rollout_length: int) -> int:
+    """The minibatch size for a batch of `num_envs` x `rollout_length` when the user set none:
+    the batch split into `base`'s number of minibatches, or the nearest split that divides it."""
+    batch = num_envs * rollout_length
+    want = max(1, batch // base.num_minibatches)
+    return min(divisors(batch), key=lambda d: (abs(d - want), -d))
