@@ -155,3 +155,36 @@ def early_interrupts() -> None:
     argv = getattr(sys, "orig_argv", [])
     if "-m" in argv[:-1] and argv[argv.index("-m") + 1] in COMMANDS:
         Interrupts().install()
+
+
+class GroupHelp(argparse.Action):
+    """`-h/--help [GROUP]`: the command's own flags and a list of the config groups; with GROUP,
+    that group's flags (`all`: every flag)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs="?", const="", metavar="GROUP", **kwargs)
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        groups = {g.title.split()[0].lower().rstrip(":"): g for g in parser._action_groups[2:]}
+        if value and value != "all" and value not in groups:
+            raise UsageError(f"--help: unknown group '{value}'; valid: all, {', '.join(groups)}")
+        chosen = parser._action_groups[:2] if not value else []
+        chosen += list(groups.values()) if value == "all" else [groups[value]] if value else []
+        formatter = parser._get_formatter()
+        formatter.add_usage(parser.usage, parser._actions, [])
+        if not value:
+            formatter.add_text(parser.description)
+        for group in chosen:
+            formatter.start_section(group.title)
+            formatter.add_text(group.description)
+            formatter.add_arguments(group._group_actions)
+            formatter.end_section()
+        if not value:
+            listed = "\n".join(f"  {name:10} {g.description or ''}" for name, g in groups.items())
+            formatter.add_text(
+                "flag groups (--help GROUP shows one, --help all every flag; the defaults shown "
+                "are those of the --env and --preset given, the cpu preset's if none):"
+            )
+            formatter.add_text(listed)
+        parser._print_message(formatter.format_help(), sys.stdout)
+        parser.exit()

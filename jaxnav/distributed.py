@@ -67,7 +67,7 @@ class ClusterConfig:
 def add_flags(parser: argparse.ArgumentParser) -> None:
     """The flags of `ClusterConfig` (each process of a run gets the same but --process-id)."""
     group = parser.add_argument_group(
-        "several processes (hosts)",
+        "hosts: one run over several processes",
         "or JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID; see jaxnav/distributed.py",
     )
     group.add_argument(

@@ -33,6 +33,7 @@ from tqdm import tqdm
 from jaxnav import distributed
 from jaxnav.cli import (
     EXIT_INTERRUPTED,
+    GroupHelp,
     Interrupts,
     Parser,
     interruptible,
@@ -562,9 +563,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     """The flags; `args.given` lists the flags typed (as typed: `--learning-rate`)."""
     parser = Parser(
         prog="python -m jaxnav.train",
+        usage="%(prog)s [--env TASK] [--preset NAME] [--out DIR | --resume DIR] [FLAG ...]",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        add_help=False,
     )
+    parser.add_argument("-h", "--help", action=GroupHelp, help="this help; GROUP: its flags")
     parser.add_argument(
         "--env", default="avoid", help=f"the task: {', '.join(TASKS)} (default avoid)"
     )
@@ -586,12 +590,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     distributed.add_flags(parser)
-    env = Parser(add_help=False)
-    env.add_argument("--env", default="avoid")
-    name = env.parse_known_args(argv)[0].env
+    early = Parser(add_help=False)
+    early.add_argument("--env", default="avoid")
+    early.add_argument("--preset", default="cpu")
+    known = early.parse_known_args(argv)[0]
+    name = known.env
     if name not in TASKS:
         raise ValueError(f"--env: unknown task '{name}'; valid: {', '.join(sorted(TASKS))}")
-    add_flags(parser, name)  # the task's own flags
+    add_flags(parser, name, _help_defaults(name, known.preset))  # the task's own flags
     if "actions" in {f.name for f in dataclasses.fields(TASKS[name].config_cls)}:
         parser.add_argument(
             "--actions",
@@ -608,6 +614,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         and getattr(args, action.dest, None) != action.default
     ]
     return args
+
+
+def _help_defaults(env: str, preset_name: str) -> RunConfig | None:
+    """The config a run of `env` with `preset_name` and no flags would use (its values are the
+    defaults --help shows); None for an unknown preset (parsing then names it)."""
+    with contextlib.suppress(ValueError):
+        return build_config(preset_name, env=env)
+    return None
 
 
 def _new_run_dir(root: Path, name: str) -> Path:

@@ -156,3 +156,27 @@ def test_minibatch_follows_num_envs_unless_given(env):
     assert odd.ppo.batch_size % odd.ppo.minibatch_size == 0
     with pytest.raises(ValueError, match="values that do: 64, 128, 256, 512"):
         build_config("cpu", overrides={"ppo": {"num_envs": 32, "minibatch_size": 300}})
+
+
+def _help(capsys, *argv) -> str:
+    from jaxnav.train import parse_args
+
+    with pytest.raises(SystemExit) as done:
+        parse_args(list(argv))
+    assert done.value.code == 0
+    return " ".join(capsys.readouterr().out.split())
+
+
+def test_help_shows_the_defaults_a_run_uses_grouped(capsys):
+    main = _help(capsys, "--help")
+    assert (
+        "Robots simulated in parallel" not in main
+        and "flag groups" in main
+        and "randomize what is drawn" in main
+    )
+    goal = _help(capsys, "--env", "goal", "--help", "ppo")
+    assert "Robots simulated in parallel. (default: 512)" in goal
+    assert "sees the observation only. (default: True)" in goal and "--randomize." not in goal
+    assert "instead of one of the layouts" in _help(capsys, "--help", "randomize")
+    assert "(default: 0.75)" in _help(capsys, "--help", "randomize")
+    assert "--robot.radius" in _help(capsys, "--help", "all")

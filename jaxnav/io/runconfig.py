@@ -152,29 +152,44 @@ def _build(cls, values: dict, where: str):
     return cls(**fixed)
 
 
-def add_flags(parser: argparse.ArgumentParser, env: str = "avoid") -> None:
-    """One flag per config field: `--num-envs` for PPO, `--task.near-threshold` etc. for the rest
-    (the task's flags are those of `env`'s config class).
+# What each group's flags set, under its heading in --help.
+GROUP_HELP = {
+    "ppo": "the learner: batch, optimiser, PPO losses, network, chunks and checkpoints",
+    "task": "the task: reward, episode length, actions and its own settings",
+    "randomize": "what is drawn per episode: rooms, spawns, the robot, the sensor, movers",
+    "sensor": "the depth camera (or lidar): rays, sectors, range",
+    "scene": "the physics: timestep, substeps, obstacle slots, the fast or wheeled model",
+    "robot": "the robot: footprint, speed limits, sensor mount",
+}
 
-    Defaults are None so that only flags the user gave override the preset. `ALIASES` adds a
-    second name to some (`--physics` for `--scene.physics`).
+
+def add_flags(parser: argparse.ArgumentParser, env: str = "avoid", defaults=None) -> None:
+    """One flag per config field: `--num-envs` for PPO, `--task.near-threshold` etc. for the rest
+    (the task's flags are those of `env`'s config class), in one argument group per config group.
+
+    Defaults are None so that only flags the user gave override the preset; the help shows the
+    values of `defaults` (the RunConfig the run would use; else the classes' own). `ALIASES`
+    adds a second name to some (`--physics` for `--scene.physics`).
     """
     for attr, cls, prefix in GROUPS:
         cls = group_class(attr, cls, env)
-        group = parser.add_argument_group(f"{attr} settings" if prefix else "PPO settings")
-        add_field_flags(group, attr, cls, prefix)
+        title = f"{attr} settings" if prefix else "PPO settings"
+        group = parser.add_argument_group(title, GROUP_HELP[attr])
+        add_field_flags(group, attr, cls, prefix, shown=getattr(defaults, attr, None))
 
 
-def add_field_flags(group, attr: str, cls, prefix: str, names=None) -> None:
+def add_field_flags(group, attr: str, cls, prefix: str, names=None, shown=None) -> None:
     """The flags of the fields `names` (default: all) of config class `cls` in group `attr`, as
-    `add_flags` makes them (dest `attr.field`, default None; `overrides_from_args` reads them)."""
+    `add_flags` makes them (dest `attr.field`, default None; `overrides_from_args` reads them).
+    The help gives each field's value in `shown` (a `cls`), else the class default."""
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
         if names is not None and f.name not in names:
             continue
         flag = "--" + prefix + f.name.replace("_", "-")
         kind, nargs = _flag_type(hints[f.name])
-        help_text = (_field_doc(cls, f.name) + f" (default: {f.default})").replace("%", "%%")
+        value = getattr(shown, f.name) if shown is not None else f.default
+        help_text = (_field_doc(cls, f.name) + f" (default: {value})").replace("%", "%%")
         dest = f"{attr}.{f.name}"
         group.add_argument(
             *([flag, ALIASES[dest]] if dest in ALIASES else [flag]),
