@@ -20,6 +20,12 @@ of the three topics go to the loop in their recorded order, each as the node han
 (`GoalInput.on_goal_msg`, `on_odom_msg`); the plot and the CSV add the goal's distance and bearing
 the policy saw, and the shading tells the reasons for zero velocity apart (no goal yet, goal
 reached, stale odometry, ...).
+
+A damaged bag stops the replay with one `error: ...` line naming it (exit status 2): storage that
+cannot be read (a corrupt SQLite or MCAP file), or a message that cannot be decoded (truncated
+CDR), named by its topic and its number on that topic. A bad message is not skipped: without it
+the loop would see other data at other times than the node saw, and the replay would show a run
+that never happened.
 """
 
 from __future__ import annotations
@@ -148,13 +154,34 @@ def replay(bag, get: dict, topic: str | None = None, log=None) -> Replay:
             inputs[goal_topic] = lambda msg, stamp: loop.goal.on_goal_msg(msg)
             inputs[odom_topic] = loop.goal.on_odom_msg
         connections = [c for c in reader.connections if c.topic in inputs]
-        stamped = (  # in recorded time order across the topics
-            (ns, c.topic, typestore.deserialize_cdr(raw, c.msgtype))
-            for c, ns, raw in reader.messages(connections)
-        )
+        stamped = _decoded(bag, reader, connections, typestore)
         return _run(loop, rate, stamped, inputs, topic, clock)
     finally:
         reader.close()
+
+
+def _decoded(bag: Path, reader, connections, typestore):
+    """(ns, topic, message) of each message on `connections`, in recorded time order across them;
+    a ReplayError naming the bag where its storage or a message cannot be read."""
+    counts, done = dict.fromkeys((c.topic for c in connections), 0), 0
+    messages = iter(reader.messages(connections))
+    while True:
+        try:
+            connection, ns, raw = next(messages)
+        except StopIteration:
+            return
+        except Exception as err:  # noqa: BLE001 - sqlite3, apsw or mcap errors: damaged storage
+            raise ReplayError(f"{bag}: unreadable rosbag2 after {done} messages ({err})") from None
+        counts[connection.topic] += 1
+        try:
+            msg = typestore.deserialize_cdr(raw, connection.msgtype)
+        except Exception as err:  # noqa: BLE001 - truncated CDR: SerdeError, struct.error, ...
+            raise ReplayError(
+                f"{bag}: {connection.topic}: message {counts[connection.topic]} on that topic "
+                f"cannot be decoded as {connection.msgtype} ({err}); the bag is damaged"
+            ) from None
+        done += 1
+        yield ns, connection.topic, msg
 
 
 def _run(loop: ControlLoop, rate: float, stamped, inputs: dict, topic: str, clock: list) -> Replay:

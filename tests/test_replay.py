@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 import pytest
-from test_robot_side import write_policy_npz
+from test_robot_side import BAD_CONTENT, DAMAGE, bounded, damaged, write_policy_npz
 
 from jaxnav import replay
 from jaxnav.robot_side.observation import Controller
@@ -350,3 +350,53 @@ def test_goal_policy_needs_goal_and_odometry_topics(
     assert replay.main(args) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("kind", [*BAD_CONTENT, *DAMAGE])
+def test_bad_policy_file_is_one_line(bag, tmp_path, capsys, kind):
+    """A damaged, special or refused --policy: one line naming it, exit 2; a FIFO does not block."""
+    path, message = damaged(kind, tmp_path)
+    args = [str(bag), "--policy", str(path), "--topic", SCAN, "--plot", str(tmp_path / "p.png")]
+    assert bounded(replay.main, args, fifo=path if kind == "fifo" else None) == 2
+    assert capsys.readouterr().err == f"error: {path}: {message}\n"
+    assert not (tmp_path / "p.png").exists()
+
+
+def write_damaged_bag(path, frames, bad: int | None = None):
+    """A rosbag2 of depth `frames` whose message `bad` (counting from 0) holds truncated CDR."""
+    with Writer(path, version=9) as writer:
+        conn = writer.add_connection(DEPTH, replay.IMAGE, typestore=TS)
+        for i, (t, msg) in enumerate(frames):
+            raw = TS.serialize_cdr(msg, msg.__msgtype__)
+            writer.write(conn, T0 + t, raw[:60] if i == bad else raw)
+    return path
+
+
+def corrupt_page(db, needle: bytes) -> None:
+    """Overwrites the header of the SQLite page holding `needle` (the page size is in the file's
+    header, bytes 16-17)."""
+    data = bytearray(db.read_bytes())
+    size = int.from_bytes(data[16:18], "big")
+    page = data.find(needle) // size * size
+    data[page : page + 16] = b"\xff" * 16
+    db.write_bytes(bytes(data))
+
+
+def test_damaged_bag_is_one_line(tmp_path, capsys):
+    """A message of truncated CDR and a corrupt SQLite page each stop the replay: one line naming
+    the bag (and the message), exit 2, no traceback."""
+    npz, frames = write_policy_npz(tmp_path / "policy.npz"), depth_frames()
+    bag = write_damaged_bag(tmp_path / "cdr", frames, bad=3)
+    assert replay.main([str(bag), "--policy", str(npz)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {bag}: {DEPTH}: message 4 on that topic cannot be decoded as ")
+    assert "sensor_msgs/msg/Image (Invalid sequence length" in err and err.count("\n") == 1, err
+    assert err.endswith("; the bag is damaged\n") and not (tmp_path / "cdr.replay.png").exists()
+
+    bag = write_damaged_bag(tmp_path / "sqlite", frames)
+    raw = bytes(TS.serialize_cdr(frames[5][1], replay.IMAGE))
+    corrupt_page(bag / "sqlite.db3", raw[4000:4064])  # inside message 5's data
+    assert replay.main([str(bag), "--policy", str(npz)]) == 2
+    err = capsys.readouterr().err
+    want = f"error: {bag}: unreadable rosbag2 after 5 messages (database disk image is malformed)\n"
+    assert err == want

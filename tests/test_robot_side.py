@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,8 @@ import pytest
 
 import jaxnav
 from jaxnav.robot_side import Controller, NumpyPolicy
+from jaxnav.robot_side import policy as policy_module
+from jaxnav.robot_side.observation import action_to_twist
 
 ROOT = Path(jaxnav.__file__).parent.parent
 COMMANDS = np.array([[0.4, 0.0], [0.0, 1.0], [0.0, -1.0]], np.float32)  # forward, left, right
@@ -187,3 +190,264 @@ def test_unreadable_policy_file(tmp_path):
     path.write_bytes(b"not a zip file")
     with pytest.raises(ValueError, match="policy.npz: unreadable policy file"):
         NumpyPolicy.from_npz(path)
+
+
+def bounded(fn, *args, fifo=None, seconds=20.0):
+    """fn(*args), run in a thread that must finish within `seconds`: a read that blocks (on `fifo`)
+    fails the test instead of hanging it. Returns fn's result or raises its exception."""
+    out = {}
+
+    def target():
+        try:
+            out["result"] = fn(*args)
+        except BaseException as err:  # noqa: BLE001 - handed to the caller
+            out["error"] = err
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    if thread.is_alive():
+        if fifo is not None:  # let the blocked reader go: a writer that opens and closes
+            os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        pytest.fail(f"{fn.__name__} blocked for over {seconds:g} s")
+    if "error" in out:
+        raise out["error"]
+    return out["result"]
+
+
+def refused(path, message: str) -> str:
+    """The error of loading `path`: a ValueError of one line that starts with the file's name and
+    holds `message`."""
+    with pytest.raises(ValueError) as err:
+        NumpyPolicy.from_npz(path)
+    text = str(err.value)
+    assert text.startswith(f"{path}: ") and "\n" not in text and message in text, text
+    return text
+
+
+def nan_at(name: str, index, shape) -> dict:
+    """The changes to write_policy_npz's file that put NaN into entry `name` of `shape`."""
+    rng = np.random.default_rng(0)
+    value = rng.normal(size=shape).astype(np.float32)
+    value[index] = np.nan
+    return {name: value}
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (nan_at("W1", (3, 1), (16, 3)), "W1: 1 of 48 values are NaN or infinite"),
+        (dict(b0=np.full(16, np.inf, np.float32)), "b0: 16 of 16 values are NaN or infinite"),
+        (dict(W0=np.full((8, 16), 1e300)), "W0: 128 of 128 values are NaN or infinite"),
+        (dict(clip=np.float32(np.nan)), "clip: must be > 0 (inf: not clipped), got nan"),
+        (dict(leaky_slope=np.float32(np.nan)), "leaky_slope: must be in [0, 1), got nan"),
+        (dict(fov=np.float32(np.nan)), "Sensor.fov: must be in (0, 2 pi) rad, got nan"),
+        (dict(range_max=np.float32(np.inf)), "need 0 <= range_min < range_max < inf"),
+        (dict(camera_pitch=np.float64(np.nan)), "Sensor.camera_pitch: must be in (-pi/2, pi/2)"),
+        (dict(control_period=np.float64(np.nan)), "control_period: must be finite and > 0"),
+    ],
+)
+def test_non_finite_numbers_are_refused_at_load(tmp_path, changes, message):
+    """A NaN weight used to load, and its NaN scores picked the first action: forward, always."""
+    refused(write_policy_npz(tmp_path / "policy.npz", **changes), message)
+
+
+def continuous_npz(path, low=(0.0, -1.5), high=(0.5, 1.5)) -> Path:
+    """A continuous policy (format 3) with the given command bounds."""
+    rng, bounds = np.random.default_rng(1), np.array([low, high], np.float32)
+    return write_policy_npz(
+        path, W1=rng.normal(size=(16, 2)).astype(np.float32), b1=np.zeros(2, np.float32),
+        action_names=np.array(["lowest", "highest"]), commands=bounds,
+        action_low=bounds[0], action_high=bounds[1], format_version=np.int32(3),
+    )  # fmt: skip
+
+
+LIMITS = "a policy file may command at most"
+
+
+def table(forward=0.4, left=1.0) -> np.ndarray:
+    """The action table forward, left, right with these speeds."""
+    return np.array([[forward, 0.0], [0.0, left], [0.0, -1.0]], np.float32)
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda p: write_policy_npz(p, commands=table(forward=1e9)), f"commands[0]: forward speed 1e+09 m/s; {LIMITS} 2 m/s either way"),
+        (lambda p: write_policy_npz(p, commands=table(left=np.nan)), f"commands[1]: yaw rate nan rad/s; {LIMITS} 6.283 rad/s either way"),
+        (lambda p: write_policy_npz(p, commands=table(left=10.0)), f"commands[1]: yaw rate 10 rad/s; {LIMITS} 6.283 rad/s either way"),
+        (lambda p: continuous_npz(p, low=(0.0, -1e9)), f"commands[0]: yaw rate -1e+09 rad/s; {LIMITS} 6.283 rad/s"),
+        (lambda p: continuous_npz(p, high=(np.nan, 1.5)), f"commands[1]: forward speed nan m/s; {LIMITS} 2 m/s"),
+        (lambda p: continuous_npz(p, low=(0.5, -1.5), high=(0.0, 1.5)), "action_low [0.5, -1.5] must be below action_high [0.0, 1.5] in both dimensions"),
+    ],
+    ids=["forward-1e9", "yaw-nan", "yaw-10", "bound-1e9", "bound-nan", "bounds-crossed"],
+)  # fmt: skip
+def test_absurd_commands_are_refused_at_load(tmp_path, make, message):
+    """Commands and continuous bounds must be finite and within MAX_FORWARD, MAX_YAW_RATE."""
+    refused(make(tmp_path / "policy.npz"), message)
+
+
+def test_continuous_bounds_are_checked_apart_from_commands(tmp_path):
+    """The bounds a continuous policy clips to are checked too, not only the `commands` copy."""
+    path = continuous_npz(tmp_path / "policy.npz")
+    arrays = dict(np.load(path))
+    arrays["action_high"] = np.array([1e9, 1.5], np.float32)
+    with pytest.raises(ValueError, match=f"p: action_high: forward speed 1e\\+09 m/s; {LIMITS}"):
+        NumpyPolicy.from_arrays(arrays, "p")
+    arrays["action_high"] = np.array([0.5, 1.5, 0.0], np.float32)
+    with pytest.raises(ValueError, match=r"p: action_high: shape \[3\], want \[2\]"):
+        NumpyPolicy.from_arrays(arrays, "p")
+
+
+class NanPolicy:
+    """A continuous stand-in policy whose command is not finite."""
+
+    continuous, commands = True, COMMANDS
+
+    def __init__(self, sensor):
+        self.sensor = sensor
+
+    def __call__(self, obs):
+        return np.array([np.nan, 0.0], np.float32)
+
+
+def test_twists_are_never_non_finite(tmp_path):
+    """A non-finite command, observation or speed calibration is a ValueError, never a Twist."""
+    policy = NumpyPolicy.from_npz(write_policy_npz(tmp_path / "policy.npz"))
+    obs = np.full(8, 3.0, np.float32)
+    with pytest.raises(ValueError, match=r"command \(nan, 0.0\) is not finite"):
+        Controller(NanPolicy(policy.sensor)).act(obs)
+    obs[5] = np.nan  # e.g. a NaN odometry pose in the goal task's entries
+    with pytest.raises(ValueError, match=r"observation entries \[5\] are NaN or infinite"):
+        Controller(policy).act(obs)  # its NaN scores would pick the first action: forward
+    with pytest.raises(ValueError, match="speed_calibration: must be finite and > 0, got inf"):
+        Controller(policy, speed_calibration=math.inf)
+    with pytest.raises(ValueError, match="is not finite"):
+        action_to_twist(1, table(left=np.inf))
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (dict(obs_mean=np.full(7, 3.0, np.float32)), "obs_mean: 7 values, the observation has 8"),
+        (dict(obs_std=np.full(9, 2.0, np.float32)), "obs_std: 9 values, the observation has 8"),
+        (dict(obs_std=np.full((8, 1), 2.0)), "obs_std: shape [8, 1], the observation has 8"),
+        (dict(obs_var=np.ones(7, np.float32)), "obs_var: 7 values, the observation has 8"),
+        (dict(obs_std=np.arange(8.0) - 2), "obs_std: must be > 0, got -2 at entry 0"),
+        (dict(obs_mean=np.array(["a"] * 8)), "obs_mean: numbers expected, got <U1"),
+        (dict(num_sectors=np.float64(8.5)), "num_sectors: must be a whole number, got 8.5"),
+        (dict(action_names=np.array("forward")), "action_names: a list expected, got shape []"),
+        (dict(b2=np.zeros(3, np.float32)), "b2: a bias without its layer's weights"),
+        (dict(W2=np.zeros((3, 3), np.float32)), "no 'b2' in the policy file"),
+    ],
+)
+def test_shapes_are_checked_at_load(tmp_path, changes, message):
+    """A short obs_mean used to load and fail only at the first observation."""
+    refused(write_policy_npz(tmp_path / "policy.npz", **changes), message)
+
+
+@pytest.mark.parametrize(
+    "version, message",
+    [
+        (np.float64(2.7), "format_version: must be a whole number, got 2.7"),
+        (np.array([2, 3]), "format_version: one number expected, got shape [2]"),
+        (np.array("2"), "format_version: numbers expected, got <U1"),
+        (np.float64(np.nan), "format_version: must be a whole number, got nan"),
+    ],
+)
+def test_format_version_is_one_whole_number(tmp_path, version, message):
+    """2.7 used to be read as 2, and an array gave a TypeError."""
+    refused(write_policy_npz(tmp_path / "policy.npz", format_version=version), message)
+    ok = NumpyPolicy.from_npz(write_policy_npz(tmp_path / "ok.npz", format_version=np.float64(2)))
+    assert ok.sensor.num_sectors == 8
+
+
+# A policy file with each problem that loading must refuse: kind -> (write_policy_npz's changes,
+# what the error says after the file's name).
+BAD_CONTENT = {
+    "nan-weights": (nan_at("W1", (3, 1), (16, 3)), "W1: 1 of 48 values are NaN or infinite"),
+    "absurd-command": (
+        dict(commands=np.array([[1e9, 0], [0, 1], [0, -1]], np.float32)),
+        "commands[0]: forward speed 1e+09 m/s; a policy file may command at most 2 m/s either way",
+    ),
+    "short-obs_mean": (
+        dict(obs_mean=np.full(7, 3.0, np.float32)),
+        "obs_mean: 7 values, the observation has 8",
+    ),
+    "version-2.7": (
+        dict(format_version=np.float64(2.7)),
+        "format_version: must be a whole number, got 2.7",
+    ),
+    "version-array": (
+        dict(format_version=np.array([2, 3])),
+        "format_version: one number expected, got shape [2]",
+    ),
+}
+
+
+def damaged(kind: str, tmp_path: Path) -> tuple[Path, str]:
+    """(a damaged, unreadable or refused policy file of `kind` (DAMAGE or BAD_CONTENT), what its
+    error says after its name)."""
+    good = write_policy_npz(tmp_path / "good.npz").read_bytes()
+    path = tmp_path / f"{kind}.npz"
+    if kind in BAD_CONTENT:
+        changes, message = BAD_CONTENT[kind]
+        return write_policy_npz(path, **changes), message
+    if kind == "truncated":
+        path.write_bytes(good[: len(good) // 2])
+        return path, "unreadable policy file (File is not a zip file)"
+    if kind == "bit-flipped":
+        flipped = bytearray(good)
+        flipped[good.find(b"\x93NUMPY", good.find(b"obs_mean.npy")) + 140] ^= 4  # its data
+        path.write_bytes(bytes(flipped))
+        return path, "unreadable policy file (Bad CRC-32 for file 'obs_mean.npy')"
+    if kind == "npy":
+        with open(path, "wb") as fh:  # a handle: np.save would add .npy to the name
+            np.save(fh, np.zeros(3))
+        return path, "unreadable policy file (not an .npz archive)"
+    if kind == "directory":
+        path.mkdir()
+        return path, "is a directory, expected a regular file"
+    if kind == "fifo":
+        os.mkfifo(path)
+        return path, "is a FIFO (named pipe), expected a regular file"
+    if kind == "device":
+        return Path("/dev/zero"), "is a character device, expected a regular file"
+    return path, "no such file"
+
+
+DAMAGE = ("truncated", "bit-flipped", "npy", "directory", "fifo", "device", "missing")
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_damaged_or_special_files_are_one_line(tmp_path, kind):
+    """Truncated and bit-flipped archives used to raise zipfile.BadZipFile; a FIFO blocked."""
+    path, message = damaged(kind, tmp_path)
+    with pytest.raises(ValueError) as err:
+        bounded(NumpyPolicy.from_npz, path, fifo=path if kind == "fifo" else None)
+    assert str(err.value) == f"{path}: {message}"
+
+
+def test_every_single_bit_flip_loads_or_is_one_line(tmp_path):
+    """A bit flipped anywhere: the policy loads (a flip the archive does not guard, e.g. in a
+    timestamp) or loading fails with one line naming the file; nothing else."""
+    good = write_policy_npz(tmp_path / "good.npz").read_bytes()
+    path, failed = tmp_path / "flipped.npz", 0
+    for i in range(0, len(good), 5):
+        flipped = bytearray(good)
+        flipped[i] ^= 1 << (i % 8)
+        path.write_bytes(bytes(flipped))
+        try:
+            NumpyPolicy.from_npz(path)
+        except ValueError as err:
+            assert str(err).startswith(f"{path}: ") and "\n" not in str(err), err
+            failed += 1
+    assert failed > len(good) // 10
+
+
+def test_only_bounded_regular_files_are_read(tmp_path):
+    path = tmp_path / "big.npz"
+    path.write_bytes(bytes(100))
+    with pytest.raises(ValueError, match="big.npz: larger than 0 MB: not a policy file"):
+        policy_module.read_regular_file(path, limit=50)
+    assert policy_module.read_regular_file(path, limit=100) == bytes(100)

@@ -11,7 +11,15 @@ import types
 
 import numpy as np
 import pytest
-from test_robot_side import floor_image, write_policy_npz
+from test_robot_side import (
+    BAD_CONTENT,
+    DAMAGE,
+    NanPolicy,
+    bounded,
+    damaged,
+    floor_image,
+    write_policy_npz,
+)
 
 from jaxnav.robot_side import ros_node
 from jaxnav.robot_side.observation import Controller, Twist, horizon_rows
@@ -380,3 +388,24 @@ def test_main_bad_policy_is_one_line(monkeypatch, tmp_path, capsys):
     npz = str(write_policy_npz(tmp_path / "policy.npz"))
     assert ros_node.main(["--policy", npz]) == 2
     assert capsys.readouterr().err == "error: max_age: must be > 0 s, got -1.0\n"
+
+
+@pytest.mark.parametrize("kind", [*BAD_CONTENT, *DAMAGE])
+def test_main_refuses_a_bad_policy_file_before_any_command(monkeypatch, tmp_path, capsys, kind):
+    """One line naming the file, exit status 2, nothing published; a FIFO does not block."""
+    path, message = damaged(kind, tmp_path)
+    ros = FakeRos().install(monkeypatch)
+    fifo = path if kind == "fifo" else None
+    assert bounded(ros_node.main, ["--policy", str(path)], fifo=fifo) == 2
+    assert capsys.readouterr().err == f"error: {path}: {message}\n"
+    assert ros.published() == [] and ros.events[-1] == ("shutdown",)
+    assert all(not node.timers_ for node in ros.nodes)
+
+
+def test_loop_stops_on_a_non_finite_command(policy):
+    """A command that is not finite is an error: the loop sends zero velocity and carries on."""
+    log = []
+    loop = ControlLoop(Controller(NanPolicy(policy.sensor)), MessageReader(), log=log.append)
+    loop.on_observation(image_msg(scene(1.0, 4.0)), 0.0)
+    assert loop.tick(0.0) == STOP and loop.obs is None
+    assert log == ["error: ValueError: command (nan, 0.0) is not finite: sending zero velocity"]

@@ -72,9 +72,9 @@ class Sensor:
             raise ValueError(f"Sensor.fov: must be in (0, 2 pi) rad, got {self.fov}")
         if self.num_sectors < 1:
             raise ValueError(f"Sensor.num_sectors: must be >= 1, got {self.num_sectors}")
-        if not 0 <= self.range_min < self.range_max:
+        if not 0 <= self.range_min < self.range_max < math.inf:
             raise ValueError(
-                f"Sensor.range_min/range_max: need 0 <= range_min < range_max, "
+                f"Sensor.range_min/range_max: need 0 <= range_min < range_max < inf, "
                 f"got {self.range_min}, {self.range_max}"
             )
         object.__setattr__(self, "elevations", tuple(float(e) for e in self.elevations))
@@ -82,11 +82,19 @@ class Sensor:
             raise ValueError(
                 f"Sensor.elevations: need at least one, each in (-pi/2, pi/2), got {self.elevations}"
             )
-        if self.camera_height is not None and not self.camera_height > 0:
-            raise ValueError(f"Sensor.camera_height: must be > 0 m, got {self.camera_height}")
+        if self.camera_height is not None and not 0 < self.camera_height < math.inf:
+            raise ValueError(
+                f"Sensor.camera_height: must be finite and > 0 m, got {self.camera_height}"
+            )
+        if not abs(self.camera_pitch) < math.pi / 2:
+            raise ValueError(
+                f"Sensor.camera_pitch: must be in (-pi/2, pi/2), got {self.camera_pitch}"
+            )
         for name in ("floor_margin", "floor_margin_slope"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"Sensor.{name}: must be >= 0, got {getattr(self, name)}")
+            if not 0 <= getattr(self, name) < math.inf:
+                raise ValueError(
+                    f"Sensor.{name}: must be finite and >= 0, got {getattr(self, name)}"
+                )
 
 
 class Twist(NamedTuple):
@@ -344,8 +352,16 @@ def action_to_twist(action, commands: np.ndarray, speed_calibration: float = 1.0
     a = int(action)
     if not 0 <= a < len(commands):
         raise ValueError(f"action must be in 0..{len(commands) - 1}, got {action}")
-    forward, yaw = commands[a]
-    return Twist(float(forward) * speed_calibration, float(yaw) * speed_calibration)
+    return finite_twist(commands[a], speed_calibration)
+
+
+def finite_twist(command, speed_calibration: float = 1.0) -> Twist:
+    """The Twist of command (forward m/s, yaw rad/s) times speed_calibration; a ValueError if
+    either is NaN or infinite, so that no such value ever reaches the robot."""
+    forward, yaw = (float(x) * speed_calibration for x in command)
+    if not (math.isfinite(forward) and math.isfinite(yaw)):
+        raise ValueError(f"command ({forward}, {yaw}) is not finite")
+    return Twist(forward, yaw)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -360,9 +376,9 @@ class Controller:
     """A depth-image sector at least this share unknown (0/NaN) reads near (`reduce_sectors`)."""
 
     def __post_init__(self):
-        if not self.speed_calibration > 0:
+        if not 0 < self.speed_calibration < math.inf:
             raise ValueError(
-                f"Controller.speed_calibration: must be > 0, got {self.speed_calibration}"
+                f"Controller.speed_calibration: must be finite and > 0, got {self.speed_calibration}"
             )
         if not 0 < self.blind_fraction <= 1:
             raise ValueError(
@@ -371,12 +387,14 @@ class Controller:
 
     def act(self, obs) -> Twist:
         """The command for an observation [D] (sectors in metres, right to left; the goal task's
-        entries after them, see `policy.goal_observation`)."""
+        entries after them, see `policy.goal_observation`). A ValueError where the observation or
+        the command is not finite (NaN would otherwise pick the first action: forward)."""
+        obs = np.asarray(obs, np.float32)
+        if not np.isfinite(obs).all():
+            bad = np.flatnonzero(~np.isfinite(obs)).tolist()
+            raise ValueError(f"observation entries {bad} are NaN or infinite")
         if getattr(self.policy, "continuous", False):
-            forward, yaw = self.policy(obs)
-            return Twist(
-                float(forward) * self.speed_calibration, float(yaw) * self.speed_calibration
-            )
+            return finite_twist(self.policy(obs), self.speed_calibration)
         return action_to_twist(self.policy(obs), self.policy.commands, self.speed_calibration)
 
     def image_obs(self, depth, rows=None, column_angles=None, vfov=None) -> np.ndarray:

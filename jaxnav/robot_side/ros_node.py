@@ -18,6 +18,9 @@ What it does (the logic is `ControlLoop` below, which has no ROS in it and is te
   the policy's command for the NEWEST sensor message; messages in between are dropped, not queued.
 - It sends zero velocity when that message is older than `max_age` (default 0.25 s), before the
   first message, and when a message cannot be converted or the policy fails (logged; it carries on).
+- A policy file that fails its checks (`policy.NumpyPolicy.from_npz`: unreadable, not a regular
+  file, NaN weights, absurd commands, wrong sizes) ends the node with one `error: ...` line and
+  exit status 2 before any command is sent; so does a bad parameter.
 - Ctrl-C (SIGINT) or SIGTERM sends zero velocity, then shuts down. rclpy's own SIGINT handler
   (Humble and later) would shut the ROS context down before any code of ours ran, so rclpy is
   started without it and this node installs its own handlers. Python runs them between callbacks,
@@ -458,8 +461,8 @@ def main(argv=None) -> int:
     _init_rclpy(rclpy, [sys.argv[0], *ros_args])
     try:
         node = _make_node(args)
-    except ValueError as err:  # a bad policy file or parameter
-        print(f"error: {err}", file=sys.stderr)
+    except ValueError as err:  # a bad policy file or parameter: before any command is sent
+        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
     previous = _stop_on_signals(node)
