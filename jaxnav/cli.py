@@ -17,6 +17,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import types
 from collections.abc import Callable
 from pathlib import Path
@@ -127,9 +128,10 @@ def end_children() -> None:
             continue
 
 
-def interruptible(fn: Callable, *args):
+def interruptible(fn: Callable, *args, waiting: Callable[[float], None] | None = None):
     """`fn(*args)` in a worker thread while the main thread waits, so that a signal handler runs at
-    once even while `fn` sits in a long C++ call (an XLA compile); its exception is re-raised."""
+    once even while `fn` sits in a long C++ call (an XLA compile); its exception is re-raised.
+    `waiting(seconds)` is called every 0.1 s of the wait (e.g. a `Waiting` line)."""
     if threading.current_thread() is not threading.main_thread():
         return fn(*args)
     box: dict = {}
@@ -141,12 +143,47 @@ def interruptible(fn: Callable, *args):
             box["error"] = err
 
     worker = threading.Thread(target=work, daemon=True)
+    start = time.perf_counter()
     worker.start()
     while worker.is_alive():
         worker.join(0.1)
+        if waiting is not None:
+            waiting(time.perf_counter() - start)
     if "error" in box:
         raise box["error"]
     return box["value"]
+
+
+class Waiting:
+    """Tells the user that a long wait (an XLA compile) goes on: `label`, then on a terminal the
+    seconds so far on the same line, elsewhere (a log file) a line at 30 s, 1, 2, 4 ... minutes."""
+
+    def __init__(self, label: str, stream=None):
+        self.label, self.stream = label, stream or sys.stdout
+        self.tty = self.stream.isatty()
+        self.shown, self.next_line = 0, 30.0
+        print(label, end="" if self.tty else "\n", file=self.stream, flush=True)
+
+    def __call__(self, seconds: float) -> None:
+        if self.tty and int(seconds) > self.shown:
+            self.shown = int(seconds)
+            print(f"\r{self.label} {self.shown} s", end="", file=self.stream, flush=True)
+        elif not self.tty and seconds >= self.next_line:
+            print(f"{self.label} still running after {seconds:.0f} s", file=self.stream, flush=True)
+            self.next_line *= 2
+
+    def end(self) -> None:
+        if self.tty:
+            print(file=self.stream, flush=True)
+
+
+def quiet_xla_logs() -> None:
+    """Keeps XLA's C++ log lines (`slow_operation_alarm ... Very slow compile?`) out of a command's
+    terminal: set before jax loads, unless the user set TF_CPP_MIN_LOG_LEVEL or JAXNAV_XLA_LOGS=1.
+    Failures still reach the user as Python exceptions."""
+    if os.environ.get("JAXNAV_XLA_LOGS", "") not in ("", "0"):
+        return
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 
 def early_interrupts() -> None:
@@ -155,6 +192,7 @@ def early_interrupts() -> None:
     argv = getattr(sys, "orig_argv", [])
     if "-m" in argv[:-1] and argv[argv.index("-m") + 1] in COMMANDS:
         Interrupts().install()
+        quiet_xla_logs()
 
 
 class GroupHelp(argparse.Action):

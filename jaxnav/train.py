@@ -36,6 +36,7 @@ from jaxnav.cli import (
     GroupHelp,
     Interrupts,
     Parser,
+    Waiting,
     interruptible,
     make_callable,
     print_error,
@@ -466,10 +467,11 @@ def _save(out: Path, ts, config: RunConfig, meta: dict, main: bool) -> Path:
 def _first_chunk(trainer, ts, stop: Interrupts, kept):
     """The first chunk of a session (XLA compiles it), interruptible at once; then signals wait
     for the end of a chunk."""
-    print("jaxnav: compiling the training step (the first chunk)...", flush=True)
+    waiting = Waiting("jaxnav: compiling the training step (the first chunk)...")
     tick = time.perf_counter()
-    out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)))
+    out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)), waiting=waiting)
     stop.defer(kept)  # before the line: a signal after it waits for the chunk and checkpoint
+    waiting.end()
     print(
         f"jaxnav: compiled and ran the first chunk in {time.perf_counter() - tick:.1f} s",
         flush=True,

@@ -2,8 +2,10 @@
 
 import csv
 import json
+import os
 import subprocess
 import sys
+import time
 
 import jax
 import numpy as np
@@ -180,3 +182,36 @@ def test_help_shows_the_defaults_a_run_uses_grouped(capsys):
     assert "instead of one of the layouts" in _help(capsys, "--help", "randomize")
     assert "(default: 0.75)" in _help(capsys, "--help", "randomize")
     assert "--robot.radius" in _help(capsys, "--help", "all")
+
+
+def test_a_long_compile_says_it_goes_on(capsys):
+    from jaxnav.cli import Waiting, interruptible
+
+    waiting = Waiting("compiling...")  # captured output is not a terminal: whole lines
+    for seconds in (1, 29, 31, 45, 61, 130):
+        waiting(seconds)
+    waiting.end()
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [
+        "compiling...",
+        "compiling... still running after 31 s",
+        "compiling... still running after 61 s",
+        "compiling... still running after 130 s",
+    ]
+    seen = []
+    assert interruptible(lambda: time.sleep(0.35) or 7, waiting=seen.append) == 7 and seen
+
+
+def test_xla_log_lines_are_kept_out_of_a_command_unless_asked(monkeypatch):
+    from jaxnav.cli import quiet_xla_logs
+
+    monkeypatch.delenv("TF_CPP_MIN_LOG_LEVEL", raising=False)
+    monkeypatch.setenv("JAXNAV_XLA_LOGS", "1")
+    quiet_xla_logs()
+    assert "TF_CPP_MIN_LOG_LEVEL" not in os.environ
+    monkeypatch.delenv("JAXNAV_XLA_LOGS")
+    quiet_xla_logs()
+    assert os.environ["TF_CPP_MIN_LOG_LEVEL"] == "3"
+    monkeypatch.setenv("TF_CPP_MIN_LOG_LEVEL", "0")  # the user's own choice stays
+    quiet_xla_logs()
+    assert os.environ["TF_CPP_MIN_LOG_LEVEL"] == "0"
