@@ -1,4 +1,5 @@
-"""Any jaxnav task as a `brax.envs.Env`: `make_brax_env(name, **kwargs)` (needs `jaxnav[brax]`).
+"""Any jaxnav task as a `brax.envs.Env`: `make_brax_env(name, **kwargs)` (needs brax: the `brax`
+extra, `pip install -e ".[brax]"` in the repository).
 
 brax's trainers (`brax.training.agents.ppo.train`, `sac.train`) wrap an env with
 `brax.envs.wrappers.training.wrap`: a VmapWrapper, an EpisodeWrapper (time limit, episode
@@ -28,7 +29,9 @@ import jax.numpy as jnp
 try:
     from brax.envs.base import Env, State
 except ImportError as err:  # one line for the user, not a traceback from deep inside brax
-    raise ImportError("jaxnav.make_brax_env needs brax: pip install 'jaxnav[brax]'") from err
+    raise ImportError(
+        'jaxnav.make_brax_env needs brax: pip install brax (or -e ".[brax]" in the repository)'
+    ) from err
 
 from jaxnav.core.types import ContinuousActions
 from jaxnav.tasks.registry import make_env, task_entry

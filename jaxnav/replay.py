@@ -9,8 +9,8 @@ BAG is a rosbag2 recording (a folder with metadata.yaml; sqlite3 or mcap) holdin
 through the ROS node's own logic (`jaxnav.robot_side.ros_node.ControlLoop`, built as the node builds
 it, with the node's flags), ticked at the node's rate from the first message to when the last one
 goes stale. No ROS install is needed: the bag is read with the `rosbags` library
-(pip install "jaxnav[ros]"). The plot shows the observation (the 8 sector distances) and the
-commanded (v, w) over time, with the ticks that sent zero velocity shaded; `--csv` writes one row
+(`pip install rosbags`, or `pip install -e ".[ros]"` in the repository). The plot shows the
+observation (the 8 sector distances) and the commanded (v, w) over time, with the ticks that sent zero velocity shaded; `--csv` writes one row
 per tick. numpy, matplotlib and rosbags only: no jax.
 
 A goal policy (exported from the `goal` task) also needs the goal (geometry_msgs/PoseStamped on
@@ -84,7 +84,7 @@ def _rosbags():
         from rosbags.typesys import Stores, get_typestore
     except ImportError:
         raise ReplayError(
-            "python -m jaxnav.replay needs the 'rosbags' package (pip install 'jaxnav[ros]')"
+            "python -m jaxnav.replay needs the 'rosbags' package (pip install rosbags)"
         ) from None
     # sensor_msgs/Image and LaserScan are the same in every ROS 2 distribution.
     return Reader, get_typestore(Stores.ROS2_HUMBLE)

@@ -152,3 +152,22 @@ def test_every_third_party_import_is_declared():
         if not declared & {normalized(d) for d in providers.get(module, [module])}
     )
     assert not undeclared, f"imported by jaxnav but not declared in pyproject.toml: {undeclared}"
+
+
+def test_constraints_pin_every_dependency_within_its_declared_range():
+    """constraints.txt (the tested set CI installs) pins each dependency of the project and of its
+    extras at a release that pyproject.toml's range allows."""
+    from packaging.requirements import Requirement
+
+    pins = {}
+    for line in (REPO / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, version = line.split("==")
+            pins[re.sub(r"[-_.]+", "-", name).lower()] = version
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    declared = [*project["dependencies"], *project["optional-dependencies"]["dev"]]
+    for text in declared:
+        req = Requirement(text.split("#")[0])
+        name = re.sub(r"[-_.]+", "-", req.name).lower()
+        assert name in pins, f"constraints.txt pins no {req.name}"
+        assert req.specifier.contains(pins[name], prereleases=True), (req, pins[name])
