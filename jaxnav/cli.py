@@ -177,6 +177,29 @@ class Waiting:
             print(file=self.stream, flush=True)
 
 
+def compile_cache(enabled: bool = True) -> Path | None:
+    """Turns on JAX's persistent compilation cache for a command, so that a run with the shapes of
+    an earlier one skips XLA's compile: in JAX_COMPILATION_CACHE_DIR if the user set it, else
+    `$XDG_CACHE_HOME/jaxnav/xla` (~/.cache/jaxnav/xla). Returns the folder (None: off, by
+    `enabled=False` or a folder that cannot be made)."""
+    import jax
+
+    if not enabled:
+        jax.config.update("jax_compilation_cache_dir", None)
+        return None
+    folder = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if not folder:
+        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+        folder = Path(base) / "jaxnav" / "xla"
+    try:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"warning: {folder}: no compilation cache ({err.strerror})", file=sys.stderr)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    return Path(folder)
+
+
 def quiet_xla_logs() -> None:
     """Keeps XLA's C++ log lines (`slow_operation_alarm ... Very slow compile?`) out of a command's
     terminal: set before jax loads, unless the user set TF_CPP_MIN_LOG_LEVEL or JAXNAV_XLA_LOGS=1.

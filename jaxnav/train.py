@@ -37,6 +37,7 @@ from jaxnav.cli import (
     Interrupts,
     Parser,
     Waiting,
+    compile_cache,
     interruptible,
     make_callable,
     print_error,
@@ -591,6 +592,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="training room files (default: scenes/train_room.json + sampled rooms)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="compile everything anew (default: reuse compiled programs of earlier runs with "
+        "the same shapes, kept in ~/.cache/jaxnav/xla or JAX_COMPILATION_CACHE_DIR)",
+    )
     distributed.add_flags(parser)
     early = Parser(add_help=False)
     early.add_argument("--env", default="avoid")
@@ -633,7 +640,13 @@ def _new_run_dir(root: Path, name: str) -> Path:
 
 
 # The flags --resume takes.
-RESUME_FLAGS = ("--resume", "--total-steps", "--no-progress", *distributed.FLAGS)
+RESUME_FLAGS = (
+    "--resume",
+    "--total-steps",
+    "--no-progress",
+    "--no-compile-cache",
+    *distributed.FLAGS,
+)
 
 
 def _start(args, stop: Interrupts) -> tuple[Path, Path]:
@@ -691,6 +704,7 @@ def main(argv=None) -> int:
     try:
         with Interrupts() as stop:  # Ctrl-C: at once until training runs, then after a chunk
             args = parse_args(argv)
+            compile_cache(not args.no_compile_cache)
             distributed.start(distributed.from_args(args))  # before anything touches a device
             with distributed.start_failed():  # an error before training: told to the others
                 out, final = _start(args, stop)

@@ -3,6 +3,7 @@
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -10,7 +11,7 @@ import time
 import jax
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import TINY_FLAGS, run_cli
 
 import jaxnav
 from jaxnav.core.randomize import RandomizeConfig
@@ -215,3 +216,39 @@ def test_xla_log_lines_are_kept_out_of_a_command_unless_asked(monkeypatch):
     monkeypatch.setenv("TF_CPP_MIN_LOG_LEVEL", "0")  # the user's own choice stays
     quiet_xla_logs()
     assert os.environ["TF_CPP_MIN_LOG_LEVEL"] == "0"
+
+
+def test_commands_keep_compiled_programs_in_the_user_cache(tmp_path, monkeypatch):
+    import jax
+
+    from jaxnav.cli import compile_cache
+
+    before = jax.config.jax_compilation_cache_dir
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    try:
+        assert compile_cache() == tmp_path / "jaxnav" / "xla"
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "jaxnav" / "xla")
+        assert compile_cache(enabled=False) is None and not jax.config.jax_compilation_cache_dir
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+
+
+@pytest.mark.slow
+def test_a_repeated_run_compiles_nothing_anew(tmp_path):
+    """Two processes (the cache is what outlives a process): the second run of the same shapes
+    adds nothing to the cache, and `--no-compile-cache` leaves it alone."""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
+    cache = tmp_path / "cache" / "jaxnav" / "xla"
+
+    def train(out, *flags):
+        cmd = [sys.executable, "-m", "jaxnav.train", "--out", str(tmp_path / out), *TINY_FLAGS]
+        proc = subprocess.run([*cmd, *flags], capture_output=True, text=True, env=env, timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        return sorted(p.name for p in cache.iterdir()) if cache.exists() else []
+
+    first = train("a")
+    assert first and train("b") == first
+    shutil.rmtree(cache)
+    assert train("c", "--no-compile-cache") == []
