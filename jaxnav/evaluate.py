@@ -15,6 +15,11 @@ All rooms run in one env and one compiled batch (`make_rollout(..., pinned=True)
 data, so a 32-room suite compiles once. Coverage (`jaxnav.core.families.coverage`) is the share of
 a room's reachable free area (0.1 m cells where the robot's disc fits, flood-filled from the spawn)
 that the robot's path came within 1.0 m of (straight-line distance), averaged over episodes.
+
+Checked before anything compiles: the flags, the layouts (`load_layouts`: one set of rooms, a goal
+task's goals beyond its success radius from the spawn), the memory the batch needs
+(`check_memory`) and the space left where the results go. Per-room pictures get safe, distinct
+file names (`file_stems`), and names are printed with control characters escaped (`printable`).
 """
 
 from __future__ import annotations
@@ -22,8 +27,12 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import hashlib
 import json
+import os
 import re
+import shutil
+import stat
 import sys
 from pathlib import Path
 
@@ -39,13 +48,18 @@ from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
 from jaxnav.core.scene import PHYSICS, SCENES_DIR, SceneConfig
 from jaxnav.io.assets import scenes_dir
 from jaxnav.io.files import check_writable, write_atomic
-from jaxnav.io.layouts import LayoutError, RoomLayout
+from jaxnav.io.layouts import LayoutError, RoomLayout, check_goal_distance, load_layouts
 from jaxnav.io.runconfig import add_field_flags, overrides_from_args
 from jaxnav.policy import BASELINES, Policy
 from jaxnav.tasks.registry import make_env, observation_size, task_entry
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
 MAX_TRAJECTORIES = 20  # paths kept per layout for the pictures; more only clutter them
+MAX_COUNT = 2**31 - 1  # steps per episode, and episodes in all: 32-bit counters and indices
+MAX_FILE_STEM = 80  # characters of a room's name kept in its picture's file name
+# Bytes of results per room, to refuse a folder without the space before evaluating (a top-down
+# PNG is 50-150 kB, a GIF of 600 steps a few MB).
+RESULT_BYTES = {"--json": 2_000, "--plots": 300_000, "--video": 10_000_000}
 METRIC_KEYS = (
     "episodes",
     "collision_free_rate",
@@ -273,6 +287,7 @@ def evaluate_rooms(
     """All layouts in one env and one compiled batch -> per room: its per-episode arrays (numpy)
     and what `evaluate` keeps for pictures (`paths`, `collided`, `qpos`, `params`, `env`)."""
     env = make_eval_env(policy, layouts, steps=steps, randomize=randomize, physics=physics)
+    check_memory(env, episodes, steps)
     rollout = make_rollout(env, policy.act, episodes, steps, keep=episodes, pinned=True)
     track, kept = jax.device_get(rollout(key))
     with_goals = "success" in env.metric_names
@@ -308,6 +323,56 @@ def evaluate_rooms(
             }
         )
     return out
+
+
+def _available_memory() -> tuple[int | None, str]:
+    """(bytes the batch may use, where): MemAvailable on the CPU, else the first accelerator's
+    `bytes_limit`; None where neither is known."""
+    device = jax.local_devices()[0]
+    if device.platform != "cpu":
+        stats = device.memory_stats() or {}
+        return stats.get("bytes_limit"), f"memory of one {device.device_kind}"
+    try:
+        with open("/proc/meminfo") as fh:
+            kb = next(int(line.split()[1]) for line in fh if line.startswith("MemAvailable:"))
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None, ""
+    return kb * 1024, "free CPU memory (MemAvailable)"
+
+
+def check_memory(env, episodes: int, steps: int) -> None:
+    """Refuses, before it compiles, a batch (`episodes` in every room of `env`'s bank, `steps`
+    long) that cannot fit in memory. Per episode: its state three times (the carry, the next one
+    and the step's intermediates; shapes from `jax.eval_shape`, nothing allocated) and its path,
+    [steps + 1, 2] float32 on the device and again on the host; and one PRNG key per step."""
+    available, where = _available_memory()
+    if available is None:
+        return
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    state_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
+    per_episode = 3 * state_bytes + 2 * 8 * (steps + 1)
+    rooms, keys = env.bank.size, 8 * steps
+    need = rooms * episodes * per_episode + keys
+    if need <= available:
+        return
+    fit = int((available - keys) // (rooms * per_episode))
+    hint = (
+        f"at {steps:,} steps about {fit:,} episodes per room fit"
+        if fit >= 1
+        else f"not even 1 episode per room of {steps:,} steps fits: fewer steps"
+    )
+    raise ValueError(
+        f"episodes {episodes:,} x {rooms} room(s) x steps {steps:,}: needs about "
+        f"{_size(need)} ({_size(per_episode)} per episode), but the {where} is "
+        f"{_size(available)}; {hint}"
+    )
+
+
+def _size(n: float) -> str:
+    """A byte count for people: 8.8 kB, 880.2 GB."""
+    units = {"TB": 1e12, "GB": 1e9, "MB": 1e6}
+    unit = next((u for u, size in units.items() if n >= size), "kB")
+    return f"{n / units.get(unit, 1e3):.1f} {unit}"
 
 
 def load_suite(name: str) -> dict[str, list[RoomLayout]]:
@@ -362,16 +427,24 @@ def evaluate(
     `RandomizeConfig` fields of `MOVING_FIELDS`, e.g. {"moving_count": (1, 3)}); the results
     then give them under `"moving"`.
     """
-    if episodes < 1:
-        raise ValueError(f"episodes: must be >= 1, got {episodes}")
-    if steps < 1:
-        raise ValueError(f"steps: must be >= 1, got {steps}")
+    for name, value in (("episodes", episodes), ("steps", steps)):
+        if not 1 <= value <= MAX_COUNT:
+            raise ValueError(f"{name}: must be 1 to {MAX_COUNT:,}, got {value:,}")
     if (layouts is None) == (suite is None):
         raise ValueError("layouts, suite: give exactly one of them")
     groups = load_suite(suite) if suite is not None else {}
     layouts = [room for rooms in groups.values() for room in rooms] if suite else list(layouts)
     if not layouts:
         raise ValueError("layouts: need at least one layout")
+    if len(layouts) * episodes > MAX_COUNT:
+        raise ValueError(
+            f"episodes: {episodes:,} in each of {len(layouts)} rooms is more than {MAX_COUNT:,} "
+            "in one batch"
+        )
+    radius = success_radius(policy)
+    if radius is not None:  # a goal task: a goal on the fixed spawn would measure nothing
+        for layout in layouts:
+            check_goal_distance(layout, radius)
     randomize = eval_randomize(spawn, stochastic_env, moving)
     rooms = evaluate_rooms(
         policy,
@@ -428,6 +501,12 @@ def _check_finite(room_metrics: dict, name: str) -> None:
             f"room {name!r}: {bad[0]} is {room_metrics[bad[0]]} (the simulation diverged in this "
             "room); no results written"
         )
+
+
+def success_radius(policy: Policy) -> float | None:
+    """The success radius (m) of the policy's task, None for tasks without goals."""
+    task = policy.env_kwargs.get("task") or task_entry(policy.env).config_cls()
+    return getattr(task, "success_radius", None)
 
 
 def unique_names(layouts: list[RoomLayout]) -> list[str]:
@@ -515,22 +594,44 @@ def _check_args(args) -> None:
         raise UsageError(f"--episodes: must be >= 1, got {args.episodes}")
     if args.steps < 1:
         raise UsageError(f"--steps: must be >= 1, got {args.steps}")
-    if args.checkpoint is not None and not Path(args.checkpoint).is_dir():
+    for flag, value in (("--episodes", args.episodes), ("--steps", args.steps)):
+        if value > MAX_COUNT:
+            raise UsageError(f"{flag}: at most {MAX_COUNT:,} (a 32-bit count), got {value:,}")
+    if args.checkpoint is not None and _kind(args.checkpoint, "--checkpoint") != "folder":
         raise UsageError(f"--checkpoint: no such directory: {args.checkpoint}")
     for flag, value in (("--plots", args.plots), ("--video", args.video)):
-        if value is not None and Path(value).exists() and not Path(value).is_dir():
+        if value is not None and _kind(value, flag) not in (None, "folder"):
             raise UsageError(f"{flag}: not a directory: {value}")
-    if args.json is not None and Path(args.json).is_dir():
+    if args.json is not None and _kind(args.json, "--json") == "folder":
         raise UsageError(f"--json: {args.json} is a directory, expected a file name")
 
 
-def _check_outputs(args) -> None:
-    """Every folder the results go to can be written, before minutes of evaluation."""
-    if args.json:
-        check_writable(Path(args.json).parent, "--json")
-    check_writable(_plots_dir(args), "--plots")
+def _kind(path: str, flag: str) -> str | None:
+    """What `path` is: "folder", "file" (anything else) or None (missing); one that cannot be
+    looked at (a folder without permission on the way) is a UsageError naming `flag`."""
+    try:
+        mode = os.stat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError as err:
+        raise UsageError(f"{flag} {path}: cannot access ({err.strerror or err})") from None
+    return "folder" if stat.S_ISDIR(mode) else "file"
+
+
+def _check_outputs(args, rooms: int) -> None:
+    """Every folder the results go to can be written and has space for the results of `rooms`
+    rooms, before minutes of evaluation."""
+    folders = {"--json": (Path(args.json).parent, rooms + 1)} if args.json else {}
+    folders["--plots"] = (_plots_dir(args), rooms)
     if args.video:
-        check_writable(Path(args.video), "--video")
+        folders["--video"] = (Path(args.video), rooms)
+    for flag, (folder, count) in folders.items():
+        check_writable(folder, flag)
+        free, need = shutil.disk_usage(folder).free, RESULT_BYTES[flag] * count
+        if free < need:
+            raise UsageError(
+                f"{flag} {folder}: {_size(free)} free, the results need about {_size(need)}"
+            )
 
 
 def _load_policy(args) -> Policy:
@@ -546,6 +647,9 @@ def _load_policy(args) -> Policy:
         policy = load_policy(args.checkpoint)
     except CheckpointError as err:  # its message names the file; add the flag
         raise UsageError(f"--checkpoint: {err}") from None
+    except OSError as err:  # a folder inside it without permission
+        where = err.filename or args.checkpoint
+        raise UsageError(f"--checkpoint: {where}: cannot read ({err.strerror or err})") from None
     # The weights must fit the network that the checkpoint's config.json describes; tracing one
     # call (no compile) says so now, instead of a traceback from inside the jitted rollout.
     size = observation_size(policy.env_kwargs["task"], policy.env_kwargs["sensor"])
@@ -581,9 +685,35 @@ def _plots_dir(args) -> Path:
     return Path("eval")
 
 
-def _file_name(name: str) -> str:
-    """A layout name made safe as a file name."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "room"
+def file_stems(names: list[str]) -> list[str]:
+    """Distinct, safe file names (without suffix) for room `names`: characters other than
+    letters, digits, `.`, `_` and `-` become `_`, at most MAX_FILE_STEM of them, no leading dot;
+    a name that would repeat an earlier one (case aside, as some file systems see it) gets `-`
+    and a short hash of the room's full name, then `-2`, `-3`... if it still does."""
+    out, taken = [], set()
+    for name in names:
+        stem = re.sub(r"[^A-Za-z0-9._-]+", "_", name).lstrip(".")[:MAX_FILE_STEM] or "room"
+        if stem.lower() in taken:
+            stem = f"{stem}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
+        unique, k = stem, 2
+        while unique.lower() in taken:
+            unique, k = f"{stem}-{k}", k + 1
+        taken.add(unique.lower())
+        out.append(unique)
+    return out
+
+
+def printable(name: str) -> str:
+    """`name` with control characters (newlines, terminal escapes) written as escapes (`\\n`,
+    `\\x1b`), so a room name can neither break a table's rows nor drive the terminal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in name)
+
+
+def _listing(folder: Path, files: list[str]) -> str:
+    """`folder/ (N PNG: a.png, b.png, ...)`: the names of the files written there."""
+    kinds = ", ".join(sorted({f.rsplit(".", 1)[-1].upper() for f in files}))
+    shown = ", ".join(files[:8]) + (f", ... ({len(files)} in all)" if len(files) > 8 else "")
+    return f"{folder}/ ({len(files)} {kinds}: {shown})"
 
 
 def format_table(results: dict) -> str:
@@ -598,7 +728,8 @@ def format_table(results: dict) -> str:
     lines = [head, "-" * len(head)]
     for name, m in rows:
         lines.append(
-            f"{name[:24]:<24} {m['episodes']:>8d} {100 * m['collision_free_rate']:>16.1f} "
+            f"{printable(name)[:24]:<24} {m['episodes']:>8d} "
+            f"{100 * m['collision_free_rate']:>16.1f} "
             f"{m['mean_speed']:>9.3f} {m['mean_distance']:>10.2f} {m['mean_steps']:>7.1f} "
             f"{100 * m['coverage']:>10.1f}"
             + (f" {100 * m['success_rate']:>9.1f} {m['spl']:>5.2f}" if goal else "")
@@ -623,28 +754,32 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
     # A suite: one picture per family (its first room); otherwise one per layout.
     by_name = dict(zip(results["_trajectories"], layouts, strict=True))
     shown = results.get("_families") or {name: name for name in by_name}
-    for label, name in shown.items():
+    files = [f"{stem}.png" for stem in file_stems(list(shown))]
+    for name, file in zip(shown.values(), files, strict=True):
         traj, m = results["_trajectories"][name], results["layouts"][name]
-        title = (
-            f"{name}: {results['policy']}, {100 * m['collision_free_rate']:.0f}% collision-free, "
-            f"coverage {100 * m['coverage']:.0f}% ({m['episodes']} episodes)"
-        )
-        if "spl" in m:
-            title = (
-                f"{name}: {results['policy']}, {100 * m['success_rate']:.0f}% success, "
-                f"SPL {m['spl']:.2f} ({m['episodes']} episodes)"
-            )
-        path = out / f"{_file_name(label)}.png"
         plot_trajectories(
             by_name[name],
             traj["paths"],
             traj["collided"],
-            path,
-            title,
+            out / file,
+            _title(printable(name), results["policy"], m),
             goals=traj["goals"],
             movers=traj["params"],
         )
-    print(f"plots: {out}/ ({len(shown)} PNG)")
+    print(f"plots: {_listing(out, files)}")
+
+
+def _title(name: str, policy: str, m: dict) -> str:
+    """A room's picture's title: its name, the policy and its main metrics."""
+    if "spl" in m:
+        return (
+            f"{name}: {policy}, {100 * m['success_rate']:.0f}% success, "
+            f"SPL {m['spl']:.2f} ({m['episodes']} episodes)"
+        )
+    return (
+        f"{name}: {policy}, {100 * m['collision_free_rate']:.0f}% collision-free, "
+        f"coverage {100 * m['coverage']:.0f}% ({m['episodes']} episodes)"
+    )
 
 
 def _make_dir(path: Path, flag: str) -> None:
@@ -661,15 +796,16 @@ def _write_videos(args, results: dict, layouts: list[RoomLayout]) -> None:
     out = Path(args.video)
     _make_dir(out, "--video")
     items = list(zip(results["_trajectories"].items(), layouts, strict=True))
+    stems = file_stems(list(results["_trajectories"]))
     try:
-        for (name, traj), layout in items:
+        for ((name, traj), layout), stem in zip(items, stems, strict=True):
             outcome = "collision" if traj["collided"][0] else "no collision"
-            title = f"{name}: {results['policy']}, episode 1 ({outcome})"
+            title = f"{printable(name)}: {results['policy']}, episode 1 ({outcome})"
             render.render_episode(
                 traj["env"],
                 traj["params"],
                 traj["qpos"],
-                out / f"{_file_name(name)}.gif",
+                out / f"{stem}.gif",
                 wall_height=layout.wall_height,
                 title=title,
             )
@@ -677,14 +813,16 @@ def _write_videos(args, results: dict, layouts: list[RoomLayout]) -> None:
         from jaxnav.viz.plots import plot_trajectories
 
         print(f"video: no OpenGL backend ({render.GL_HINT}); top-down PNGs written instead")
-        for (name, traj), layout in items:
-            path = out / f"{_file_name(name)}.png"
+        for ((_, traj), layout), stem in zip(items, stems, strict=True):
+            path = out / f"{stem}.png"
             plot_trajectories(layout, [traj["qpos"][:, :2]], traj["collided"][:1], path)
+        print(f"video: {_listing(out, [f'{stem}.png' for stem in stems])}")
         return
-    print(f"video: {out}/ ({len(items)} GIF, OpenGL via {render.gl_backend()})")
+    gifs = [f"{stem}.gif" for stem in stems]
+    print(f"video: {_listing(out, gifs)}, OpenGL via {render.gl_backend()}")
 
 
-def _rooms(args) -> tuple[list[RoomLayout], str | None]:
+def _rooms(args, policy: Policy) -> tuple[list[RoomLayout], str | None]:
     """The layouts of --layouts (default: the inference room) or of --suite, and the suite."""
     if args.suite is not None:
         try:
@@ -693,7 +831,7 @@ def _rooms(args) -> tuple[list[RoomLayout], str | None]:
             raise UsageError(f"--suite: {err}") from None
     try:
         paths = args.layouts or [str(DEFAULT_LAYOUTS)]
-        return [room for path in paths for room in jaxnav.load_layout(path)], None
+        return load_layouts(paths, success_radius=success_radius(policy)), None
     except LayoutError as err:  # its message names the file, room and field; add the flag
         raise UsageError(f"--layouts: {err}") from None
 
@@ -701,9 +839,9 @@ def _rooms(args) -> tuple[list[RoomLayout], str | None]:
 def _run(argv) -> None:
     args = build_parser().parse_args(argv)
     _check_args(args)
-    layouts, suite = _rooms(args)
     policy = _load_policy(args)
-    _check_outputs(args)
+    layouts, suite = _rooms(args, policy)
+    _check_outputs(args, len(layouts))
     results = evaluate(
         policy,
         None if suite else layouts,

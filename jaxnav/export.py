@@ -6,8 +6,10 @@ python -m jaxnav.export runs/avoid-cpu --format onnx --out policy.onnx   # for o
 
 RUN is a run folder (its latest intact checkpoint is taken) or one checkpoint folder. A bundle is one
 folder holding `jaxnav_robot/` (a copy of `jaxnav.robot_side`: numpy, and rclpy for the ROS 2 node),
-`policy.npz` and `README.txt` with the commands to run on the robot. Both formats hold the actor MLP and
-the observation normaliser, so they take raw sector distances (metres; the goal task's goal and last
+`policy.npz` and `README.txt` with the commands to run on the robot; it is made in a temporary
+folder beside DIR and renamed into place when complete (a previous bundle there is replaced
+whole), so DIR never holds half a bundle. Both formats hold the actor MLP and the observation
+normaliser, so they take raw sector distances (metres; the goal task's goal and last
 command after them, see `jaxnav.robot_side.policy.goal_observation`). The ONNX model maps `obs`
 float32 [N, D] to `logits` float32 [N, A] and `action` int64 [N] (greedy), or for continuous actions
 `action` float32 [N, 2] (the command, m/s and rad/s, within the bounds); it is built node by node with
@@ -27,6 +29,7 @@ import math
 import os
 import shutil
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -287,7 +290,22 @@ def _export(saved: SavedPolicy, fmt: str, out, check: bool = True):
     if fmt not in FORMATS:
         raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
     out = Path(out) if out is not None else saved.ckpt / f"policy{SUFFIX[fmt]}"
+    check_out(out)
     return out, write_checked(saved, actor_arrays(saved), fmt, out, check)
+
+
+def check_out(out: Path, flag: str = "--out") -> None:
+    """`out` can be written as a file (its folder made if missing), before anything is read."""
+    try:
+        if out.is_dir():
+            raise ExportError(
+                f"{flag} {out}: is a folder; give a file name, e.g. {out / 'policy.npz'}"
+            )
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out.parent):
+            pass
+    except OSError as err:
+        raise ExportError(f"{flag} {out}: cannot write ({err.strerror or err})") from None
 
 
 ROBOT_PACKAGE = "jaxnav_robot"  # the name of jaxnav/robot_side in a bundle
@@ -335,17 +353,57 @@ def bundle(path, folder, check: bool = True) -> Path:
     return _bundle(saved, folder, check)[0]
 
 
+BUNDLE = ("policy.npz", ROBOT_PACKAGE, "README.txt")  # all a bundle folder holds
+
+
+def check_bundle(folder: Path) -> None:
+    """`folder` can take a bundle: new, empty or a previous bundle (nothing else is replaced),
+    and its parent can be written; before anything is read."""
+    try:
+        if folder.exists() and not folder.is_dir():
+            raise ExportError(f"--bundle {folder}: exists and is not a folder")
+        held = sorted(p.name for p in folder.iterdir()) if folder.is_dir() else []
+        others = [name for name in held if name not in BUNDLE]
+        if others:
+            raise ExportError(
+                f"--bundle {folder}: holds {', '.join(others[:3])}, not part of a bundle; give a "
+                "new or empty folder, or a previous bundle (which is replaced)"
+            )
+        if ROBOT_PACKAGE in held and not (folder / ROBOT_PACKAGE).is_dir():
+            raise ExportError(
+                f"--bundle {folder}: its {ROBOT_PACKAGE} is not a folder, so not a previous "
+                "bundle's; remove it or give another folder"
+            )
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder.parent):
+            pass
+    except OSError as err:
+        raise ExportError(f"--bundle {folder}: cannot write ({err.strerror or err})") from None
+
+
 def _bundle(saved: SavedPolicy, folder, check: bool = True):
     """(the bundle folder, the check of its policy.npz)."""
     folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise ExportError(f"--bundle {folder}: exists and is not a folder")
+    check_bundle(folder)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        result = _fill_bundle(saved, tmp, check)
+        _put_in_place(tmp, folder)
+    except ExportError as err:  # its message names the temporary folder: name the bundle
+        raise type(err)(str(err).replace(str(tmp), str(folder))) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return folder, result
+
+
+def _fill_bundle(saved: SavedPolicy, folder: Path, check: bool):
+    """Writes policy.npz (checked), the robot package and README.txt into `folder`; returns the
+    check of policy.npz."""
     arrays = actor_arrays(saved)
     result = write_checked(saved, arrays, "numpy", folder / "policy.npz", check, "--bundle")
-    package = folder / ROBOT_PACKAGE
-    shutil.rmtree(package, ignore_errors=True)
     source = Path(__file__).parent / "robot_side"
-    shutil.copytree(source, package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    shutil.copytree(source, folder / ROBOT_PACKAGE, ignore=ignore)
     sensor = saved.config.sensor
     commands = ", ".join(
         f"{name} ({v:g}, {w:g})"
@@ -359,7 +417,25 @@ def _bundle(saved: SavedPolicy, folder, check: bool = True):
         actions=commands,
     )
     (folder / "README.txt").write_text(text)
-    return folder, result
+    return result
+
+
+def _put_in_place(tmp: Path, folder: Path) -> None:
+    """Renames the complete bundle `tmp` to `folder`; a previous bundle there is moved aside
+    first and removed after, so `folder` holds the old bundle or the new one, never half."""
+    if not folder.exists():
+        os.replace(tmp, folder)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
+    try:
+        os.replace(folder, old / folder.name)
+        try:
+            os.replace(tmp, folder)
+        except BaseException:
+            os.replace(old / folder.name, folder)
+            raise
+    finally:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -378,13 +454,27 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+def _read(path) -> SavedPolicy:
+    """The policy of run or checkpoint folder `path`; a folder without permission on the way is a
+    CheckpointError naming it."""
+    try:
+        return read_policy(resolve(path))
+    except OSError as err:
+        where = err.filename or path
+        raise CheckpointError(f"{where}: cannot read ({err.strerror or err})") from None
+
+
 def main(argv=None) -> int:
     try:
         args = parse_args(argv)
         fmt = args.format or "numpy"
         if fmt not in FORMATS:  # before reading the checkpoint: the flag is the first mistake
             raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
-        saved = read_policy(resolve(args.dir))
+        if args.bundle is not None:  # the outputs first: reading and checking take a while
+            check_bundle(args.bundle)
+        elif args.out is not None:
+            check_out(args.out)
+        saved = _read(args.dir)
         if args.bundle is not None:
             out, result = _bundle(saved, args.bundle)
         else:
@@ -392,9 +482,13 @@ def main(argv=None) -> int:
     except CheckFailed as err:
         print_error(err)
         return 1
-    except (ExportError, CheckpointError) as err:
+    except (UsageError, CheckpointError) as err:  # ExportError, and argparse's own
         print_error(err)
         return 2
+    except OSError as err:  # a write that failed after the checks (disk full)
+        where = err.filename or args.bundle or args.out or "output"
+        print_error(f"{where}: cannot write ({err.strerror or err})")
+        return 1
     print(f"wrote {out} ({'bundle' if args.bundle else fmt}) from {saved.ckpt}")
     if result is None:
         print("warning: onnxruntime is not installed; the ONNX model was not run", file=sys.stderr)

@@ -43,7 +43,7 @@ from jaxnav.cli import (
     print_error,
 )
 from jaxnav.io import checkpoint, files, runlog
-from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layout, parse_layouts
+from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layouts, parse_layouts
 from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overrides_from_args
 from jaxnav.ppo.config import PRESETS, derived_minibatch, preset
 from jaxnav.ppo.train import make_train
@@ -73,7 +73,9 @@ def build_config(
         groups[attr] = dataclasses.replace(base, **fields)
     layouts = None
     if layout_files:
-        layouts = tuple(layout_to_dict(lay) for f in layout_files for lay in load_layout(f))
+        radius = getattr(groups["task"], "success_radius", None)  # goal tasks: goals off the spawn
+        rooms = load_layouts(layout_files, success_radius=radius)
+        layouts = tuple(layout_to_dict(room) for room in rooms)
     return RunConfig(**groups, layouts=layouts, seed=seed, preset=preset_name, env=env)
 
 

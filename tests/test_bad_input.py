@@ -429,13 +429,187 @@ def test_export_out_is_not_writable(runs, tmp_path, capsys):
         (["--episodes", "4"], ("--policy", "--checkpoint")),
         (["--policy", "forward", "--video", "a_file"], ("--video", "a_file")),
         (["--policy", "forward", "--plots", "a_file"], ("--plots", "a_file")),
+        # A JAX OverflowError once, after the layouts and the policy were loaded.
+        (["--policy", "forward", "--steps", str(10**12)], ("--steps", "at most 2,147,483,647")),
+        (["--policy", "forward", "--episodes", str(2**31)], ("--episodes", "at most 2,147,")),
     ],
 )
 def test_evaluate_bad_flags(tmp_path, monkeypatch, capsys, argv, names):
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
     (tmp_path / "a_file").write_text("")
     code, err = _call(jaxnav.evaluate.main, argv, capsys)
     assert_one_error_line(code, err, *names)
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("evaluated (or compiled) before the mistake was found")
+
+
+def test_evaluate_batch_beyond_memory_before_compiling(monkeypatch, capsys):
+    """100 million episodes aborted inside XLA; the need is now weighed before compiling."""
+    monkeypatch.setattr(jaxnav.evaluate, "make_rollout", _never)
+    monkeypatch.setattr(jaxnav.evaluate, "_available_memory", lambda: (2**30, "memory"))
+    argv = ["--policy", "forward", "--episodes", "100000000", "--steps", "5"]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, "episodes 100,000,000 x 1 room(s) x steps 5: needs about")
+    assert "but the memory is 1.1 GB; at 5 steps about " in err
+    argv = ["--policy", "forward", "--episodes", "1", "--steps", "200000000"]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, "not even 1 episode per room of 200,000,000 steps fits")
+
+
+def test_evaluate_full_disk_before_evaluating(tmp_path, monkeypatch, capsys):
+    """A full disk failed the JSON's write after the whole evaluation."""
+    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(1, 1, 0))
+    argv = ["--policy", "forward", "--json", tmp_path / "out" / "eval.json"]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, f"--json {tmp_path / 'out'}: 0.0 kB free, the results need")
+    assert not list((tmp_path / "out").iterdir())
+
+
+def _layout_files(root: Path, **rooms) -> list[Path]:
+    """{file stem: room object or list} written as root/<stem>.json."""
+    for stem, content in rooms.items():
+        (root / f"{stem}.json").write_text(json.dumps(content))
+    return [root / f"{stem}.json" for stem in rooms]
+
+
+class Accepted(Exception):
+    """Raised by a stand-in for the work of a command: the command line accepted its input."""
+
+
+def test_layouts_of_several_files_in_both_command_lines(tmp_path, monkeypatch, train_main, capsys):
+    """Unnamed rooms of two files were `room-0` twice: train refused them naming no file while
+    evaluate renamed one. Now both name them by file and index, and refuse a name given twice
+    naming both files."""
+    unnamed = {"room": {"size": [4.0, 4.0]}}
+    a, b = _layout_files(tmp_path, a=unnamed, b=[unnamed, unnamed])
+
+    def evaluated(policy, layouts, **kwargs):
+        raise Accepted([room.name for room in layouts])
+
+    monkeypatch.setattr(jaxnav.evaluate, "evaluate", evaluated)
+    with pytest.raises(Accepted) as names:
+        jaxnav.evaluate.main(["--policy", "forward", "--layouts", str(a), str(b)])
+    assert names.value.args[0] == ["a-0", "b-0", "b-1"]
+
+    def trained(config, *args, **kwargs):
+        raise Accepted([room["name"] for room in config.layouts])
+
+    monkeypatch.setattr(jaxnav.train, "run", trained)
+    with pytest.raises(Accepted) as names:
+        train_main(["--layouts", a, b])
+    assert names.value.args[0] == ["a-0", "b-0", "b-1"]
+    office = {**unnamed, "name": "office"}
+    one, two = _layout_files(tmp_path, one=office, two=[unnamed, office])
+    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", one, two], capsys)
+    assert_one_error_line(
+        code, err, f"--layouts: {two}: room 'office' (#1): name: duplicate room name, also used "
+        f"by room #0 of {one}"
+    )  # fmt: skip
+    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", a, a], capsys)
+    assert_one_error_line(code, err, f"--layouts: {a}: given twice")
+
+
+def test_evaluate_goal_on_the_spawn(tmp_path, monkeypatch, capsys):
+    """A goal on the spawn reported 100 % success and SPL 0: the goal task refuses it."""
+    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
+    room = {**GOOD_ROOM, "goal": {"pos": [0.0, 0.1]}}
+    (path,) = _layout_files(tmp_path, on_spawn=room)
+    argv = ["--policy", "forward", "--env", "goal", "--layouts", path]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(
+        code, err, f"--layouts: {path}: room 'office' (#0): goal.pos: 0.100 m from robot.pos "
+        "[0.0, 0.0], within the goal task's success radius (0.3 m)"
+    )  # fmt: skip
+
+
+def test_evaluate_layouts_too_big_to_compile(tmp_path, monkeypatch, capsys):
+    """10,000 obstacles (with a free spawn or not) and 5,000 rooms compiled for minutes."""
+    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
+    boxes = [
+        {"type": "box", "pos": [-49.5 + i % 100, -49.5 + i // 100], "size": [0.3 + 0.7 * full] * 2}
+        for full in (False, True)
+        for i in range(10_000)
+    ]
+    many, full, rooms = _layout_files(
+        tmp_path,
+        many={"room": {"size": [100, 100]}, "obstacles": boxes[:10_000]},
+        full={"room": {"size": [100, 100]}, "obstacles": boxes[10_000:]},
+        rooms=[{"room": {"size": [4, 4]}}] * 5000,
+    )
+    for path, fragment in [(many, "obstacles: 10000 obstacles: at most 256 per room")] + [
+        (full, "obstacles: 10000 obstacles: at most 256 per room"),
+        (rooms, "5000 rooms: at most 1024"),
+    ]:
+        code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", path], capsys)
+        assert_one_error_line(code, err, f"--layouts: {path}: ", fragment)
+
+
+def _refuse_stat(monkeypatch, folder: Path) -> None:
+    """Looking into `folder` is refused as for a folder without permission (root reads all)."""
+    real = os.stat
+
+    def stat(path, *args, **kwargs):
+        if os.fspath(path).startswith(str(folder)):
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "stat", stat)
+
+
+def test_unreadable_checkpoint_folder(runs, tmp_path, monkeypatch, capsys):
+    """A run inside a folder without permission: evaluate said `cannot write` (exit 1) and
+    export printed a PermissionError traceback."""
+    closed = tmp_path / "closed"
+    shutil.copytree(runs / "good", closed / "run")
+    _refuse_stat(monkeypatch, closed)
+    argv = ["--checkpoint", closed / "run"]
+    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    assert_one_error_line(code, err, f"--checkpoint {closed / 'run'}: cannot access (Permission")
+    code, err = _call(jaxnav.export.main, [closed / "run"], capsys)
+    assert_one_error_line(code, err, f"{closed / 'run'}: cannot read (Permission denied)")
+
+
+def test_unreadable_layout_file(tmp_path, monkeypatch, capsys):
+    (path,) = _layout_files(tmp_path, locked=GOOD_ROOM)
+    real = os.open
+
+    def refuse(file, *args, **kwargs):
+        if os.fspath(file) == str(path):
+            raise PermissionError(13, "Permission denied", os.fspath(file))
+        return real(file, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refuse)
+    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", path], capsys)
+    assert_one_error_line(code, err, f"--layouts: {path}: cannot read (Permission denied)")
+
+
+def test_export_unknown_flag(capsys):
+    code, err = _call(jaxnav.export.main, ["run", "--bogus"], capsys)
+    assert_one_error_line(code, err, "--bogus")
+
+
+def test_export_outputs_are_checked_before_the_checkpoint_is_read(
+    runs, tmp_path, monkeypatch, capsys
+):
+    """--out naming a folder raised IsADirectoryError after the export; a bundle folder whose
+    jaxnav_robot is a file raised FileExistsError and left half a bundle."""
+    monkeypatch.setattr(jaxnav.export, "read_policy", _never)
+    code, err = _call(jaxnav.export.main, [runs / "good", "--out", tmp_path], capsys)
+    assert_one_error_line(code, err, f"--out {tmp_path}: is a folder; give a file name")
+    bundle = tmp_path / "robot"
+    bundle.mkdir()
+    (bundle / "jaxnav_robot").write_text("not a package")
+    code, err = _call(jaxnav.export.main, [runs / "good", "--bundle", bundle], capsys)
+    assert_one_error_line(code, err, f"--bundle {bundle}: its jaxnav_robot is not a folder")
+    (bundle / "notes.txt").write_text("mine")
+    code, err = _call(jaxnav.export.main, [runs / "good", "--bundle", bundle], capsys)
+    assert_one_error_line(code, err, f"--bundle {bundle}: holds notes.txt, not part of a bundle")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["robot"]
+    assert sorted(p.name for p in bundle.iterdir()) == ["jaxnav_robot", "notes.txt"]
 
 
 # ------------------------------------------------------------------------------

@@ -160,3 +160,32 @@ def test_save_keeps_newest_three_and_removes_stale_temporaries(tmp_path, state):
     kept = save_updates(tmp_path, state, [1, 2, 3, 4])
     assert checkpoint.list_checkpoints(tmp_path) == kept[1:]
     assert not stale.exists()
+
+
+def test_checksums_of_another_checkpoint_blame_the_checksums_file(tmp_path, state, capsys):
+    """Another run's checksums.json (same weights here) disowns three files; the message says
+    that the checksums file does not match, not that config.json (the first it lists) is
+    corrupt."""
+    older, newest = save_updates(tmp_path / "a", state, [1, 2])
+    (theirs,) = save_updates(tmp_path / "b", state, [3])
+    _edit_seed(theirs)
+    (newest / "checksums.json").write_bytes((theirs / "checksums.json").read_bytes())
+    with pytest.raises(CheckpointError) as err:
+        checkpoint.verify(newest)
+    message = (
+        f"{newest / 'checksums.json'}: does not match config.json, meta.json, train_state.npz "
+        "(of 4 files): a checksums file of another checkpoint, or damaged (or several files are)"
+    )
+    assert str(err.value) == message
+    assert checkpoint.resolve(tmp_path / "a") == older
+    assert capsys.readouterr().err == f"warning: {message}; using the previous checkpoint {older}\n"
+
+
+def _edit_seed(ckpt):
+    """Rewrites a checkpoint's config.json with another seed, its checksums to match."""
+    config = json.loads((ckpt / "config.json").read_text())
+    config["seed"] += 1
+    (ckpt / "config.json").write_text(json.dumps(config, indent=2))
+    sums = json.loads((ckpt / "checksums.json").read_text())
+    sums["config.json"] = checkpoint._sha256(ckpt / "config.json")
+    (ckpt / "checksums.json").write_text(json.dumps(sums))

@@ -6,6 +6,7 @@ Each `evaluate` call compiles one rollout (~10 s on a 2-core CPU), so the module
 import json
 import math
 import os
+import string
 import subprocess
 import sys
 from subprocess import PIPE
@@ -17,9 +18,12 @@ import pytest
 import jaxnav
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.evaluate import (
+    MAX_FILE_STEM,
     METRIC_KEYS,
     eval_randomize,
     evaluate,
+    file_stems,
+    format_table,
     load_suite,
     main,
     make_rollout,
@@ -126,6 +130,7 @@ def test_cli_writes_json_and_pngs(cli_run):
     png = out.parent / "inference-room.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "inference-room" in stdout and "collision-free" in stdout
+    assert f"plots: {out.parent}/ (1 PNG: inference-room.png)" in stdout
 
 
 def test_cli_error_in_a_process_is_one_line(tmp_path):
@@ -220,3 +225,27 @@ def test_cli_suite_writes_families_and_one_picture_each(tmp_path):
     for m in data["families"].values():
         assert set(m) == set(METRIC_KEYS) and 0.0 <= m["coverage"] <= 1.0
     assert sorted(p.stem for p in tmp_path.glob("*.png")) == sorted(families)
+
+
+def test_file_stems_are_safe_distinct_and_bounded(tmp_path):
+    """Rooms "a b" and "a/b" both made a_b.png (two rooms, one picture), and a 300-character
+    name a file name too long to write."""
+    names = ["a b", "a/b", "A_B", "x" * 300, "x" * 299 + "y", "..", "", "\n\x1b[31m", "ok-1"]
+    stems = file_stems(names)
+    assert stems[0] == "a_b" and stems[-1] == "ok-1"  # plain names stay as they were
+    assert stems[1].startswith("a_b-") and stems[2].startswith("A_B-")
+    assert len({s.lower() for s in stems}) == len(names)  # distinct, case aside
+    assert all(0 < len(s) <= MAX_FILE_STEM + 9 and not s.startswith(".") for s in stems)
+    assert all(set(s) <= set(string.ascii_letters + string.digits + "._-") for s in stems)
+    assert file_stems(names) == stems  # the same rooms, the same files
+    for stem in stems:
+        (tmp_path / f"{stem}.png").write_bytes(b"")
+    assert len(list(tmp_path.iterdir())) == len(names)
+
+
+def test_table_escapes_control_characters_in_names():
+    """A newline or a terminal escape in a room's name is printed escaped, never raw."""
+    m = dict.fromkeys(METRIC_KEYS, 0.5) | {"episodes": 4}
+    table = format_table({"layouts": {"evil\nroom\x1b[31m": m}, "overall": m})
+    assert "\x1b" not in table and len(table.splitlines()) == 4  # head, rule, the room, overall
+    assert table.splitlines()[2].startswith("evil\\nroom\\x1b[31m ")

@@ -174,6 +174,31 @@ def test_cli_bundle(one_run, tmp_path, capsys):
     assert_one_error_line(capsys.readouterr().err, "--bundle", "not a folder")
 
 
+def test_bundle_is_complete_or_absent(one_run, tmp_path, capsys, monkeypatch):
+    """A bundle is made beside its folder and renamed into place: a previous bundle is replaced
+    whole, and a write that fails halfway leaves the previous one (or none) and nothing else."""
+    folder = tmp_path / "robot"
+    assert export.main([str(one_run[0]), "--bundle", str(folder)]) == 0
+    (folder / "jaxnav_robot" / "stale.py").write_text("")  # gone once replaced
+    assert export.main([str(one_run[0]), "--bundle", str(folder)]) == 0
+    assert sorted(p.name for p in folder.iterdir()) == sorted(export.BUNDLE)
+    assert not (folder / "jaxnav_robot" / "stale.py").exists()
+    before = {p.relative_to(folder): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(export.shutil, "copytree", disk_full)
+    capsys.readouterr()
+    for target in (folder, tmp_path / "new"):
+        assert export.main([str(one_run[0]), "--bundle", str(target)]) == 1
+        err = capsys.readouterr().err
+        assert_one_error_line(err, f"{target}: cannot write (No space left on device)")
+    assert [p.name for p in tmp_path.iterdir()] == ["robot"]  # no half bundle, no temporaries
+    after = {p.relative_to(folder): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    assert after == before
+
+
 @pytest.fixture(scope="module")
 def cli(one_run, tmp_path_factory):
     """{case: (returncode, stdout, stderr, out file)} of `python -m jaxnav.export` runs.

@@ -4,25 +4,33 @@ import copy
 import dataclasses
 import json
 import math
+import os
+import time
+import types
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from jaxnav.io.layouts import ROBOT_RADIUS as BASE_RADIUS
+from jaxnav.io import layouts
 from jaxnav.io.layouts import (
+    MAX_OBSTACLES,
+    MAX_ROOMS,
     Box,
     Cylinder,
     LayoutError,
     RoomLayout,
     box_corners,
     clearance,
+    free_spawn,
     is_free,
     layout_to_dict,
     load_layout,
+    load_layouts,
     parse_layouts,
     save_layouts,
 )
+from jaxnav.io.layouts import ROBOT_RADIUS as BASE_RADIUS
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 
@@ -415,3 +423,117 @@ def test_yaw_is_reduced_modulo_two_pi(tmp_path):
     q = np.abs(local) - 0.5 * np.asarray(box.size)
     f64 = np.linalg.norm(np.maximum(q, 0)) + min(q.max(), 0)
     assert f32 == pytest.approx(min(f64, 1.5), abs=1e-5)  # the box, or the cylinder at 1.27 m
+
+
+@pytest.mark.parametrize("size", [(100.0, 0.5), (0.5, 100.0)])
+def test_long_narrow_room_has_a_free_spawn(size):
+    """A 0.5 m wide room leaves the 0.177 m robot 0.073 m either side of its centre line; the
+    search grid, coarser than that along 100 m, refused it until it was centred on the room."""
+    assert 2 * BASE_RADIUS < 0.5
+    room = RoomLayout(name="hall", size=size)  # no robot: it needs a free spawn
+    spawn = free_spawn(room)
+    assert spawn is not None and is_free(room, spawn, BASE_RADIUS)
+    assert abs(spawn[int(np.argmin(size))]) < 0.25 - BASE_RADIUS
+
+
+def _grid_of_boxes(n: int, side: float = 100.0) -> list[dict]:
+    """n boxes of 1 m tiling a side x side room from its south-west corner."""
+    per_row = int(side)
+    return [
+        {"type": "box", "pos": [-side / 2 + 0.5 + i % per_row, -side / 2 + 0.5 + i // per_row],
+         "size": [1.0, 1.0]}
+        for i in range(n)
+    ]  # fmt: skip
+
+
+def test_spawn_search_is_fast_on_many_obstacles():
+    """10,000 boxes filling a 100 m room: no free spawn, found in seconds (each obstacle is
+    measured only near its footprint), not minutes."""
+    boxes = tuple(Box(pos=tuple(b["pos"]), size=(1.0, 1.0)) for b in _grid_of_boxes(10_000))
+    full = types.SimpleNamespace(size=(100.0, 100.0), obstacles=boxes)  # beyond MAX_OBSTACLES
+    start = time.perf_counter()
+    assert free_spawn(full) is None
+    one_gap = types.SimpleNamespace(size=(100.0, 100.0), obstacles=boxes[:-1])  # the last box
+    assert free_spawn(one_gap) == pytest.approx((49.5, 49.5), abs=0.5 - BASE_RADIUS)
+    assert time.perf_counter() - start < 30
+
+
+def test_too_many_obstacles_or_rooms_are_refused_before_they_are_checked(tmp_path, monkeypatch):
+    many = {"room": {"size": [100, 100]}, "obstacles": _grid_of_boxes(10_000)}
+    start = time.perf_counter()
+    with pytest.raises(LayoutError) as info:
+        load_layout(write(tmp_path, many))
+    assert str(info.value) == (
+        f"{tmp_path / 'rooms.json'}: room #0: obstacles: 10000 obstacles: at most "
+        f"{MAX_OBSTACLES} per room (every room of a batch simulates as many obstacle slots as "
+        "the fullest one)"
+    )
+    with pytest.raises(LayoutError, match=f"^{tmp_path / 'rooms.json'}: 5000 rooms: at most"):
+        load_layout(write(tmp_path, [{"room": {"size": [4, 4]}}] * 5000))
+    assert time.perf_counter() - start < 10
+    with pytest.raises(LayoutError, match=f"obstacles: {MAX_OBSTACLES + 1} obstacles: at most"):
+        RoomLayout(name="x", size=(100.0, 100.0), obstacles=(Box(pos=(0, 0), size=(1, 1)),) * 257)
+    assert MAX_ROOMS >= 1000  # 30 times the benchmark suite
+    monkeypatch.setattr(layouts, "MAX_ROOMS", 3)  # in all the files read together
+    a = write(tmp_path, [{"room": {"size": [4, 4]}}] * 2, "a.json")
+    b = write(tmp_path, [{"room": {"size": [4, 4]}}] * 2, "b.json")
+    with pytest.raises(LayoutError, match=f"^{b}: 4 rooms with the files before it: at most 3"):
+        load_layouts([a, b])
+
+
+def test_rooms_of_several_files_are_named_by_file_and_index(tmp_path):
+    """Unnamed rooms get `<file stem>-<index>` (`-2` where that is taken), so two files of
+    unnamed rooms make one set; a name given twice names both files and rooms."""
+    (tmp_path / "other").mkdir()
+    a = write(tmp_path, [{"room": {"size": [4, 4]}}] * 2, "a.json")
+    b = write(tmp_path, {"room": {"size": [4, 4]}}, "b.json")
+    a2 = write(tmp_path / "other", {"room": {"size": [4, 4]}}, "a.json")
+    taken = write(tmp_path, {"name": "a-0", "room": {"size": [4, 4]}}, "c.json")
+    names = [room.name for room in load_layouts([a, b, a2, taken])]
+    assert names == ["a-0-2", "a-1", "b-0", "a-0-3", "a-0"]  # a given name keeps it
+    assert [r.name for r in load_layout(a)] == ["a-0", "a-1"]
+    office = {"name": "office", "room": {"size": [4, 4]}}
+    one = write(tmp_path, office, "one.json")
+    two = write(tmp_path, [{"room": {"size": [4, 4]}}, office], "two.json")
+    with pytest.raises(LayoutError) as info:
+        load_layouts([one, two])
+    assert str(info.value) == (
+        f"{two}: room 'office' (#1): name: duplicate room name, also used by room #0 of {one}"
+    )
+    with pytest.raises(LayoutError, match=f"^{a}: given twice; give each file once$"):
+        load_layouts([a, b, a])
+    same = os.path.join(tmp_path, "other", "..", "a.json")
+    with pytest.raises(LayoutError, match=rf"^{same}: given twice \(as {a}\)"):
+        load_layouts([a, same])
+
+
+def test_goal_within_the_success_radius_of_the_spawn_is_refused(tmp_path):
+    """A goal on the spawn: every goal-task episode succeeds at once (100 %, SPL 0)."""
+    room = {"name": "on-spawn", "room": {"size": [4, 4]}, "robot": {"pos": [0.5, 0.0]}}
+    room["goal"] = {"pos": [0.5, 0.2]}
+    path = write(tmp_path, room)
+    assert load_layouts([path])[0].goal_pos == (0.5, 0.2)  # the avoid task ignores goals
+    with pytest.raises(LayoutError) as info:
+        load_layouts([path], success_radius=0.3)
+    assert str(info.value) == (
+        f"{path}: room 'on-spawn' (#0): goal.pos: 0.200 m from robot.pos [0.5, 0.0], within the "
+        "goal task's success radius (0.3 m): every episode would succeed at once; place it "
+        "farther from the spawn"
+    )
+    assert load_layouts([path], success_radius=0.1)[0].name == "on-spawn"
+
+
+def test_unreadable_file_is_one_line(tmp_path, monkeypatch):
+    """Root reads files whatever their mode: the refusal is simulated where the file is opened."""
+    path = write(tmp_path, GOOD)
+    real_open = os.open
+
+    def refuse(file, *args, **kwargs):
+        if os.fspath(file) == str(path):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refuse)
+    with pytest.raises(LayoutError) as info:
+        load_layout(path)
+    assert str(info.value) == f"{path}: cannot read (Permission denied)"

@@ -252,3 +252,23 @@ def test_a_repeated_run_compiles_nothing_anew(tmp_path):
     assert first and train("b") == first
     shutil.rmtree(cache)
     assert train("c", "--no-compile-cache") == []
+
+
+def test_train_layouts_of_several_files_are_named_by_file(tmp_path):
+    from jaxnav.io.layouts import LayoutError
+    from jaxnav.train import build_config
+
+    room = {"room": {"size": [4.0, 4.0]}, "robot": {"pos": [0.0, 0.0], "yaw": 0.0}}
+    (tmp_path / "a.json").write_text(json.dumps([room, {**room, "name": "office"}]))
+    (tmp_path / "b.json").write_text(json.dumps([room, {**room, "name": "office"}]))
+    files = [str(tmp_path / "a.json"), str(tmp_path / "b.json")]
+    with pytest.raises(LayoutError, match=r"b\.json.*duplicate room name.*a\.json"):
+        build_config(layout_files=files)
+    config = build_config(layout_files=files[:1])
+    assert [r["name"] for r in config.layouts] == ["a-0", "office"]
+    with pytest.raises(LayoutError, match="given twice"):
+        build_config(layout_files=files[:1] * 2)
+    near = {**room, "goal": {"pos": [0.1, 0.0]}}
+    (tmp_path / "near.json").write_text(json.dumps(near))
+    with pytest.raises(LayoutError, match="success radius"):
+        build_config(layout_files=[str(tmp_path / "near.json")], env="goal")

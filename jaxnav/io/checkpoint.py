@@ -127,7 +127,9 @@ def list_checkpoints(run_dir: Path) -> list[Path]:
 
 
 def verify(ckpt: Path) -> None:
-    """Raises CheckpointError naming the first file of `ckpt` that its checksums.json disowns."""
+    """Raises CheckpointError naming what of `ckpt` its checksums.json disowns: the one file whose
+    sha256 differs (corrupt), or checksums.json itself when several differ (another checkpoint's
+    checksums, or damaged: one corrupt file is likely, several at once are not)."""
     file = ckpt / CHECKSUMS
     if not file.exists():
         raise CheckpointError(
@@ -139,13 +141,22 @@ def verify(ckpt: Path) -> None:
         raise CheckpointError(str(err)) from None
     if not isinstance(sums, dict):
         raise CheckpointError(f"{file}: not a JSON object of file name -> sha256")
-    for name, digest in sums.items():
-        try:
-            same = _sha256(ckpt / name) == digest
-        except OSError as err:
-            raise CheckpointError(f"{ckpt / name}: unreadable ({_one_line(err)})") from None
-        if not same:
-            raise CheckpointError(f"{ckpt / name}: corrupt (its sha256 differs from {CHECKSUMS})")
+    differ = [name for name, digest in sums.items() if _digest(ckpt / name) != digest]
+    if len(differ) > 1:
+        raise CheckpointError(
+            f"{file}: does not match {', '.join(differ)} (of {len(sums)} files): a checksums "
+            "file of another checkpoint, or damaged (or several files are)"
+        )
+    if differ:
+        raise CheckpointError(f"{ckpt / differ[0]}: corrupt (its sha256 differs from {CHECKSUMS})")
+
+
+def _digest(file: Path) -> str:
+    """The sha256 of `file`; an unreadable one is a CheckpointError naming it."""
+    try:
+        return _sha256(file)
+    except OSError as err:
+        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
 
 
 def resolve(path: str | os.PathLike) -> Path:

@@ -14,7 +14,8 @@ interior is centred on the origin, x to the east, y to the north, and walls are 
     }
 
 `name`, `room.wall_height`, `robot`, `goal`, `obstacles` and each obstacle's `yaw`/`height` are
-optional. Without `robot` the spawn is sampled in free space every episode; with it, `robot.pos` is
+optional. A room without `name` is named `<file stem>-<index>` (`room-<index>` when parsed from
+an object); names are unique across all the files read together (`load_layouts`). Without `robot` the spawn is sampled in free space every episode; with it, `robot.pos` is
 required. `"goal": {"pos": [x, y]}` fixes the target of goal-reaching tasks (`jaxnav.tasks.goal`;
 other tasks ignore it); without it a reachable goal is sampled every episode.
 `box.size` is the full extent along the box's own axes. An obstacle may move (`motion`, see
@@ -29,16 +30,19 @@ Bounds (what the float32 simulator handles exactly enough; anything else is refu
 - `room.size`: each side 0.5 m to 100 m (`ROOM_SIZE`); `wall_height` and obstacle `height` up to
   10 m (`MAX_HEIGHT`).
 - Obstacles: each `size` side and `radius` at least 0.01 m (`MIN_OBSTACLE`), the whole footprint
-  inside the room (so positions are within it too).
+  inside the room (so positions are within it too); at most `MAX_OBSTACLES` per room.
+- Rooms: at most `MAX_ROOMS` in a file, and in all the files read together (`load_layouts`).
 - Angles (`yaw`) are any finite number, reduced modulo 2 pi to [-pi, pi] when read.
 - A room with `robot` must have the robot's disc (`ROBOT_RADIUS`) clear of every wall and obstacle
   at `robot.pos`; a room without it must have some free spawn, found at load time by a grid search
-  over the interior (`SPAWN_GRID`), else it is refused: every episode would start in a collision.
+  over the interior (`SPAWN_GRID`, centred on the room: its centre lines are searched), else it is
+  refused: every episode would start in a collision.
 - `motion`: a velocity or a speed above 0 and at most `MAX_OBSTACLE_SPEED`; a path of 1 to
   `MAX_WAYPOINTS` waypoints, at each of which the footprint lies inside the room.
 - A `goal.pos` must have the robot's disc clear of every wall and obstacle too (a goal inside an
   obstacle could never be reached). That it is reachable from the spawn (not in a closed-off part)
-  is checked where the goal task builds its rooms (`jaxnav.core.goals`), on the occupancy grid.
+  is checked where the goal task builds its rooms (`jaxnav.core.goals`), on the occupancy grid;
+  that it lies beyond a goal task's success radius from a fixed spawn, by `check_goal_distance`.
 
 Clearances are computed by `jaxnav.core.geometry` in float32, the simulator's precision. The file
 must be a regular file of at most 16 MB.
@@ -62,6 +66,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
+import jax
 import numpy as np
 
 from jaxnav.core import geometry
@@ -74,10 +79,14 @@ MAX_HEIGHT = 10.0  # m, tallest wall or obstacle
 MIN_OBSTACLE = 0.01  # m, thinnest box side or cylinder radius
 MAX_WAYPOINTS = 8  # waypoints of a path motion (after the obstacle's own `pos`)
 MAX_OBSTACLE_SPEED = 1.0  # m/s: 0.1 m per control step, so a moving obstacle cannot skip the robot
-SPAWN_GRID = (
-    0.05  # m between points of the free-spawn search (coarser in rooms over 20 m: 400 a side)
-)
+SPAWN_GRID = 0.05  # m between points of the free-spawn search (sides over 20 m: 400 steps a side)
+# Every room of a batch simulates as many obstacle slots as its fullest one, every step.
+MAX_OBSTACLES = 256  # per room; shipped rooms hold at most 18, sampled ones 20 (+16 movers)
+MAX_ROOMS = 1024  # in a file, and in all the files of one batch (the benchmark suite has 32)
 
+# m; a spawn the search finds clears by this much more, so that float32 round-off (a few ulp of
+# 50 m coordinates) in its own evaluation cannot make it touch as `is_free` evaluates it.
+_SPAWN_MARGIN = 1e-4
 _TOL = (
     1e-9  # m; obstacles may touch a wall exactly, float round-off must not turn that into an error
 )
@@ -345,11 +354,21 @@ Obstacle = Box | Cylinder
 _OBSTACLE_TYPES = {cls.kind: cls for cls in (Box, Cylinder)}
 
 
+def _check_count(obstacles: Sequence) -> None:
+    """At most MAX_OBSTACLES obstacles (checked before any of them is looked at)."""
+    if len(obstacles) > MAX_OBSTACLES:
+        raise LayoutError(
+            "obstacles",
+            f"{len(obstacles)} obstacles: at most {MAX_OBSTACLES} per room (every room of a batch "
+            "simulates as many obstacle slots as the fullest one)",
+        )
+
+
 @dataclass(frozen=True)
 class RoomLayout:
     """One room: interior size, optional fixed spawn pose, static obstacles; checked on creation."""
 
-    name: str  # unique within a file; "room-<index>" when the JSON gives none
+    name: str  # unique in a set of rooms; "<file stem>-<index>" when the JSON gives none
     size: tuple[float, float]  # interior extents [x, y], m, centred on the origin
     wall_height: float = 0.5  # m
     robot_pos: tuple[float, float] | None = None  # None -> spawn sampled in free space each episode
@@ -382,6 +401,7 @@ class RoomLayout:
             raise LayoutError("robot.yaw", "a spawn yaw needs robot.pos (None: sampled spawn)")
         if not isinstance(self.obstacles, (list, tuple)):
             raise LayoutError("obstacles", f"must be a sequence, got {_kind(self.obstacles)}")
+        _check_count(self.obstacles)
         for i, ob in enumerate(self.obstacles):
             if not isinstance(ob, (Box, Cylinder)):
                 raise LayoutError(f"obstacles[{i}]", f"must be a Box or Cylinder, got {ob!r}")
@@ -481,21 +501,69 @@ def _check_inside(layout: RoomLayout) -> None:
                 )
 
 
+def _spawn_axis(half: float, side: float) -> np.ndarray:
+    """Coordinates of the spawn search along one axis: from -half to half, at most SPAWN_GRID
+    apart (side / 400 on sides over 20 m), and always 0, so a room one robot wide is searched
+    along its centre line."""
+    n = math.ceil(half / max(SPAWN_GRID, side / 400))
+    return np.linspace(-half, half, 2 * n + 1)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _near_distance(kind: str, p, pos, yaw, size):
+    """[H, W] signed distance (float32) from points p [H, W, 2] to one box or cylinder of `kind`
+    (a cylinder's `size` is [radius, radius])."""
+    if kind == Cylinder.kind:
+        return geometry.disc_distance(p, pos[None], size[0])[..., 0]
+    return geometry.box_distance(p, pos[None], yaw[None], 0.5 * size[None])[..., 0]
+
+
+def _window(lo: float, hi: float, axis: np.ndarray) -> slice | None:
+    """The points of `axis` from lo to hi (None: none), widened to a power-of-two count so that
+    few shapes of `_near_distance` compile."""
+    a, b = (int(i) for i in np.searchsorted(axis, [lo, hi]))
+    if a == b:
+        return None
+    n = min(1 << (b - a - 1).bit_length(), len(axis))
+    a = min(a, len(axis) - n)
+    return slice(a, a + n)
+
+
+def _touched(layout: RoomLayout, grid: np.ndarray, radius: float) -> np.ndarray:
+    """[H, W] bool: where a disc of `radius` at a point of `grid` [H, W, 2] touches an obstacle.
+    Each obstacle is measured only near its footprint: thousands of small ones take a second."""
+    touched = np.zeros(grid.shape[:2], bool)
+    reach = radius + 1e-3  # beyond this from the footprint's box nothing touches (round-off too)
+    for ob in layout.obstacles:
+        lo, hi = _footprint_bounds(ob)
+        rows = _window(lo[1] - reach, hi[1] + reach, grid[:, 0, 1])
+        cols = _window(lo[0] - reach, hi[0] + reach, grid[0, :, 0])
+        if rows is None or cols is None:
+            continue
+        size = (ob.radius, ob.radius) if isinstance(ob, Cylinder) else ob.size
+        args = (np.float32(ob.pos), np.float32(getattr(ob, "yaw", 0.0)), np.float32(size))
+        touched[rows, cols] |= (
+            np.asarray(_near_distance(ob.kind, grid[rows, cols], *args)) <= radius
+        )
+    return touched
+
+
 def free_spawn(layout: RoomLayout, radius: float = ROBOT_RADIUS) -> tuple[float, float] | None:
-    """A point where a disc of `radius` touches nothing (float32 clearance), by a grid search over
-    the interior every SPAWN_GRID m (400 points a side in larger rooms); None if there is none."""
+    """A point where a disc of `radius` touches nothing (float32 clearance, as `is_free` sees
+    it, with `_SPAWN_MARGIN` to spare), by a grid search over the interior centred on the room
+    (`_spawn_axis`); None if there is none."""
     half = 0.5 * np.asarray(layout.size) - radius  # centres nearer a wall cannot be free
     if min(half) <= 0:
         return None
-    step = max(SPAWN_GRID, max(layout.size) / 400)
-    xs, ys = (np.linspace(-h, h, int(np.ceil(2 * h / step)) + 1) for h in half)
-    for start in range(0, len(ys), 64):  # blocks of rows: memory stays small in large rooms
-        grid = np.stack(np.meshgrid(xs, ys[start : start + 64]), axis=-1).astype(np.float32)
-        free = np.asarray(clearance(layout, grid)) > radius  # [rows, len(xs)]
-        if free.any():
-            row, col = np.argwhere(free)[0]
-            return float(grid[row, col, 0]), float(grid[row, col, 1])
-    return None
+    xs, ys = (_spawn_axis(h, side) for h, side in zip(half, layout.size, strict=True))
+    grid = np.stack(np.meshgrid(xs, ys), axis=-1).astype(np.float32)  # [len(ys), len(xs), 2]
+    walls = np.asarray(geometry.wall_distance(grid, 0.5 * np.asarray(layout.size, np.float32)))
+    clear = radius + _SPAWN_MARGIN
+    free = (walls.min(axis=-1) > clear) & ~_touched(layout, grid, clear)
+    if not free.any():
+        return None
+    row, col = np.argwhere(free)[0]
+    return float(grid[row, col, 0]), float(grid[row, col, 1])
 
 
 def _check_spawn(layout: RoomLayout) -> None:
@@ -615,8 +683,9 @@ def _parse_obstacle(item, prefix: str) -> Obstacle:
         raise err.under(prefix) from None
 
 
-def _parse_room(entry, index: int) -> RoomLayout:
-    """One room object -> RoomLayout; errors carry the field but not yet the file or room."""
+def _parse_room(entry, index: int, unnamed: str) -> RoomLayout:
+    """One room object -> RoomLayout (named `<unnamed>-<index>` if the object has no name); errors
+    carry the field but not yet the file or room."""
     if not isinstance(entry, dict):
         raise LayoutError(None, f"must be a room object, got {_kind(entry)}")
     _check_keys(entry, _TOP_KEYS, "")
@@ -624,7 +693,8 @@ def _parse_room(entry, index: int) -> RoomLayout:
     if room is None:
         raise LayoutError("room", 'missing required field (an object with "size")')
     robot = _section(entry, "robot", _ROBOT_KEYS, 'with "pos" (and "yaw"); omit it to sample')
-    kwargs = {"name": entry.get("name", f"room-{index}"), "size": _require(room, "size", "room")}
+    name = entry.get("name", f"{unnamed}-{index}")
+    kwargs = {"name": name, "size": _require(room, "size", "room")}
     if "wall_height" in room:
         kwargs["wall_height"] = room["wall_height"]
     if robot is not None:
@@ -636,6 +706,7 @@ def _parse_room(entry, index: int) -> RoomLayout:
     raw = entry.get("obstacles", [])
     if not isinstance(raw, list):
         raise LayoutError("obstacles", f"must be a list of obstacle objects, got {_kind(raw)}")
+    _check_count(raw)
     obstacles = tuple(_parse_obstacle(item, f"obstacles[{i}]") for i, item in enumerate(raw))
     return RoomLayout(**kwargs, obstacles=obstacles)
 
@@ -649,37 +720,124 @@ def _check_unique_names(layouts: Sequence[RoomLayout], source: str) -> None:
         first[layout.name] = i
 
 
-def parse_layouts(obj, source: str = "<layout>") -> list[RoomLayout]:
-    """Parsed JSON (one room object or a list of them) -> validated layouts.
-
-    `source` names the origin (usually the file) in error messages.
-    """
+def _parse_rooms(obj, source: str, unnamed: str) -> list[tuple[RoomLayout, bool]]:
+    """(layout, whether its object gave a name) for each room of parsed JSON `obj`."""
     rooms = [obj] if isinstance(obj, dict) else obj
     if not isinstance(rooms, list):
         detail = f"expected a room object or a list of rooms, got {_kind(obj)}"
         raise LayoutError(None, detail, source=source)
     if not rooms:
         raise LayoutError(None, "empty list: expected at least one room", source=source)
-    layouts = []
+    if len(rooms) > MAX_ROOMS:
+        detail = f"{len(rooms)} rooms: at most {MAX_ROOMS} (they run as one batch)"
+        raise LayoutError(None, detail, source=source)
+    out = []
     for i, entry in enumerate(rooms):
         name = entry.get("name") if isinstance(entry, dict) else None
         try:
-            layouts.append(_parse_room(entry, i))
+            out.append((_parse_room(entry, i, unnamed), "name" in entry))
         except LayoutError as err:
             label = name if isinstance(name, str) and name else None
             raise err.located(source=source, room=label, index=i) from None
+    return out
+
+
+def parse_layouts(obj, source: str = "<layout>") -> list[RoomLayout]:
+    """Parsed JSON (one room object or a list of them) -> validated layouts.
+
+    `source` names the origin (usually the file) in error messages. Unnamed rooms are named
+    `room-<index>`.
+    """
+    layouts = [layout for layout, _ in _parse_rooms(obj, source, "room")]
     _check_unique_names(layouts, source)
     return layouts
 
 
-def load_layout(path: str | os.PathLike) -> list[RoomLayout]:
-    """Read a layout file (one room object or a list of them) -> validated layouts."""
-    source = os.fspath(path)
+def _read_rooms(path, source: str) -> list[tuple[RoomLayout, bool]]:
+    """`_parse_rooms` of a layout file; unnamed rooms are named `<file stem>-<index>`."""
     try:
         obj = parse_json(read_text(path), path, object_pairs_hook=_JsonObject.from_pairs)
     except FileProblem as err:
         raise LayoutError(None, err.detail, source=source) from None
-    return parse_layouts(obj, source)
+    return _parse_rooms(obj, source, os.path.splitext(os.path.basename(source))[0] or "room")
+
+
+def load_layouts(
+    paths: Sequence[str | os.PathLike], *, success_radius: float | None = None
+) -> list[RoomLayout]:
+    """The rooms of layout files, in order, as one set (one batch of a run or an evaluation).
+
+    Unnamed rooms are named `<file stem>-<index>` (with `-2`, `-3`... where that is taken). Two
+    rooms given the same name, one file given twice, or more than MAX_ROOMS rooms in all raise a
+    LayoutError naming the files. With `success_radius` (a goal task's, m), a fixed goal that
+    near its fixed spawn is refused too (`check_goal_distance`).
+    """
+    rooms: list[tuple[RoomLayout, str, int, bool]] = []  # (layout, file, index, named in it)
+    given: dict[str, str] = {}  # real path -> the path as given
+    for path in paths:
+        source = os.fspath(path)
+        real = os.path.realpath(source)
+        if real in given:
+            also = "" if given[real] == source else f" (as {given[real]})"
+            raise LayoutError(None, f"given twice{also}; give each file once", source=source)
+        given[real] = source
+        parsed = _read_rooms(path, source)
+        rooms += [(layout, source, i, named) for i, (layout, named) in enumerate(parsed)]
+        if len(rooms) > MAX_ROOMS:
+            detail = f"{len(rooms)} rooms with the files before it: at most {MAX_ROOMS} in all"
+            raise LayoutError(None, detail, source=source)
+    if success_radius is not None:
+        for layout, source, i, _ in rooms:
+            try:
+                check_goal_distance(layout, success_radius)
+            except LayoutError as err:
+                raise err.located(source=source, room=layout.name, index=i) from None
+    return _named(rooms)
+
+
+def load_layout(path: str | os.PathLike) -> list[RoomLayout]:
+    """Read a layout file (one room object or a list of them) -> validated layouts."""
+    return load_layouts([path])
+
+
+def _named(rooms: list[tuple[RoomLayout, str, int, bool]]) -> list[RoomLayout]:
+    """The layouts of `load_layouts`, an unnamed one renamed where its name is taken; a name
+    given to two rooms is a LayoutError naming both (file and index)."""
+    owner: dict[str, tuple[str, int]] = {}
+    for layout, source, i, named in rooms:
+        if named and layout.name in owner:
+            first, j = owner[layout.name]
+            where = f"room #{j}" + ("" if first == source else f" of {first}")
+            detail = f"duplicate room name, also used by {where}"
+            raise LayoutError("name", detail, source=source, room=layout.name, index=i)
+        if named:
+            owner[layout.name] = (source, i)
+    taken, out = set(owner), []
+    for layout, _, _, named in rooms:
+        if not named and layout.name in taken:
+            k = 2
+            while f"{layout.name}-{k}" in taken:
+                k += 1
+            layout = dataclasses.replace(layout, name=f"{layout.name}-{k}")
+        taken.add(layout.name)
+        out.append(layout)
+    return out
+
+
+def check_goal_distance(layout: RoomLayout, success_radius: float) -> None:
+    """A fixed goal lies farther than `success_radius` (a goal task's, m) from a fixed spawn:
+    nearer, every episode succeeds on its first step and measures nothing (SPL 0)."""
+    if layout.goal_pos is None or layout.robot_pos is None:
+        return
+    gap = math.dist(layout.goal_pos, layout.robot_pos)
+    if gap <= success_radius:
+        raise LayoutError(
+            "goal.pos",
+            f"{gap:.3f} m from robot.pos {_show(list(layout.robot_pos))}, within the goal task's "
+            f"success radius ({success_radius:g} m): every episode would succeed at once; place "
+            "it farther from the spawn",
+            room=layout.name,
+        )
 
 
 # ------------------------------------------------------------------------------
