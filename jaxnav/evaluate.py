@@ -42,7 +42,14 @@ import numpy as np
 from flax import struct
 
 import jaxnav
-from jaxnav.cli import Parser, UsageError, make_callable, print_error
+from jaxnav.cli import (
+    Parser,
+    UsageError,
+    compile_cache,
+    interruptible,
+    make_callable,
+    print_error,
+)
 from jaxnav.core import families, goals
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
 from jaxnav.core.scene import PHYSICS, SCENES_DIR, SceneConfig
@@ -289,7 +296,7 @@ def evaluate_rooms(
     env = make_eval_env(policy, layouts, steps=steps, randomize=randomize, physics=physics)
     check_memory(env, episodes, steps)
     rollout = make_rollout(env, policy.act, episodes, steps, keep=episodes, pinned=True)
-    track, kept = jax.device_get(rollout(key))
+    track, kept = interruptible(lambda: jax.device_get(rollout(key)))  # Ctrl-C acts at once
     with_goals = "success" in env.metric_names
     out = []
     for r, layout in enumerate(layouts):
@@ -579,7 +586,17 @@ def build_parser() -> argparse.ArgumentParser:
     moving = p.add_argument_group("moving obstacles (added to every room; default: none)")
     add_field_flags(moving, "randomize", RandomizeConfig, "randomize.", MOVING_FIELDS)
     p.add_argument("--json", metavar="OUT", help="write the metrics here")
-    p.add_argument("--plots", metavar="DIR", help="top-down PNGs, one per layout")
+    p.add_argument(
+        "--plots",
+        metavar="DIR",
+        help="top-down PNGs, one per layout (default: beside --json, else RUN/eval for a "
+        "--checkpoint; a baseline without either writes none)",
+    )
+    p.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="compile anew (default: reuse compiled programs of earlier runs, ~/.cache/jaxnav/xla)",
+    )
     p.add_argument(
         "--video",
         metavar="DIR",
@@ -622,7 +639,8 @@ def _check_outputs(args, rooms: int) -> None:
     """Every folder the results go to can be written and has space for the results of `rooms`
     rooms, before minutes of evaluation."""
     folders = {"--json": (Path(args.json).parent, rooms + 1)} if args.json else {}
-    folders["--plots"] = (_plots_dir(args), rooms)
+    if _plots_dir(args) is not None:
+        folders["--plots"] = (_plots_dir(args), rooms)
     if args.video:
         folders["--video"] = (Path(args.video), rooms)
     for flag, (folder, count) in folders.items():
@@ -674,15 +692,16 @@ def baseline(name: str, env: str = "avoid") -> Policy:
     return dataclasses.replace(BASELINES[name](spec), env=env)
 
 
-def _plots_dir(args) -> Path:
-    """--plots, else beside --json, else `eval/` in the checkpoint folder, else ./eval."""
+def _plots_dir(args) -> Path | None:
+    """--plots, else beside --json, else `eval/` in the checkpoint's run folder; None (no
+    pictures) for a baseline given neither: nothing is written where the user did not ask."""
     if args.plots:
         return Path(args.plots)
     if args.json:
         return Path(args.json).parent
     if args.checkpoint:
         return Path(args.checkpoint) / "eval"
-    return Path("eval")
+    return None
 
 
 def file_stems(names: list[str]) -> list[str]:
@@ -750,6 +769,9 @@ def _write_outputs(args, results: dict, layouts: list[RoomLayout]) -> None:
             raise UsageError(f"--json: cannot write {args.json} ({err.strerror or err})") from None
         print(f"metrics: {args.json}")
     out = _plots_dir(args)
+    if out is None:
+        print("plots: none (give --plots DIR or --json FILE for top-down pictures)")
+        return
     _make_dir(out, "--plots")
     # A suite: one picture per family (its first room); otherwise one per layout.
     by_name = dict(zip(results["_trajectories"], layouts, strict=True))
@@ -839,6 +861,7 @@ def _rooms(args, policy: Policy) -> tuple[list[RoomLayout], str | None]:
 def _run(argv) -> None:
     args = build_parser().parse_args(argv)
     _check_args(args)
+    compile_cache(not args.no_compile_cache)
     policy = _load_policy(args)
     layouts, suite = _rooms(args, policy)
     _check_outputs(args, len(layouts))

@@ -256,6 +256,8 @@ def write_checked(
     write(arrays, fmt, tmp, flag)
     try:
         result = None
+        if fmt == "numpy":
+            _robot_accepts(tmp, out, flag)
         if check:
             with contextlib.suppress(ImportError):  # onnxruntime is optional: said by the caller
                 result = verify(saved, tmp, fmt)
@@ -269,6 +271,18 @@ def write_checked(
         with contextlib.suppress(OSError):
             tmp.unlink()
     return result
+
+
+def _robot_accepts(tmp: Path, out: Path, flag: str) -> None:
+    """CheckFailed unless the robot side loads the file (`NumpyPolicy.from_npz`'s checks: finite
+    weights, shapes, commands within bounds), which a diverged run's weights may fail."""
+    try:
+        NumpyPolicy.from_npz(tmp)
+    except ValueError as err:
+        detail = str(err).replace(str(tmp), out.name)
+        raise CheckFailed(
+            f"{flag} {out}: not written: the robot side refuses it: {detail}"
+        ) from None
 
 
 def export(path, fmt: str, out=None, check: bool = True) -> Path:
@@ -326,7 +340,7 @@ Needs Python 3 with numpy, and ROS 2 (rclpy) for the node; no jax. Run in this f
 
   # the camera's measured height (m) and pitch (deg, down +), for the floor rule of policies
   # trained with several rows (default: the mount they were trained with)
-  python3 -m {package}.ros_node --policy policy.npz \
+  python3 -m {package}.ros_node --policy policy.npz \\
       --ros-args -r cmd_vel:=commands/velocity -p camera_height:=0.3 -p tilt_deg:=1.0
 
   # all flags (camera tilt, rows read around the horizon, topics)

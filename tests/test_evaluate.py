@@ -13,9 +13,11 @@ from subprocess import PIPE
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxnav
+import jaxnav.evaluate as evaluate_module
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.evaluate import (
     MAX_FILE_STEM,
@@ -249,3 +251,31 @@ def test_table_escapes_control_characters_in_names():
     table = format_table({"layouts": {"evil\nroom\x1b[31m": m}, "overall": m})
     assert "\x1b" not in table and len(table.splitlines()) == 4  # head, rule, the room, overall
     assert table.splitlines()[2].startswith("evil\\nroom\\x1b[31m ")
+
+
+def test_a_baseline_writes_nothing_where_it_was_not_asked(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    argv = ["--policy", "forward", "--episodes", "1", "--steps", "5"]
+    assert evaluate_module.main(argv) == 0
+    assert "plots: none" in capsys.readouterr().out and list(tmp_path.iterdir()) == []
+
+
+def test_picture_titles_fit_their_figure(tmp_path, monkeypatch):
+    """A long title is broken into lines that stay inside the figure."""
+    from matplotlib.figure import Figure
+
+    from jaxnav.viz import plots
+
+    saved = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: saved.append(fig))
+    room = jaxnav.load_layout(evaluate_module.DEFAULT_LAYOUTS)[0]
+    title = "inference_room_with_a_long_name: checkpoint runs/avoid-cpu, 100% collision-free, "
+    plots.plot_trajectories(room, [np.zeros((3, 2))], [False], tmp_path / "x.png", title * 2)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = saved[0]
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+    box = fig.axes[0].title.get_window_extent(renderer)
+    assert fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1, (box, fig.bbox)
+    assert fig.axes[0].title.get_text().count("\n") >= 1

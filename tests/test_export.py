@@ -2,6 +2,7 @@
 
 import importlib.util
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -139,6 +140,11 @@ def test_bundle_runs_on_a_robot_without_jax(one_run, tmp_path):
     readme = (folder / "README.txt").read_text()
     assert "python3 -m jaxnav_robot.ros_node --policy policy.npz" in readme
     assert "--ros-args -r cmd_vel:=commands/velocity" in readme
+    commands = " ".join(readme.replace("\\\n", " ").split("\n"))  # continued lines joined
+    assert "policy.npz --ros-args" in " ".join(commands.split())
+    for line in readme.splitlines():  # a command's words one space apart, or a continuation
+        if line.strip().startswith("python3 -m"):
+            assert not re.search(r"\S {2,}\S", line), line
     obs = random_obs(n=200, seed=3)
     np.save(tmp_path / "obs.npy", obs)
     code = f"""
@@ -264,3 +270,17 @@ def test_cli_unreadable_checkpoint_and_missing_onnx(one_run, tmp_path, capsys, m
     assert_one_error_line(capsys.readouterr().err, "--format onnx", "pip install onnx")
     assert export.main([str(one_run[0])]) == 0  # default: policy.npz inside the checkpoint
     assert (checkpoint.resolve(one_run[0]) / "policy.npz").exists()
+
+
+def test_a_policy_the_robot_would_refuse_is_not_exported(one_run, tmp_path, monkeypatch):
+    """Weights that are not finite (a diverged run) are refused even without the JAX check."""
+    real = export.actor_arrays
+
+    def poisoned(*args, **kwargs):
+        arrays = real(*args, **kwargs)
+        return {k: (v * np.nan if k == "W1" else v) for k, v in arrays.items()}
+
+    monkeypatch.setattr(export, "actor_arrays", poisoned)
+    with pytest.raises(export.CheckFailed, match="robot side refuses it: policy.npz: W1"):
+        export.export(one_run[0], "numpy", tmp_path / "policy.npz", check=False)
+    assert list(tmp_path.iterdir()) == []

@@ -10,6 +10,7 @@ import csv
 import dataclasses
 import math
 import os
+import textwrap
 from collections.abc import Sequence
 
 import jax
@@ -191,8 +192,19 @@ def plot_trajectories(
         fontsize=8,
         frameon=False,
     )
-    ax.set_title(title or f"{layout.name}: {len(trajectories)} episodes", fontsize=10)
+    title = title or f"{layout.name}: {len(trajectories)} episodes"
+    ax.set_title(fit_title(title, fig.get_figwidth(), 10), fontsize=10)
     fig.savefig(path, dpi=120)
+
+
+def fit_title(title: str, width_in: float, fontsize: float) -> str:
+    """`title` broken into lines that fit a figure `width_in` inches wide at `fontsize` points
+    (a character of the default font is at most ~0.62 em wide), at most 3 lines, then cut."""
+    per_line = max(10, int(0.95 * width_in * 72 / (0.62 * fontsize)))
+    lines = textwrap.wrap(title, per_line, break_long_words=True) or [""]
+    if len(lines) > 3:
+        lines = [*lines[:2], textwrap.shorten(" ".join(lines[2:]), per_line, placeholder=" ...")]
+    return "\n".join(lines)
 
 
 def _path_colors(n: int) -> list:
