@@ -1,5 +1,5 @@
 """One line per `time_to_solve_goal.py` result: where its evaluations settle, and when the bar
-was first met. The tables of benchmarks/RESULTS.md's goal sections come from it.
+was first met. The goal tables of docs/results.md come from it.
 
     python benchmarks/goal_runs.py benchmarks/results/sweeps/goal/cpu_shape7_*.json
     python benchmarks/goal_runs.py --last 5 --families corridor clutter RUN.json ...

@@ -79,7 +79,7 @@ class AutoReset(Wrapper):
     (steps x P episodes), and `step(state, action, fresh)` takes one step's pool from it (a scan
     over the steps with the draws as its xs). The draws do not depend on the state, so the
     episodes come from the same distribution as the per-step draws, from other keys: one large
-    batch instead of many small ones (benchmarks/RESULTS.md has what it changes for `goal`).
+    batch instead of many small ones (docs/results.md has what it changes for `goal`).
     """
 
     def __init__(self, env, pool: int | None = None, in_place: bool = False, groups: int = 1):

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 def planar_distance(a, b):
     """[...] floor-plane distance between points a [..., 2] and b [..., 2] (broadcast), per
     component: over a grid of points, a reduction over an axis of 2 costs XLA's CPU backend
-    several times the arithmetic (benchmarks/RESULTS.md)."""
+    several times the arithmetic (docs/results.md)."""
     a, b = jnp.asarray(a), jnp.asarray(b)
     return jnp.sqrt(jnp.square(a[..., 0] - b[..., 0]) + jnp.square(a[..., 1] - b[..., 1]))
 
@@ -129,7 +129,7 @@ def _ray_boxes(o, d, room):
     dx, dy, dz = d[..., 0, None], d[..., 1, None], d[..., 2, None]  # [..., 1] each
     # One slab per axis of the box's frame: (origin [Sb], direction [..., Sb], half extent [Sb]).
     # Each axis its own array, no stacked [..., Sb, 3]: reductions over an axis of 3 cost XLA's
-    # CPU backend several times the arithmetic (benchmarks/RESULTS.md).
+    # CPU backend several times the arithmetic (docs/results.md).
     slabs = (
         (c * rx + s * ry, c * dx + s * dy, room.box_half[:, 0]),
         (c * ry - s * rx, c * dy - s * dx, room.box_half[:, 1]),

@@ -177,7 +177,7 @@ def grid_steps(free: jax.Array, seed: jax.Array, sweeps: int = SWEEPS) -> jax.Ar
 
     On the CPU, under `jax.vmap`, a rule of its own (`jax.custom_batching.custom_vmap`) hands
     the whole batch to one flood that loops over the rows with the batch on the arrays' minor axis
-    (`_flood_rows`; benchmarks/RESULTS.md, "A flood a row at a time"); on an accelerator,
+    (`_flood_rows`; docs/results.md, "A flood a row at a time"); on an accelerator,
     where a loop over single rows would be a kernel a row, every scan is a log-depth
     `associative_scan` (`_flood_scans`). Both give the same steps, bit for bit."""
     if jax.default_backend() != "cpu":
@@ -275,7 +275,7 @@ def grid_clearance(params: SceneParams, half_extent: float) -> jax.Array:
 
     Computed in `GRID_BLOCKS` blocks of rows, in a loop: a loop's operands are computed once,
     where XLA's CPU backend otherwise fuses the room sampler that drew `params` into the
-    per-cell computation and repeats it for every cell (benchmarks/RESULTS.md, "A goal reset and
+    per-cell computation and repeats it for every cell (docs/results.md, "A goal reset and
     a sensor the CPU computes once").
     """
     centres = _grid(half_extent)

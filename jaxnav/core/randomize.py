@@ -273,7 +273,7 @@ TRAINING = RandomizeConfig(sampled_room_prob=0.75, random_spawn_prob=0.5, **FIDE
 (the 'random' family, with low obstacles and overhangs), the rest in the given layouts, half of
 those from a random spawn; the sim-to-real ranges of `FIDELITY` on. The room families of
 `jaxnav.core.families` stay out of it by default, so the benchmark suite, built from them, is
-rooms the policy never saw (`families="all"` mixes them in; benchmarks/RESULTS.md compares)."""
+rooms the policy never saw (`families="all"` mixes them in; docs/results.md compares)."""
 
 
 @struct.dataclass

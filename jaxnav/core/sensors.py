@@ -57,7 +57,7 @@ class SensorConfig:
     rows: int = 5
     """Ray rows, evenly spread over `row_angles`. 5 (default) sees obstacles from 0.05 m tall and
     overhangs: trained with 1 (a horizontal fan at the camera's height, 1/5 of the ray cost) or 3
-    rows, a policy collides with most low obstacles (benchmarks/RESULTS.md)."""
+    rows, a policy collides with most low obstacles (docs/results.md)."""
     row_angles: tuple[float, float] = (-0.38, 0.17)
     """Elevation of the lowest and highest row from the optical axis, rad (up +). The Astra's
     vertical field of view is 49.5 deg (+-0.43 rad) at the image's centre but only +-0.38 rad at

@@ -5,7 +5,7 @@ goal in the robot's frame (distance m, sin and cos of its bearing, positive = to
 last command the policy sent (forward / forward_speed, yaw / turn_rate); the newest frame comes
 first, then the `history` (16) before it, newest first. The stacked frames are a short memory: a
 policy that remembers where it has just been gets round walls a memoryless one stalls at
-(benchmarks/RESULTS.md). The last command rather than the measured
+(docs/results.md). The last command rather than the measured
 velocity: with the Kobuki's velocity smoother and command latency the robot's motion lags the
 command, and the policy needs to know what it already asked for; the command is exact on both
 sides, where a measured velocity would bring the odometry's noise and its own sim-to-real gap.
