@@ -51,9 +51,9 @@ from jaxnav.cli import (
     print_error,
 )
 from jaxnav.core import families, goals
+from jaxnav.core.assets import scenes_dir
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
 from jaxnav.core.scene import PHYSICS, SCENES_DIR, SceneConfig
-from jaxnav.io.assets import scenes_dir
 from jaxnav.io.files import check_writable, write_atomic
 from jaxnav.io.layouts import LayoutError, RoomLayout, check_goal_distance, load_layouts
 from jaxnav.io.runconfig import add_field_flags, overrides_from_args
@@ -146,7 +146,7 @@ def reset_in(env, key: jax.Array, room: jax.Array):
     """`env.reset(key)` with the room fixed to layout `room` (traced int32) of `env.bank`.
 
     The env's own draw runs on a one-room bank sliced out of its bank, so the spawn (the layout's
-    or a free one) and the physics and sensing come from the same `randomize.sample` as training.
+    or a free one) and the physics and sensing come from the same `episode.sample` as training.
     """
     one = jax.tree_util.tree_map(lambda x: jax.lax.dynamic_slice_in_dim(x, room, 1), env.bank)
     pinned = copy.copy(env)  # shares the scene and the compiled model; only the bank differs

@@ -14,8 +14,9 @@ from mujoco import mjx
 from stand_still import StandStillConfig, StandStillEnv
 
 import jaxnav
+from jaxnav.core.episode import sample
 from jaxnav.core.geometry import ray_cast, signed_distance
-from jaxnav.core.randomize import RandomizeConfig, sample
+from jaxnav.core.randomize import RandomizeConfig
 from jaxnav.core.scene import OBSTACLE_GROUP, SCENES_DIR, SceneConfig
 from jaxnav.export import export
 from jaxnav.policy import forward_policy

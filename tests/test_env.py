@@ -7,7 +7,8 @@ import pytest
 from conftest import start_in, traced_once
 
 import jaxnav
-from jaxnav.core.randomize import RandomizeConfig, clearance, sample
+from jaxnav.core.episode import sample
+from jaxnav.core.randomize import RandomizeConfig, clearance
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.core.sensors import SensorConfig
 

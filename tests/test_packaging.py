@@ -30,7 +30,7 @@ ROS_MODULES = {"rclpy", "sensor_msgs", "geometry_msgs", "nav_msgs"}
 # Builds the default env from the installed package and resets it once.
 _MAKE_ENV = """
 import json, jax, jax.numpy as jnp, jaxnav
-from jaxnav.io import assets
+from jaxnav.core import assets
 env = jaxnav.make_env("avoid")
 state = jax.jit(env.reset)(jax.random.PRNGKey(0))  # jitted: compiles faster than eager runs
 print(json.dumps({

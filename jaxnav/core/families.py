@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxnav.core import layout as lay
 from jaxnav.core.geometry import box_distance
 from jaxnav.core.randomize import (
     RANDOM,
@@ -26,7 +27,6 @@ from jaxnav.core.randomize import (
     family_weights,
     sample_room,
 )
-from jaxnav.io import layouts as lay
 
 SPAWN_CLEARANCE = 0.3  # m between the robot's edge and anything at the spawn (RandomizeConfig's)
 WALL = 0.1  # m, thickness of interior walls

@@ -38,9 +38,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from jaxnav.core import families
+from jaxnav.core import layout as lay
 from jaxnav.core.geometry import planar_distance, signed_distance
 from jaxnav.core.randomize import SceneParams
-from jaxnav.io import layouts as lay
 
 CELL = families.CELL  # m, occupancy grid cell for goals and shortest paths
 TRIES = 32  # uniform candidates per draw of a spawn or a goal
@@ -372,7 +372,7 @@ def sample_goal(
     path_clearance: float,
 ) -> tuple[SceneParams, jax.Array, jax.Array]:
     """(the episode's params, [2] goal m, [n, n] its `goal_field`) for the room `params` drew
-    (`randomize.sample`), with one flood of the traced grid (`_grid(half_extent)`, half_extent
+    (`episode.sample`), with one flood of the traced grid (`_grid(half_extent)`, half_extent
     static: at least half the largest sampled room).
 
     Layout rooms (layout_id >= 0) take their goal from `goals` (`_layout_goal`). Sampled rooms:

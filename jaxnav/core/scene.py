@@ -23,9 +23,9 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from jaxnav.core.assets import scenes_dir
 from jaxnav.core.checks import require_finite
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
-from jaxnav.io.assets import scenes_dir
 
 SCENES_DIR = scenes_dir()
 

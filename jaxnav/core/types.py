@@ -81,6 +81,9 @@ class Env(Protocol):
     action_spec: ActionSpec
     metric_names: tuple[str, ...]  # per-step values summed over an episode; "collision" is one
     control_period: float  # s per step
+    # C: inputs only a privileged critic sees, state.info["critic"] [C] (0: none; PPO reads 0 for an
+    # env without the attribute). The actor, and so an exported policy, never sees them.
+    critic_size: int
 
     def reset(self, key: jax.Array) -> EnvState: ...
 

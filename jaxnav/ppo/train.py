@@ -21,7 +21,6 @@ from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
 from jaxnav.ppo.networks import ActorCritic, RunningStats, init_stats, normalize, update_stats
-from jaxnav.tasks.registry import critic_size
 from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
 
 
@@ -65,10 +64,22 @@ def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(lr, eps=1e-5))
 
 
+def critic_inputs(cfg: PPOConfig, env) -> int:
+    """C, what only the critic sees: the env's `critic_size` with `cfg.privileged_critic`, else 0;
+    privileged without such inputs is a ValueError naming the flag."""
+    size = getattr(env, "critic_size", 0)
+    if cfg.privileged_critic and not size:
+        raise ValueError(
+            "--privileged-critic: this task has no inputs for the critic alone (the goal task "
+            "has); leave it off"
+        )
+    return size if cfg.privileged_critic else 0
+
+
 def make_network(cfg: PPOConfig, action_spec, critic_inputs: int = 0) -> ActorCritic:
     """The actor-critic for an env's `action_spec`: logits for a table of commands, a Gaussian's
     means and log-stds for continuous commands (`jaxnav.ppo.distributions`). `critic_inputs`: C,
-    what only the critic sees (`registry.critic_size`: 0 unless `cfg.privileged_critic`)."""
+    what only the critic sees (`critic_inputs`: 0 unless `cfg.privileged_critic`)."""
     continuous = isinstance(action_spec, ContinuousActions)
     size = action_spec.size if continuous else make_distribution(action_spec).out_size
     return ActorCritic(
@@ -129,7 +140,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
 
     The robots are sharded over `devices` (default: every device of every process).
     """
-    network = make_network(cfg, env.action_spec, critic_size(env.task, cfg.privileged_critic))
+    network = make_network(cfg, env.action_spec, critic_inputs(cfg, env))
     dist = make_distribution(env.action_spec)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)

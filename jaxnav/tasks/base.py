@@ -22,8 +22,9 @@ from flax import struct
 from mujoco import mjx
 
 from jaxnav.core import motion
+from jaxnav.core.episode import sample
 from jaxnav.core.geometry import signed_distance
-from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams, sample
+from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import Scene, SceneConfig
 from jaxnav.core.sensors import SensorConfig, observe
@@ -101,6 +102,11 @@ class NavTask:
     def control_period(self) -> float:
         """Seconds per control step."""
         return self.scene.cfg.control_period
+
+    @property
+    def critic_size(self) -> int:
+        """C, the task's inputs for a privileged critic in `state.info["critic"]` (0: none)."""
+        return getattr(self.task, "critic_observations", 0)
 
     def new_episode(self, key: jax.Array) -> tuple[SceneParams, mjx.Data]:
         """A fresh room, spawn, moving obstacles and parameters, and the physics state at the

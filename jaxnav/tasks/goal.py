@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxnav.core.checks import require_finite
+from jaxnav.core.episode import sample
 from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal
-from jaxnav.core.randomize import sample
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
 from jaxnav.tasks.base import Actuator, NavTask, check_velocity_config, velocity_actions
