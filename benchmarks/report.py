@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime
 import json
 import platform
+import subprocess
 import sys
 from pathlib import Path
 
@@ -27,13 +28,42 @@ def _jax() -> str:
     return jax.__version__
 
 
+def _mujoco() -> str:
+    import mujoco
+
+    return mujoco.__version__
+
+
+def _git(*args: str) -> str:
+    repo = Path(__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
+def _commit() -> str:
+    return _git("rev-parse", "HEAD") or "unknown"
+
+
+def _dirty() -> bool:
+    """Whether the tracked files differ from the commit (the result may not be reproducible)."""
+    return bool(_git("status", "--porcelain", "--untracked-files=no"))
+
+
 FIELDS = {
     "device": _device,  # the first JAX device, "platform: kind", e.g. "gpu: NVIDIA H200"
     "python": platform.python_version,
     "date": lambda: datetime.date.today().isoformat(),
     "jax": _jax,
     "command": lambda: " ".join(sys.argv),  # the command line, as run
+    "commit": _commit,  # git HEAD of the checkout the script ran from
+    "dirty": _dirty,  # tracked files changed since that commit
+    "mujoco": _mujoco,
 }
+# Every result says where it came from: `write_json` adds these where a script did not.
+ALWAYS = ("command", "commit", "dirty", "date", "python")
 
 
 def run_info(*names: str) -> dict:
@@ -42,7 +72,9 @@ def run_info(*names: str) -> dict:
 
 
 def write_json(path, result: dict) -> None:
-    """`result` as indented JSON at `path` (its folder made where missing)."""
+    """`result` as indented JSON at `path` (its folder made where missing), with the `ALWAYS`
+    fields it lacks (the command, commit and date of this run)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    result = {**run_info(*(k for k in ALWAYS if k not in result)), **result}
     path.write_text(json.dumps(result, indent=2) + "\n")

@@ -54,7 +54,8 @@ from jaxnav.core import families, goals
 from jaxnav.core.assets import scenes_dir
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
 from jaxnav.core.scene import PHYSICS, SCENES_DIR, SceneConfig
-from jaxnav.io.files import check_writable, write_atomic
+from jaxnav.io import barn
+from jaxnav.io.files import check_writable, read_json, write_atomic
 from jaxnav.io.layouts import LayoutError, RoomLayout, check_goal_distance, load_layouts
 from jaxnav.io.runconfig import add_field_flags, overrides_from_args
 from jaxnav.policy import BASELINES, Policy
@@ -382,17 +383,89 @@ def _size(n: float) -> str:
     return f"{n / units.get(unit, 1e3):.1f} {unit}"
 
 
+SUITE_META = "suite.json"  # in a suite's folder: its own data (e.g. BARN's optimal paths)
+
+
 def load_suite(name: str) -> dict[str, list[RoomLayout]]:
     """The rooms of suite `name` (a folder of jaxnav's scenes, e.g. "benchmark"): {family: rooms},
-    one family per JSON file, in file-name order."""
+    one family per JSON file (but `SUITE_META`), in file-name order."""
     folder = scenes_dir() / name
-    files = sorted(folder.glob("*.json")) if folder.is_dir() else []
+    files = sorted(f for f in folder.glob("*.json") if f.name != SUITE_META)
+    files = files if folder.is_dir() else []
     if not files:
         suites = sorted(
             p.name for p in scenes_dir().iterdir() if p.is_dir() and any(p.glob("*.json"))
         )
         raise FileNotFoundError(f"no suite {name!r} in {scenes_dir()}; suites: {', '.join(suites)}")
     return {f.stem: jaxnav.load_layout(f) for f in files}
+
+
+def suite_meta(name: str) -> dict:
+    """A suite's `SUITE_META` ({} if it has none): `{"score": "barn", "time_limit_s": s,
+    "rooms": {room: {"optimal_path_m": m, ...}}}` for BARN."""
+    path = scenes_dir() / name / SUITE_META
+    return read_json(path) if path.is_file() else {}
+
+
+def default_steps(suite: str | None, policy: Policy) -> int:
+    """Control steps per episode when none are given: the suite's time limit (`SUITE_META`'s
+    `time_limit_s`), else 600 (60 s)."""
+    limit = suite_meta(suite).get("time_limit_s") if suite else None
+    if limit is None:
+        return 600
+    period = (policy.env_kwargs.get("scene") or SceneConfig()).control_period
+    return round(limit / period)
+
+
+def barn_scores(rooms: list[dict], names: list[str], meta: dict, top_speed: float) -> list[dict]:
+    """Per room, BARN's score (`jaxnav.io.barn.barn_score`) of every episode [N]: `barn_score`
+    with the challenge's optimal time (the optimal path at 2 m/s), `barn_score_own_speed` with
+    the optimal path at `top_speed` (the robot's), and `timeout` (neither success nor collision)."""
+    out = []
+    for room, name in zip(rooms, names, strict=True):
+        length = meta["rooms"][name]["optimal_path_m"]
+        success = np.asarray(room["metrics"]["success"]) > 0
+        seconds = np.asarray(room["steps"], np.float64) * room["control_period"]
+        out.append(
+            {
+                "barn_score": barn.barn_score(success, seconds, barn.optimal_time(length)),
+                "barn_score_own_speed": barn.barn_score(success, seconds, length / top_speed),
+                "timeout": ~success & ~np.asarray(room["collided"], bool),
+            }
+        )
+    return out
+
+
+def _mean_scores(scores: list[dict]) -> dict:
+    """The BARN scores and timeout share pooled over the episodes of `scores`' rooms."""
+    keys = ("barn_score", "barn_score_own_speed", "timeout")
+    pooled = {k: float(np.mean(np.concatenate([s[k] for s in scores]))) for k in keys}
+    pooled["timeout_rate"] = pooled.pop("timeout")
+    return pooled
+
+
+def barn_line(results: dict) -> str:
+    """BARN's scores per difficulty group and overall, one line."""
+    own = results["barn"]["own_speed"]
+    parts = [
+        f"{name} {m['barn_score']:.3f} ({m['barn_score_own_speed']:.3f} at {own:g} m/s)"
+        for name, m in [*results["families"].items(), ("overall", results["overall"])]
+    ]
+    return "BARN score (optimal path at 2 m/s): " + ", ".join(parts)
+
+
+def _add_barn(results: dict, rooms, names, groups: dict, meta: dict) -> None:
+    """BARN's metrics into `results`: per room, per family (difficulty group) and overall."""
+    top_speed = rooms[0]["env"].robot.max_linear_speed
+    scores = barn_scores(rooms, names, meta, top_speed)
+    for name, s in zip(names, scores, strict=True):
+        results["layouts"][name].update(_mean_scores([s]))
+        results["layouts"][name]["difficulty_rank"] = meta["rooms"][name].get("difficulty_rank")
+    sizes = np.cumsum([0] + [len(v) for v in groups.values()])
+    for family, a, b in zip(groups, sizes[:-1], sizes[1:], strict=True):
+        results["families"][family].update(_mean_scores(scores[a:b]))
+    results["overall"].update(_mean_scores(scores))
+    results["barn"] = {"optimal_speed": barn.OPTIMAL_SPEED, "own_speed": top_speed}
 
 
 def _pool(rooms: list[dict]) -> dict:
@@ -493,6 +566,9 @@ def evaluate(
             f: _pool(rooms[a:b]) for f, a, b in zip(groups, sizes[:-1], sizes[1:], strict=True)
         }
         results["_families"] = {f: names[a] for f, a in zip(groups, sizes[:-1], strict=False)}
+        meta = suite_meta(suite)
+        if meta.get("score") == "barn" and "success" in rooms[0]["metrics"]:
+            _add_barn(results, rooms, names, groups, meta)
     return results
 
 
@@ -564,7 +640,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="the task of a --policy baseline (default avoid; a checkpoint brings its own)",
     )
     p.add_argument("--episodes", type=int, default=100, help="episodes per layout (default 100)")
-    p.add_argument("--steps", type=int, default=600, help="control steps per episode (default 600)")
+    p.add_argument(
+        "--steps",
+        type=int,
+        help="control steps per episode (default 600, or the suite's time limit: BARN's 100 s)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--spawn",
@@ -609,9 +689,9 @@ def _check_args(args) -> None:
     """Cheap checks before anything is loaded or compiled."""
     if args.episodes < 1:
         raise UsageError(f"--episodes: must be >= 1, got {args.episodes}")
-    if args.steps < 1:
+    if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps: must be >= 1, got {args.steps}")
-    for flag, value in (("--episodes", args.episodes), ("--steps", args.steps)):
+    for flag, value in (("--episodes", args.episodes), ("--steps", args.steps or 1)):
         if value > MAX_COUNT:
             raise UsageError(f"{flag}: at most {MAX_COUNT:,} (a 32-bit count), got {value:,}")
     if args.checkpoint is not None and _kind(args.checkpoint, "--checkpoint") != "folder":
@@ -870,7 +950,7 @@ def _run(argv) -> None:
         None if suite else layouts,
         suite=suite,
         episodes=args.episodes,
-        steps=args.steps,
+        steps=args.steps or default_steps(args.suite, policy),
         seed=args.seed,
         spawn=args.spawn,
         stochastic_env=not args.deterministic_env,
@@ -878,6 +958,8 @@ def _run(argv) -> None:
         moving=overrides_from_args(args)["randomize"],
     )
     print(format_table(results))
+    if "barn" in results:
+        print(barn_line(results))
     _write_outputs(args, results, layouts)
     if args.video:
         _write_videos(args, results, layouts)
