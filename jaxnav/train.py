@@ -116,14 +116,16 @@ def memory_check(config: RunConfig, env, trainer) -> None:
     cfg, devices = config.ppo, jax.local_devices()
     shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
     state = _bytes(shapes.env_state) / cfg.num_envs
-    # The network on every device: weights, optimizer state, the gradient and update of a step,
-    # and a minibatch's activations (actor and critic, forward and backward).
+    # The network on every device: weights, optimizer state, and the gradient and update of a step.
+    model = _bytes(shapes.params) * 3 + _bytes(shapes.opt_state)
+    # Activations per robot (actor and critic): acting, and its share of a minibatch (forward and
+    # backward; a minibatch is num_envs x rollout_length / num_minibatches samples).
     width = 4 * 2 * sum(cfg.hidden)
-    model = _bytes(shapes.params) * 3 + _bytes(shapes.opt_state) + 2 * width * cfg.minibatch_size
+    width *= 1 + 2 * cfg.rollout_length / cfg.num_minibatches
     # A Transition per step: raw and normalised obs, 6 scalars, the episode sums (float32/int32).
     step = 4 * (2 * env.observation_size + 8 + len(env.metric_names))
     # The state, the next one and its auto-reset draw; the rollout and its shuffled copy.
-    per_robot = 3 * state + 2 * cfg.rollout_length * step + width  # + the acting forward pass
+    per_robot = 3 * state + 2 * cfg.rollout_length * step + width
     # `share`: robots per memory = num_envs / share. The CPU's devices share this process's memory
     # (one process per host); an accelerator holds its own device's robots.
     if devices[0].platform == "cpu":

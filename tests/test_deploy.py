@@ -117,14 +117,14 @@ def test_scan_reading_rules():
     beams = [
         [0.0, 7.0, 2.0],  # 0: nearer than measurable -> range_min
         [INF, -1.0, 3.0],  # negative -> range_min
-        [NAN, NAN, INF],  # no return -> range_max
+        [NAN, NAN, INF],  # NaN unknown (REP 117): 2 of 3 unknown -> range_min
         [0.3, 5.0, 6.0],  # below range_min -> range_min
         [9.0, 12.0, INF],  # beyond range_max -> range_max
         [-INF, 1.5, 1.0],  # -> range_min
         [4.0, 4.0, 4.0],
         [7.0, NAN, 2.5],  # -> 2.5
     ]
-    want = [0.6, 0.6, 8.0, 0.6, 8.0, 0.6, 4.0, 2.5]
+    want = [0.6, 0.6, 0.6, 0.6, 8.0, 0.6, 4.0, 2.5]
     depth = np.array(beams, np.float64).ravel()  # [24], right to left
     angles = (np.arange(24) + 0.5) / 24 * SENSOR.fov - 0.5 * SENSOR.fov  # the simulator's rays
     with np.errstate(invalid="ignore"):

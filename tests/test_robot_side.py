@@ -15,7 +15,14 @@ import pytest
 import jaxnav
 from jaxnav.robot_side import Controller, NumpyPolicy
 from jaxnav.robot_side import policy as policy_module
-from jaxnav.robot_side.observation import action_to_twist
+from jaxnav.robot_side.observation import (
+    Intrinsics,
+    Sensor,
+    action_to_twist,
+    depth_image_to_sectors,
+    reduce_sectors,
+    sector_nearest,
+)
 
 ROOT = Path(jaxnav.__file__).parent.parent
 COMMANDS = np.array([[0.4, 0.0], [0.0, 1.0], [0.0, -1.0]], np.float32)  # forward, left, right
@@ -67,6 +74,29 @@ def floor_image(wall=5.0, box=None, camera_height=0.295, height=480, width=640):
     depth = np.full((height, width), wall)
     with np.errstate(divide="ignore"):
         depth = np.where(up < 0, np.minimum(depth, camera_height / -up), depth)
+    if box is not None:
+        d, top = box
+        face = (camera_height + d * up >= 0) & (camera_height + d * up <= top)
+        depth = np.where(face, np.minimum(depth, d), depth)
+    return np.where((depth >= 0.6) & (depth <= 8.0), depth, 0.0).astype(np.float32)
+
+
+# The common Orbbec Astra calibration (OpenNI's default) of its 640 x 480 depth image.
+ASTRA_K = Intrinsics(fx=570.3, fy=570.3, cx=319.5, cy=239.5, width=640, height=480)
+
+
+def astra_frame(camera=ASTRA_K, wall=5.0, posts=(), box=None, camera_height=0.295):
+    """A depth image as the Astra reports it (0 outside 0.6-8 m) from a level camera of calibration
+    `camera`: the floor, a wall across the view at depth `wall`, tall posts (depth, offset to the
+    left, width; m) and with box = (depth, top) a box face across the view from the floor up."""
+    across = (camera.cx - np.arange(camera.width)) / camera.fx  # [W] left per metre of depth
+    up = ((camera.cy - np.arange(camera.height)) / camera.fy)[:, None]  # [H, 1] up per metre
+    depth = np.full((camera.height, camera.width), float(wall))
+    with np.errstate(divide="ignore"):
+        depth = np.where(up < 0, np.minimum(depth, camera_height / -up), depth)
+    for d, left, width in posts:
+        face = (np.abs(across * d - left) <= width / 2) & (camera_height + d * up >= 0)
+        depth = np.where(face, np.minimum(depth, d), depth)
     if box is not None:
         d, top = box
         face = (camera_height + d * up >= 0) & (camera_height + d * up <= top)
@@ -451,3 +481,77 @@ def test_only_bounded_regular_files_are_read(tmp_path):
     with pytest.raises(ValueError, match="big.npz: larger than 0 MB: not a policy file"):
         policy_module.read_regular_file(path, limit=50)
     assert policy_module.read_regular_file(path, limit=100) == bytes(100)
+
+
+ONE_ROW = Sensor(math.radians(60.0), 8, 0.6, 8.0)  # a default policy's
+FIVE_ROWS = Sensor(  # a 5-row policy's (SensorConfig(rows=5)), the 2i's camera at 0.295 m
+    ONE_ROW.fov, 8, 0.6, 8.0, elevations=tuple(np.linspace(-0.38, 0.17, 5)), camera_height=0.295
+)
+
+
+def astra_obs(depth, sensor, **rules) -> np.ndarray:
+    """The observation the ROS node reads from an Astra image (calibration ASTRA_K): a 5-row
+    sensor's ray pixels, floor left out, or a one-row sensor's +-2 deg band around the horizon."""
+    if len(sensor.elevations) > 1:
+        return depth_image_to_sectors(depth, sensor, camera=ASTRA_K, **rules)
+    rows, angles = ASTRA_K.horizon_rows(2.0), ASTRA_K.column_angles()
+    return depth_image_to_sectors(depth, sensor, rows, angles, **rules)
+
+
+def test_sector_nearest_rule():
+    """Each sector reads its k-th nearest known reading, k = 1 + known // readings_per_stray."""
+    nan, inf = np.nan, np.inf
+    readings = np.full((4, 120), nan)
+    readings[0, :100] = np.linspace(1.0, 5.0, 100)  # 100 known: k = 3
+    readings[1, :3] = [4.0, inf, 2.0]  # 3 known: k = 1, the minimum
+    readings[2, :110] = inf  # no return within range, 110 times: k = 3
+    got = sector_nearest(readings, readings_per_stray=50)
+    np.testing.assert_allclose(got[:3], [readings[0, 2], 2.0, inf])
+    assert np.isnan(got[3])  # nothing known: the blind rule decides
+    np.testing.assert_allclose(sector_nearest(readings, 0)[:3], [1.0, 2.0, inf])  # the minimum
+    # reduce_sectors: sector 0 holds a stray at 0.9 m among 59 readings at 3 m (k = 2).
+    depth = np.r_[0.9, np.full(59, 3.0), np.full(10, 2.0)]
+    sector = np.r_[np.zeros(60, int), np.ones(10, int)]
+    np.testing.assert_allclose(reduce_sectors(depth, sector, ONE_ROW)[:2], [3.0, 2.0])
+    plain = reduce_sectors(depth, sector, ONE_ROW, readings_per_stray=0)
+    np.testing.assert_allclose(plain[:2], [0.9, 2.0])
+    with pytest.raises(ValueError, match="readings_per_stray: must be 0 .* or a whole number >= 2"):
+        Controller(None, readings_per_stray=1)
+
+
+def with_strays(depth, share, rng):
+    """`depth` with `share` of its pixels replaced by strays at random depths within 0.6-8 m."""
+    stray = rng.random(depth.shape) < share
+    return np.where(stray, rng.uniform(0.6, 8.0, depth.shape), depth).astype(np.float32)
+
+
+@pytest.mark.parametrize("sensor", [FIVE_ROWS, ONE_ROW], ids=["five-rows", "one-row"])
+def test_stray_pixels_make_no_phantom(sensor):
+    """Stray pixels used to become phantom obstacles: the sector took the minimum of ~150 (5 rows)
+    or ~3000 (the band) pixels. Measured on 640 x 480 frames (ASTRA_K, a wall at 5 m, strays at
+    random depths in 0.6-8 m, 200 frames; a phantom: a sector below 4.5 m), 5 rows / band:
+
+        readings_per_stray    0.1 % strays      0.3 % strays      1 % strays     2 cm leg seen to
+        0 (the minimum)       55 % / 100 %      95 % / 100 %      100 % / 100 %  7.5 m / 7.5 m
+        100                   3.5 % / 0         29 % / 0          95 % / 0       3.5 m / 7.5 m
+        50 (default)          0 / 0 (of 1000)   0.3 % / 0         16 % / 0       2.5 m / 3.5 m
+        25                    0 / 0             0 / 0             0.5 % / 0      2 m / 1.5 m
+
+    (leg: seen in all 21 placements across the two middle sectors, a 2 cm post before a wall at
+    7.95 m; beyond, in some: with 50, 3 m in 14 of 21 on the 5 rows, 5 m in 20 of 21 on the
+    band). A 2 cm leg at d m covers 0.02 * 570.3 / d columns: 11.4 at 1 m, of which 4 of the 5 ray
+    rows (the lowest meets the floor first) make 45 pixels, k = 4 needed; in the band 456, k = 61.
+    The simulator's rays, 2.5 deg apart, miss such a leg beyond ~0.5 m anyway. 50 is the default:
+    no phantom at 0.1 %, the leg seen from 2.5 m on.
+    """
+    rng = np.random.default_rng(0)
+    scene = astra_frame()
+    np.testing.assert_allclose(astra_obs(scene, sensor), 5.0, rtol=1e-6)
+    frames = [with_strays(scene, 0.001, rng) for _ in range(40)]
+    plain = np.array([astra_obs(f, sensor, readings_per_stray=0) for f in frames])
+    robust = np.array([astra_obs(f, sensor) for f in frames])
+    assert (plain < 4.5).any(1).mean() > 0.3 and robust.min() == pytest.approx(5.0)
+    assert 11 <= 0.02 * ASTRA_K.fx / 1.0 < 12  # columns of a 2 cm leg at 1 m
+    for left in np.linspace(-0.07, 0.07, 8):  # across the two middle sectors, their border at 0
+        leg = astra_frame(wall=7.95, posts=[(1.0, left, 0.02)])
+        assert astra_obs(leg, sensor).min() == pytest.approx(1.0, abs=0.01)

@@ -1,4 +1,5 @@
-"""The ROS 2 node's safety: its own control rate, the stale-data watchdog, errors and shutdown stop.
+"""The ROS 2 node's safety: its own control rate, the stale-data watchdog, errors and shutdown stop;
+what it reads (scans, blind frames, header stamps, camera_info), goal inputs and its interfaces.
 
 `ControlLoop` is driven with a fake clock; the node and `main` run against stand-ins for rclpy and
 the message packages, put into sys.modules, so no ROS install is needed.
@@ -12,9 +13,11 @@ import types
 import numpy as np
 import pytest
 from test_robot_side import (
+    ASTRA_K,
     BAD_CONTENT,
     DAMAGE,
     NanPolicy,
+    astra_frame,
     bounded,
     damaged,
     floor_image,
@@ -22,11 +25,18 @@ from test_robot_side import (
 )
 
 from jaxnav.robot_side import ros_node
-from jaxnav.robot_side.observation import Controller, Twist, horizon_rows
+from jaxnav.robot_side.observation import (
+    BlindFrame,
+    Controller,
+    Intrinsics,
+    Twist,
+    depth_image_to_sectors,
+)
 from jaxnav.robot_side.policy import NumpyPolicy
 from jaxnav.robot_side.ros_node import (
     STOP,
     ControlLoop,
+    GoalInput,
     MessageReader,
     control_rate,
     image_msg_to_array,
@@ -76,10 +86,14 @@ class Raising(Counting):
         raise FloatingPointError("weights went bad")
 
 
-def expected(policy, depth) -> Twist:
-    """What the node must send for a fresh depth image (the default reader's rows)."""
-    rows = horizon_rows(depth.shape[0], math.radians(49.5), 2.0)
-    return Controller(policy).image_to_twist(depth, rows)
+def expected(policy, depth, speed_calibration=1.0) -> Twist:
+    """What the node must send for a fresh depth image with no camera_info: the rows within
+    +-2 deg of the horizon and columns binned by angle, the policy's fov across the image."""
+    camera = Intrinsics.from_hfov(depth.shape[1], depth.shape[0], policy.sensor.fov)
+    controller = Controller(policy, speed_calibration)
+    return controller.act(
+        controller.image_obs(depth, camera.horizon_rows(), camera.column_angles())
+    )
 
 
 def test_several_row_policies_read_their_rays_floor_left_out(tmp_path):
@@ -88,11 +102,12 @@ def test_several_row_policies_read_their_rays_floor_left_out(tmp_path):
     elevations = np.linspace(-0.38, 0.17, 5)  # SensorConfig(rows=5).elevations
     npz = write_policy_npz(tmp_path / "p.npz", elevations=elevations, camera_height=0.295)
     controller = Controller(NumpyPolicy.from_npz(npz))
-    msg = image_msg(floor_image())
-    np.testing.assert_allclose(MessageReader()(msg, controller), 5.0, rtol=1e-6)
+    msg = image_msg(floor_image())  # 49.5 deg vertically
+    np.testing.assert_allclose(MessageReader(vfov_deg=49.5)(msg, controller), 5.0, rtol=1e-6)
     # Told the camera is 5 cm higher than it is, the floor seems 5 cm up: obstacles.
-    assert MessageReader(camera_height=0.345)(msg, controller).max() < 1.0
-    assert MessageReader(tilt_deg=-3.0)(msg, controller).max() < 1.0  # said to look up 3 deg
+    assert MessageReader(vfov_deg=49.5, camera_height=0.345)(msg, controller).max() < 1.0
+    looking_up = MessageReader(vfov_deg=49.5, tilt_deg=-3.0)  # said to look up 3 deg
+    assert looking_up(msg, controller).max() < 1.0
     with pytest.raises(ValueError, match="camera_height: must be > 0 m"):
         MessageReader(camera_height=0.0)
 
@@ -207,37 +222,54 @@ def test_node_flags():
     args, rest = ros_node.parse_args(["--policy", "p.npz", "--scan", "--ros-args", "-p", "x:=1"])
     assert args.policy == "p.npz" and args.scan and rest == ["--ros-args", "-p", "x:=1"]
     assert args.speed_calibration == 1.0 and args.band_deg == 2.0 and args.rate_hz is None
-    assert args.max_age == 0.25 and args.blind_fraction == 0.5
+    assert args.max_age == 0.25 and args.blind_fraction == 0.5 and args.readings_per_stray == 50
+    assert args.max_unknown == 0.9 and math.isnan(args.vfov_deg) and args.header_stamps
+    assert not args.stamped and args.enable_topic == "~/enable" and args.camera_info_topic == ""
+    assert ros_node.parse_args(["--no-header-stamps", "--stamped"])[0].header_stamps is False
+
+
+def message(name: str, **defaults):
+    """A stand-in message class: instances start with `defaults` (made fresh per instance)."""
+
+    def __init__(self, **fields):
+        for key, value in {**defaults, **fields}.items():
+            setattr(self, key, value() if callable(value) else value)
+
+    return type(name, (), {"__init__": __init__})
 
 
 class FakeRos:
     """Stand-ins for rclpy, its Node, timers and publishers, and the message classes."""
 
-    class Vector:
-        x = y = z = 0.0
-
-    class Twist:
-        def __init__(self):
-            self.linear, self.angular = FakeRos.Vector(), FakeRos.Vector()
+    Vector = message("Vector3", x=0.0, y=0.0, z=0.0)
+    Twist = message("Twist", linear=Vector, angular=Vector)
+    Time = message("Time", sec=0, nanosec=0)
+    Header = message("Header", stamp=Time, frame_id="")
+    TwistStamped = message("TwistStamped", header=Header, twist=Twist)
+    String = message("String", data="")
+    Bool = message("Bool", data=False)
+    CameraInfo = message("CameraInfo", header=Header, width=0, height=0, k=lambda: [0.0] * 9)
 
     def __init__(self, params=None, spin=None):
         self.time, self.params, self.spin_body = 0.0, params or {}, spin
-        self.events, self.nodes = [], []  # ("publish", (v, w)) / ("init", kwargs) / ("shutdown",)
+        self.events, self.nodes = [], []  # ("publish", topic, msg) / ("init", kwargs) / ...
 
     def modules(self, signals: bool = True) -> dict:
         ros = self
 
         class Node:
             def __init__(self, name):
-                self.subscriptions_, self.timers_ = [], []
+                self.subscriptions_, self.timers_, self.publishers_ = [], [], {}
                 ros.nodes.append(self)
 
             def declare_parameter(self, name, value):
                 return types.SimpleNamespace(value=ros.params.get(name, value))
 
             def create_publisher(self, msg_type, topic, depth):
-                self.cmd_topic = topic
-                publish = lambda m: ros.events.append(("publish", (m.linear.x, m.angular.z)))
+                self.publishers_[topic] = msg_type.__name__
+                if msg_type in (FakeRos.Twist, FakeRos.TwistStamped):
+                    self.cmd_topic = topic
+                publish = lambda m: ros.events.append(("publish", topic, m))
                 return types.SimpleNamespace(publish=publish)
 
             def create_subscription(self, msg_type, topic, callback, qos):
@@ -247,7 +279,11 @@ class FakeRos:
                 self.timers_.append((period, callback))
 
             def get_clock(self):
-                now = lambda: types.SimpleNamespace(nanoseconds=int(round(ros.time * 1e9)))
+                def now():
+                    ns = int(round(ros.time * 1e9))
+                    stamp = lambda: FakeRos.Time(sec=ns // 10**9, nanosec=ns % 10**9)
+                    return types.SimpleNamespace(nanoseconds=ns, to_msg=stamp)
+
                 return types.SimpleNamespace(now=now)
 
             def get_logger(self):
@@ -263,6 +299,7 @@ class FakeRos:
             try_shutdown=lambda: self.events.append(("shutdown",)),
         )
         image, scan = type("Image", (), {}), type("LaserScan", (), {})
+        geometry = dict(Twist=FakeRos.Twist, TwistStamped=FakeRos.TwistStamped)
         return {
             "rclpy": rclpy,
             "rclpy.node": types.SimpleNamespace(Node=Node),
@@ -271,9 +308,13 @@ class FakeRos:
             if signals
             else None,  # None in sys.modules: ImportError, as on Foxy
             "sensor_msgs": types.SimpleNamespace(),
-            "sensor_msgs.msg": types.SimpleNamespace(Image=image, LaserScan=scan),
+            "sensor_msgs.msg": types.SimpleNamespace(
+                Image=image, LaserScan=scan, CameraInfo=FakeRos.CameraInfo
+            ),
             "geometry_msgs": types.SimpleNamespace(),
-            "geometry_msgs.msg": types.SimpleNamespace(Twist=FakeRos.Twist),
+            "geometry_msgs.msg": types.SimpleNamespace(**geometry),
+            "std_msgs": types.SimpleNamespace(),
+            "std_msgs.msg": types.SimpleNamespace(Bool=FakeRos.Bool, String=FakeRos.String),
         }
 
     def install(self, monkeypatch, signals: bool = True):
@@ -281,8 +322,15 @@ class FakeRos:
             monkeypatch.setitem(sys.modules, name, module)
         return self
 
+    def messages(self, kind: str) -> list:
+        """The messages of class `kind` published, in order."""
+        return [e[2] for e in self.events if e[0] == "publish" and type(e[2]).__name__ == kind]
+
     def published(self):
-        return [e[1] for e in self.events if e[0] == "publish"]
+        """(forward m/s, yaw rad/s) of each velocity command published, Twist or TwistStamped."""
+        kinds = ("Twist", "TwistStamped")
+        sent = [e[2] for e in self.events if e[0] == "publish" and type(e[2]).__name__ in kinds]
+        return [(m.linear.x, m.angular.z) for m in (getattr(m, "twist", m) for m in sent)]
 
 
 @pytest.mark.parametrize(
@@ -311,8 +359,7 @@ def test_node_wiring_and_watchdog(monkeypatch, tmp_path, policy):
     assert ros.published() == []  # no command per camera frame
     ros.time = 10.1
     on_timer()
-    rows = horizon_rows(48, math.radians(49.5), 2.0)
-    want = Controller(policy, speed_calibration=2.0).image_to_twist(frame, rows)
+    want = expected(policy, frame, speed_calibration=2.0)
     assert ros.published() == [pytest.approx(want)] and want != STOP
     ros.time = 10.3  # 0.3 s after the frame
     on_timer()
@@ -409,3 +456,321 @@ def test_loop_stops_on_a_non_finite_command(policy):
     loop.on_observation(image_msg(scene(1.0, 4.0)), 0.0)
     assert loop.tick(0.0) == STOP and loop.obs is None
     assert log == ["error: ValueError: command (nan, 0.0) is not finite: sending zero velocity"]
+
+
+def beams(n: int = 640):
+    """Beam angles (rad, right to left) of a `depthimage_to_laserscan` scan of an Astra image of
+    n columns (ASTRA_K), one beam per column."""
+    half = math.atan(319.5 / ASTRA_K.fx)
+    return np.linspace(-half, half, n)
+
+
+def scan_msg(ranges):
+    angles = beams(len(ranges))
+    return types.SimpleNamespace(
+        ranges=list(ranges), angle_min=angles[0], angle_increment=angles[1] - angles[0]
+    )
+
+
+def test_scan_nan_is_unknown_not_far(policy):
+    """`depthimage_to_laserscan` writes NaN for columns the camera returned nothing in (REP 117:
+    no valid measurement), e.g. a surface inside the Astra's 0.6 m blind zone. The node read NaN
+    as range_max: measured before, a box 0.4 m ahead across the middle quarter read 8.0 m in
+    sectors 3 and 4, and a wall 0.4 m ahead across the whole view 8.0 m in all eight, so the robot
+    drove on. NaN is now unknown, like a depth image's 0 (a sector at least half unknown reads
+    range_min; a scan over 90 % unknown stops the robot); +inf (no return within range) still
+    reads range_max and -inf (too close) range_min."""
+    log = []
+    loop = ControlLoop(Controller(policy), MessageReader(scan=True), log=log.append)
+    angles = beams()
+    wall = 3.0 / np.cos(angles)  # a wall 3 m ahead: camera depth 3 m
+    box = np.where(np.abs(angles) < math.radians(7.5), NAN, wall)  # 0.4 m ahead: no return
+    loop.on_observation(scan_msg(box), 0.0)
+    assert loop.tick(0.0) != STOP
+    np.testing.assert_allclose(loop.obs, [3, 3, 3, 0.6, 0.6, 3, 3, 3], rtol=1e-5)
+    loop.on_observation(scan_msg(np.full(640, NAN)), 0.1)  # the wall at 0.4 m
+    assert loop.tick(0.1) == STOP and loop.state.startswith("sensor blind: over 90% of its")
+    edge = math.radians(22.5)  # sector 0 no return within range, sector 7 too close
+    ranges = np.where(angles < -edge, INF, np.where(angles > edge, -INF, wall))
+    loop.on_observation(scan_msg(ranges), 0.2)
+    assert loop.tick(0.2) != STOP
+    np.testing.assert_allclose(loop.obs, [8, 3, 3, 3, 3, 3, 3, 0.6], rtol=1e-5)
+
+
+def unknown_share(policy, depth) -> float:
+    """The share of the pixels the node reads in `depth` (ASTRA_K) that are unknown."""
+    try:
+        MessageReader()(image_msg(depth), Controller(policy, max_unknown=0.0), ASTRA_K)
+    except BlindFrame as err:
+        return err.share
+    return 0.0
+
+
+def test_broken_frames_stop_the_robot(policy):
+    """A covered lens or sunlight gives frames of (almost) only 0; every sector then read range_min
+    and the policy acted on "everything at 0.6 m" (spinning). Measured unknown shares of the pixels
+    the node reads in 640 x 480 frames (ASTRA_K; band of a one-row policy / rays of a 5-row one):
+    a wall at 5 m 0 / 0 %, with 10 % dropout 10 / 10 %, a black (no-return) surface over the left
+    half 50 / 50 %, a box at 0.4 m over the middle quarter 25 / 25 %, sunlight over 80 % of the
+    view 80 / 80 %, a hall with nothing within 8 m 100 / 40 % (the 5 rows see the floor); a covered
+    lens or a wall at 0.4 m 100 / 100 %, sunlight over all of it with 2 % speckle 98 / 98 %. At most
+    16 * (1 - share) sectors can be read (each needs half of its pixels known): above 90 % at most
+    one. So frames over 90 % unknown stop the robot, with the reason logged once; the scenes below
+    80 % drive."""
+    rng = np.random.default_rng(0)
+    wall = astra_frame()
+    covered = np.zeros_like(wall)
+    speckle = np.where(rng.random(wall.shape) < 0.02, rng.uniform(0.6, 8.0, wall.shape), 0.0)
+    half, sunlit = wall.copy(), wall.copy()
+    half[:, :320], sunlit[:, :512] = 0.0, 0.0
+    shares = [unknown_share(policy, f) for f in (wall, half, sunlit, covered, speckle)]
+    assert shares == pytest.approx([0.0, 0.5, 0.8, 1.0, 0.98], abs=0.005)
+    log = []
+    loop = ControlLoop(Controller(policy), MessageReader(), log=log.append)
+    loop.on_camera_info(camera_info(ASTRA_K))
+    for t, frame in enumerate([sunlit, covered, speckle, half]):
+        loop.on_observation(image_msg(frame), t)
+        assert (loop.tick(t) == STOP) == (t in (1, 2)), t
+    blind = f"sensor blind: {BlindFrame(1.0, 0.9)}: sending zero velocity"
+    assert log[1:] == ["policy: driving", blind, "policy: driving"]
+    assert "over 90% of its readings unknown (lens covered, sunlight, or a surface" in blind
+
+
+def stamped(msg, seconds: float):
+    """`msg` with a header stamped `seconds` (0: unset)."""
+    sec = math.floor(seconds)
+    stamp = FakeRos.Time(sec=sec, nanosec=round((seconds - sec) * 1e9))
+    msg.header = FakeRos.Header(stamp=stamp, frame_id="camera_depth_optical_frame")
+    return msg
+
+
+def test_messages_are_aged_by_their_header_stamp(monkeypatch, tmp_path, policy):
+    """Staleness counted from arrival: a frame 0.3 s old on arrival (transport or driver delay)
+    was acted on as fresh. With header stamps it is aged from its stamp; a zero stamp (unset)
+    falls back to its arrival; a stamp more than 0.05 s ahead of its arrival (clocks apart) is
+    refused, since it would keep a stalled camera's last frame fresh that much longer. The node
+    ages by stamp unless `--no-header-stamps`; the replay (a bag's clock) by arrival."""
+    frame = scene(1.0, 4.0)
+    log = []
+    loop = ControlLoop(Controller(policy), MessageReader(), log=log.append, header_stamps=True)
+    loop.on_observation(stamped(image_msg(frame), 99.7), 100.0)
+    assert loop.tick(100.0) == STOP
+    assert loop.state == f"sensor messages over 0.25 s old on arrival{ros_node.OTHER_CLOCK}"
+    loop.on_observation(stamped(image_msg(frame), 100.0), 100.1)
+    assert loop.tick(100.25) == pytest.approx(expected(policy, frame))
+    assert loop.tick(100.26) == STOP and loop.state == "no sensor message for over 0.25 s"
+    loop.on_observation(stamped(image_msg(frame), 0.0), 101.0)  # unset: arrival
+    assert loop.tick(101.2) != STOP
+    loop.on_observation(stamped(image_msg(frame), 103.0), 101.3)
+    assert loop.tick(101.3) == STOP
+    assert loop.state == f"sensor stamps over 0.05 s ahead of this clock{ros_node.OTHER_CLOCK}"
+    by_arrival = ControlLoop(Controller(policy), MessageReader(), log=log.append)
+    by_arrival.on_observation(stamped(image_msg(frame), 99.7), 100.0)
+    assert by_arrival.tick(100.0) != STOP
+    npz = str(write_policy_npz(tmp_path / "p.npz"))
+    for params, sent in [({}, STOP), ({"header_stamps": False}, expected(policy, frame))]:
+        ros = FakeRos(params).install(monkeypatch)
+        node = ros_node._make_node(ros_node.parse_args(["--policy", npz])[0])
+        ros.time = 50.0
+        node.subscriptions_[0][2](stamped(image_msg(frame), 49.5))
+        node.timers_[0][1]()
+        assert ros.published() == [pytest.approx(sent)]
+
+
+def camera_info(camera: Intrinsics):
+    """A sensor_msgs/CameraInfo of `camera`."""
+    k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
+    return FakeRos.CameraInfo(width=camera.width, height=camera.height, k=k)
+
+
+def test_camera_info_places_columns_and_rows(monkeypatch, tmp_path):
+    """The node took its focal length from 49.5 deg vertically (520.6 px, 63.2 deg across); the
+    common Astra calibration is 570.3 px (58.6 deg across). Measured with a 5-row policy on
+    640 x 480 frames of that camera: its "+-30 deg" columns covered +-27.8 deg, so a 5 cm post
+    2 m ahead at 29 deg left read 5.0 m (the wall behind it) in sector 7, and its ray rows sat
+    higher (1.2 deg on the second row, 1.7 deg on the lowest), so the second row met a box face
+    1 m ahead 6.9 cm up instead of 4.8 cm and missed a 6 cm box in sectors 2-5. With the K of
+    camera_info: the post at 2.0 m, the box at 1.0 m in sectors 1-6. Without camera_info the
+    policy's 60 deg across the image (554.3 px) is used; it sees both here."""
+    rows = dict(elevations=np.linspace(-0.38, 0.17, 5), camera_height=0.295)
+    npz = write_policy_npz(tmp_path / "p.npz", **rows)
+    controller = Controller(NumpyPolicy.from_npz(npz))
+    post = image_msg(astra_frame(posts=[(2.0, 2.0 * math.tan(math.radians(29.0)), 0.05)]))
+    box = image_msg(astra_frame(box=(1.0, 0.06)))
+    old = MessageReader(vfov_deg=49.5)
+    assert old(post, controller)[7] == 5.0 and (old(box, controller)[2:6] == 5.0).all()
+    log = []
+    loop = ControlLoop(controller, MessageReader(), log=log.append)
+    loop.on_camera_info(FakeRos.CameraInfo(width=640, height=480))  # K all zero: not used
+    loop.on_camera_info(camera_info(ASTRA_K))
+    assert loop.camera == ASTRA_K
+    assert log == [
+        "camera_info not used: K is all zero (an uncalibrated camera)",
+        "camera_info: fx 570.3, fy 570.3, cx 319.5, cy 239.5 px for 640x480 images",
+    ]
+    loop.on_observation(post, 0.0)
+    assert loop.tick(0.0) != STOP and loop.obs[7] == pytest.approx(2.0)
+    loop.on_observation(box, 0.1)
+    loop.tick(0.1)
+    np.testing.assert_allclose(loop.obs[1:7], 1.0, rtol=1e-6)
+    off = Intrinsics(500.0, 505.0, 330.0, 225.0, 640, 480)  # any calibration is followed
+    loop.on_camera_info(camera_info(off))
+    loop.on_observation(box, 0.2)
+    loop.tick(0.2)
+    sensor = controller.policy.sensor
+    want = depth_image_to_sectors(astra_frame(box=(1.0, 0.06)), sensor, camera=off)
+    np.testing.assert_array_equal(loop.obs, want)
+    loop.on_observation(image_msg(np.full((240, 320), 3.0, np.float32)), 0.3)
+    assert loop.tick(0.3) == STOP
+    assert "calibration is for 640x480 images, the image is 320x240" in loop.state
+    ros = FakeRos().install(monkeypatch)
+    topics = [
+        ([], "/camera/depth/camera_info"),  # beside the image topic
+        (["--topic", "/cam/depth/image_rect"], "/cam/depth/camera_info"),
+        (["--camera-info-topic", "info"], "info"),
+    ]
+    for flags, topic in topics:
+        node = ros_node._make_node(ros_node.parse_args(["--policy", str(npz), *flags])[0])
+        assert node.subscriptions_[1][:2] == ("CameraInfo", topic)
+        node.subscriptions_[1][2](camera_info(ASTRA_K))
+        assert node.loop.camera == ASTRA_K
+    node = ros_node._make_node(ros_node.parse_args(["--policy", str(npz), "--scan"])[0])
+    assert "CameraInfo" not in [kind for kind, _, _ in node.subscriptions_]
+    assert ros.events.count(("log", log[1])) == 3
+
+
+def write_goal_policy_npz(path):
+    """A continuous goal policy (format 3): 8 sectors, goal features, last command; radius 0.3 m."""
+    rng = np.random.default_rng(2)
+    scale, low, high = [0.5, 1.5], [0.0, -1.5], [0.5, 1.5]
+    return write_policy_npz(
+        path, W0=rng.normal(size=(13, 16)).astype(np.float32), b1=np.zeros(2, np.float32),
+        W1=rng.normal(scale=0.2, size=(16, 2)).astype(np.float32),
+        obs_mean=np.array([3.0] * 8 + [1.0, 0, 0, 0.25, 0], np.float32),
+        obs_var=np.full(13, 4.0, np.float32), obs_std=np.full(13, 2.0, np.float32),
+        action_names=np.array(["forward", "yaw"]), commands=np.array([low, high], np.float32),
+        action_low=np.array(low, np.float32), action_high=np.array(high, np.float32),
+        extra_observations=np.int32(5), command_scale=np.array(scale, np.float32),
+        success_radius=np.float64(0.3), format_version=np.int32(3),
+    )  # fmt: skip
+
+
+def odometry(x: float, y: float, yaw: float, frame: str = "odom"):
+    """A nav_msgs/Odometry-like message of the pose (x, y, yaw)."""
+    ns = types.SimpleNamespace
+    q = ns(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    return ns(header=ns(frame_id=frame), pose=ns(pose=ns(position=ns(x=x, y=y), orientation=q)))
+
+
+@pytest.fixture
+def goal_loop(tmp_path):
+    """(loop, log) of a goal policy reading a scan 3 m ahead, its goal (5, 0) in odom."""
+    log = []
+    policy = NumpyPolicy.from_npz(write_goal_policy_npz(tmp_path / "goal.npz"))
+    loop = ControlLoop(
+        Controller(policy), MessageReader(scan=True), log=log.append, goal=GoalInput()
+    )
+    loop.goal.on_goal(5.0, 0.0, "odom")
+    return loop, log
+
+
+def drive(loop, t: float, pose) -> Twist:
+    """One 50 Hz step of `loop` at t s: a fresh scan, odometry at `pose`, a tick."""
+    loop.on_observation(scan_msg(np.full(640, 3.0)), t)
+    loop.on_odometry(odometry(*pose), t)
+    return loop.tick(t)
+
+
+def test_odometry_jump_stops_until_steady(goal_loop):
+    """An odometry jump of 2.2 m and 57 deg between consecutive messages was accepted (the policy
+    drove on towards a goal it then saw elsewhere). The robot can move at most 0.7 m/s and
+    180 deg/s: between 50 Hz messages (0.02 s) 1.4 cm and 3.6 deg. Allowed: twice that over the
+    interval plus 0.05 s of stamp and delivery jitter, 9.8 cm and 25 deg at 50 Hz, 21 cm and
+    54 deg at 10 Hz, 1.5 m and any turn after a silence of 1 s or more (the interval counts up
+    to 1 s: odometry that stale stopped the robot). The replay test's recorded path (1.1 m/s,
+    up to 6 rad/s at 20 Hz) stays within. A jump stops the robot with a warning until 5
+    consecutive messages (0.1 s at 50 Hz) agree again."""
+    assert ros_node.odometry_jump((0, 0, 0), (0.095, 0, 0.4), 0.02) is None
+    assert ros_node.odometry_jump((0, 0, 0), (0.105, 0, 0), 0.02) == "0.10 m and 0 deg in 0.02 s"
+    assert ros_node.odometry_jump((0, 0, 0), (0, 0, math.radians(26)), 0.02) is not None
+    assert ros_node.odometry_jump((0, 0, 0), (NAN, 0, 0), 0.02) is not None
+    assert ros_node.odometry_jump((0, 0, 0), (1.4, 0, 3.0), 5.0) is None
+    loop, log = goal_loop
+    for i in range(5):
+        assert drive(loop, 0.02 * i, (0.01 * i, 0.0, 0.0)) != STOP
+    jumped = (0.04 + 2.2 * math.cos(0.3), 2.2 * math.sin(0.3), math.radians(57))
+    assert drive(loop, 0.1, jumped) == STOP and loop.goal_status() == "odometry jump"
+    warning = "odometry jump of 2.20 m and 57 deg in 0.02 s: waiting for 5 consistent messages"
+    assert loop.state == warning and log[-1] == f"{warning}: sending zero velocity"
+    steady = [(jumped[0] + 0.01 * i, jumped[1], jumped[2]) for i in range(1, 6)]
+    stopped = [drive(loop, 0.1 + 0.02 * i, pose) == STOP for i, pose in enumerate(steady, 1)]
+    assert stopped == [True] * 4 + [False]
+    assert loop.state == "policy" and loop.goal_status() == "driving"
+
+
+def test_goal_reached_latches_until_a_new_goal(goal_loop):
+    """Within the success radius (0.3 m) the robot stopped, but at 0.31 m (odometry drift, a push)
+    it drove again. "goal reached" now holds until a new goal comes, even the same one."""
+    loop, log = goal_loop
+    assert drive(loop, 0.0, (4.71, 0.0, 0.0)) == STOP and loop.state == "goal reached"
+    assert drive(loop, 0.02, (4.69, 0.0, 0.0)) == STOP and loop.state == "goal reached"
+    assert loop.goal_status() == "reached"
+    loop.goal.on_goal(5.0, 0.0, "odom")
+    assert drive(loop, 0.04, (4.69, 0.0, 0.0)) != STOP and loop.goal_status() == "driving"
+
+
+def test_node_goal_status_topic(monkeypatch, tmp_path):
+    """A goal policy's node publishes the goal's status at every tick on `goal_status_topic`."""
+    npz = str(write_goal_policy_npz(tmp_path / "goal.npz"))
+    ros = FakeRos().install(monkeypatch)
+    ns = types.SimpleNamespace
+    monkeypatch.setitem(sys.modules, "nav_msgs", ns())
+    monkeypatch.setitem(sys.modules, "nav_msgs.msg", ns(Odometry=type("Odometry", (), {})))
+    sys.modules["geometry_msgs.msg"].PoseStamped = type("PoseStamped", (), {})
+    node = ros_node._make_node(ros_node.parse_args(["--policy", npz, "--scan"])[0])
+    assert node.publishers_ == {"cmd_vel": "Twist", "goal_status": "String"}
+    subs = {kind: callback for kind, _, callback in node.subscriptions_}
+    on_timer = node.timers_[0][1]
+    for t, goal in [(1.0, None), (1.1, (2.0, 0.0)), (1.2, (0.2, 0.0))]:
+        ros.time = t
+        subs["LaserScan"](scan_msg(np.full(640, 3.0)))
+        subs["Odometry"](odometry(0.0, 0.0, 0.0))
+        if goal:
+            position = ns(x=goal[0], y=goal[1])
+            subs["PoseStamped"](ns(header=ns(frame_id="odom"), pose=ns(position=position)))
+        on_timer()
+    assert [m.data for m in ros.messages("String")] == ["no goal", "driving", "reached"]
+
+
+def test_node_stamped_commands_and_enable_topic(monkeypatch, tmp_path, policy):
+    """`--stamped` publishes geometry_msgs/TwistStamped (Nav2, newer distributions) stamped with
+    the node's clock in base_link; false on the enable topic (std_msgs/Bool) sends zero velocity
+    at once and at every tick until true comes."""
+    npz = str(write_policy_npz(tmp_path / "policy.npz"))
+    ros = FakeRos().install(monkeypatch)
+    node = ros_node._make_node(ros_node.parse_args(["--policy", npz, "--stamped"])[0])
+    assert node.publishers_ == {"cmd_vel": "TwistStamped"}
+    subs = {kind: (topic, callback) for kind, topic, callback in node.subscriptions_}
+    on_message, on_timer = subs["Image"][1], node.timers_[0][1]
+    frame = scene(0.9, 3.0)
+    ros.time = 5.25
+    on_message(image_msg(frame))
+    on_timer()
+    command = ros.messages("TwistStamped")[-1]
+    assert (command.header.stamp.sec, command.header.stamp.nanosec) == (5, 250_000_000)
+    assert command.header.frame_id == "base_link"
+    assert ros.published() == [pytest.approx(expected(policy, frame))] != [(0.0, 0.0)]
+    topic, on_enable = subs["Bool"]
+    assert topic == "~/enable"
+    on_enable(FakeRos.Bool(data=False))
+    on_message(image_msg(frame))
+    on_timer()
+    assert ros.published()[1:] == [(0.0, 0.0)] * 2
+    assert node.loop.state == "paused (false on the enable topic)"
+    on_enable(FakeRos.Bool(data=True))
+    on_timer()
+    assert ros.published()[-1] == pytest.approx(expected(policy, frame))
+    logs = [e[1] for e in ros.events if e[0] == "log"]
+    assert "paused (false on the enable topic): sending zero velocity" in logs
+    ros_node._make_node(ros_node.parse_args(["--policy", npz])[0])
+    assert ros.nodes[-1].publishers_ == {"cmd_vel": "Twist"}

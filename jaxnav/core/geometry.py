@@ -3,7 +3,10 @@
 Used for spawns and free-space checks (2-D, in the floor plane), for collision detection (3-D, the
 robot's bumper sphere against boxes, upright capsules and the wall planes: the shapes the MJX scene
 collides, cross-checked against MuJoCo's own collision in the tests) and for layout validation.
-Everything is `jax.numpy` in float32, the simulator's precision; numpy inputs are accepted.
+Everything is `jax.numpy` in float32, the simulator's precision; numpy inputs are accepted. The
+2-D distances also run in numpy (`xp=np`, float32 inputs stay float32): layout validation checks
+rooms of varied shapes one by one, where jax would dispatch every operation (and on an
+accelerator, copy every array) eagerly.
 """
 
 from __future__ import annotations
@@ -11,40 +14,40 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 
-def planar_distance(a, b):
+def planar_distance(a, b, xp=jnp):
     """[...] floor-plane distance between points a [..., 2] and b [..., 2] (broadcast), per
     component: over a grid of points, a reduction over an axis of 2 costs XLA's CPU backend
     several times the arithmetic (docs/results.md)."""
-    a, b = jnp.asarray(a), jnp.asarray(b)
-    return jnp.sqrt(jnp.square(a[..., 0] - b[..., 0]) + jnp.square(a[..., 1] - b[..., 1]))
+    a, b = xp.asarray(a), xp.asarray(b)
+    return xp.sqrt(xp.square(a[..., 0] - b[..., 0]) + xp.square(a[..., 1] - b[..., 1]))
 
 
-def box_distance(p, pos, yaw, half):
+def box_distance(p, pos, yaw, half, xp=jnp):
     """[..., N] signed floor-plane distance from points p [..., 2] to N boxes (<0 inside).
 
     pos [N, 2] centres, yaw [N] rad, half [N, 2] half extents along each box's own axes.
     """
-    p = jnp.asarray(p)
+    p = xp.asarray(p)
     dx, dy = p[..., 0, None] - pos[:, 0], p[..., 1, None] - pos[:, 1]  # [..., N] each
-    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    c, s = xp.cos(yaw), xp.sin(yaw)
     # Per-axis distance beyond each face, in the box's own frame. Each axis its own array: over
     # a grid of points a stacked [..., N, 2] costs XLA's CPU backend three times the time.
-    qx = jnp.abs(c * dx + s * dy) - half[:, 0]
-    qy = jnp.abs(c * dy - s * dx) - half[:, 1]
-    outside = jnp.sqrt(jnp.maximum(qx, 0.0) ** 2 + jnp.maximum(qy, 0.0) ** 2)
-    return outside + jnp.minimum(jnp.maximum(qx, qy), 0.0)
+    qx = xp.abs(c * dx + s * dy) - half[:, 0]
+    qy = xp.abs(c * dy - s * dx) - half[:, 1]
+    outside = xp.sqrt(xp.maximum(qx, 0.0) ** 2 + xp.maximum(qy, 0.0) ** 2)
+    return outside + xp.minimum(xp.maximum(qx, qy), 0.0)
 
 
-def disc_distance(p, pos, radius):
+def disc_distance(p, pos, radius, xp=jnp):
     """[..., N] signed floor-plane distance from points p [..., 2] to N discs (<0 inside)."""
-    return planar_distance(jnp.asarray(p)[..., None, :], pos) - radius
+    return planar_distance(xp.asarray(p)[..., None, :], pos, xp) - radius
 
 
-def wall_distance(p, room_half):
+def wall_distance(p, room_half, xp=jnp):
     """[..., 4] distance from points p [..., 2] to the east, west, north, south walls (<0 beyond)."""
-    x, y = jnp.asarray(p)[..., 0], jnp.asarray(p)[..., 1]
+    x, y = xp.asarray(p)[..., 0], xp.asarray(p)[..., 1]
     hx, hy = room_half[0], room_half[1]
-    return jnp.stack([hx - x, hx + x, hy - y, hy + y], axis=-1)
+    return xp.stack([hx - x, hx + x, hy - y, hy + y], axis=-1)
 
 
 def _vertical(z, bottom, top):

@@ -21,7 +21,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
-import jax
 import numpy as np
 
 from jaxnav.core import geometry
@@ -387,14 +386,14 @@ def box_corners(box: Box) -> np.ndarray:
 def _distances(layout: RoomLayout, p: np.ndarray) -> np.ndarray:
     """[..., 4 + N] signed distance (float32, as simulated) from points p [..., 2] to the east,
     west, north, south walls and then each obstacle in layout order; negative inside or beyond."""
-    cols = [geometry.wall_distance(p, 0.5 * np.asarray(layout.size, np.float32))]
+    cols = [geometry.wall_distance(p, 0.5 * np.asarray(layout.size, np.float32), np)]
     for ob in layout.obstacles:
         pos = np.asarray([ob.pos], np.float32)
         if isinstance(ob, Cylinder):
-            cols.append(geometry.disc_distance(p, pos, np.float32(ob.radius)))
+            cols.append(geometry.disc_distance(p, pos, np.float32(ob.radius), np))
         else:
             half = 0.5 * np.asarray([ob.size], np.float32)
-            cols.append(geometry.box_distance(p, pos, np.float32(ob.yaw), half))
+            cols.append(geometry.box_distance(p, pos, np.float32(ob.yaw), half, np))
     return np.concatenate([np.asarray(c) for c in cols], axis=-1)
 
 
@@ -463,13 +462,12 @@ def _spawn_axis(half: float, side: float) -> np.ndarray:
     return np.linspace(-half, half, 2 * n + 1)
 
 
-@functools.partial(jax.jit, static_argnums=0)
 def _near_distance(kind: str, p, pos, yaw, size):
     """[H, W] signed distance (float32) from points p [H, W, 2] to one box or cylinder of `kind`
     (a cylinder's `size` is [radius, radius])."""
     if kind == Cylinder.kind:
-        return geometry.disc_distance(p, pos[None], size[0])[..., 0]
-    return geometry.box_distance(p, pos[None], yaw[None], 0.5 * size[None])[..., 0]
+        return geometry.disc_distance(p, pos[None], size[0], np)[..., 0]
+    return geometry.box_distance(p, pos[None], yaw[None], 0.5 * size[None], np)[..., 0]
 
 
 def _window(lo: float, hi: float, axis: np.ndarray) -> slice | None:
@@ -511,7 +509,7 @@ def free_spawn(layout: RoomLayout, radius: float = ROBOT_RADIUS) -> tuple[float,
         return None
     xs, ys = (_spawn_axis(h, side) for h, side in zip(half, layout.size, strict=True))
     grid = np.stack(np.meshgrid(xs, ys), axis=-1).astype(np.float32)  # [len(ys), len(xs), 2]
-    walls = np.asarray(geometry.wall_distance(grid, 0.5 * np.asarray(layout.size, np.float32)))
+    walls = np.asarray(geometry.wall_distance(grid, 0.5 * np.asarray(layout.size, np.float32), np))
     clear = radius + _SPAWN_MARGIN
     free = (walls.min(axis=-1) > clear) & ~_touched(layout, grid, clear)
     if not free.any():

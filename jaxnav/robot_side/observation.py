@@ -9,13 +9,17 @@ Both paths end in `reduce_sectors`, the one sector reduction, whose docstring st
 simulator mirrors. Its point is the Orbbec Astra's blind zone: the camera reports 0 both for
 surfaces nearer than its ~0.6 m minimum and for no return, so a sector the camera cannot read is
 taken as near (range_min, the reading that makes the policy turn), never as far (range_max, the
-reading the reward pays most for driving into).
+reading the reward pays most for driving into). A sector reads its nearest reading that enough of
+its readings confirm (`sector_nearest`), so a few stray pixels do not make a phantom obstacle. A
+frame that is almost all unknown (a covered lens, sunlight) carries no observation at all: with
+`max_unknown` set it is refused (`BlindFrame`) rather than read as "everything near".
 
 A depth image is read where the simulator casts its rays (`ray_pixels`: for each image column, one
 pixel per ray row of the sensor, at that row's elevation), and pixels that see the floor are left
 out (`floor_mask`: the same function the simulator applies to its rays), so a policy trained with
 rows below the horizon (`--sensor.rows 5`, which sees obstacles from 0.05 m tall) is deployed on the
-pixels it was trained on: `depth_image_to_sectors(depth, sensor, vfov=...)`.
+pixels it was trained on: `depth_image_to_sectors(depth, sensor, vfov=...)`, or with the camera's
+calibration (`Intrinsics`, a CameraInfo's K) `depth_image_to_sectors(depth, sensor, camera=...)`.
 """
 
 from __future__ import annotations
@@ -115,7 +119,89 @@ nothing; a higher one would need a close object about two sectors wide before an
 """
 
 
-def reduce_sectors(depth, sector, sensor: Sensor, blind_fraction=BLIND_FRACTION) -> np.ndarray:
+READINGS_PER_STRAY = 50
+"""Default count of a sector's known readings per extra reading that must confirm what it reads
+(`sector_nearest`: the k-th nearest, k = 1 + known // 50).
+
+Why 50 (measured on 640x480 frames in `test_robot_side.py::test_stray_pixels_make_no_phantom`): a
+5-row policy reads ~150 known pixels per sector (its lower rows see floor), a one-row policy's
++-2 deg band ~3000, so k is 4 and 61. Then 0.1 % stray pixels no longer make phantom obstacles
+(the plain minimum put one into over half the frames), while a 2 cm table leg at 1 m (11 columns,
+45 pixels of 5 rows) stays seen. 100 let 0.1 % strays through in ~3 % of the frames; 25 lost a
+2 cm leg from 2.5 m on the 5 rows.
+"""
+
+MAX_UNKNOWN = 0.9
+"""Default largest share of a frame's readings that may be unknown (`check_frame`); above it the
+frame is refused (`BlindFrame`), not read as everything near.
+
+Why 0.9: a sector is readable only when over half of its readings are known (`BLIND_FRACTION`),
+so at most 16 * (1 - share) of the 8 sectors can hold a reading: above 0.9 at most one, and the
+policy sees "everything at range_min", on which it spins. Real scenes stay well below (measured
+in `tests/test_ros_node.py::test_broken_frames_stop_the_robot`: a black surface over half the
+view 50 %, sunlight over 80 % of it 80 %); a covered lens or a sunlit view is 98-100 %. So is a
+surface nearer than range_min across the whole view: the robot stops there instead of turning.
+"""
+
+
+class BlindFrame(ValueError):
+    """A frame whose readings are almost all unknown (`check_frame`): no observation to act on."""
+
+    def __init__(self, share: float, max_unknown: float):
+        super().__init__(
+            f"over {max_unknown:.0%} of its readings unknown (lens covered, sunlight, or a "
+            "surface in the blind zone across the whole view)"
+        )
+        self.share = share
+        """The share of the frame's readings that were unknown."""
+
+
+def check_frame(depth, max_unknown: float | None) -> None:
+    """Raises `BlindFrame` when more than `max_unknown` of the readings depth [N] (NaN: unknown)
+    are unknown, or there are none; max_unknown None: no check."""
+    if max_unknown is None:
+        return
+    depth = np.asarray(depth)
+    share = float(np.isnan(depth).mean()) if depth.size else 1.0
+    if share > max_unknown:
+        raise BlindFrame(share, max_unknown)
+
+
+def sector_nearest(reading, readings_per_stray=READINGS_PER_STRAY, xp=np):
+    """[S] the nearest reading of each sector that enough of its readings confirm.
+
+    reading [S, N]: each sector's known readings (m; +inf: no return within range), NaN in the
+    other slots (unknown readings, floor, padding). With n(s) known readings, a sector reads its
+    k-th nearest one, k = 1 + n(s) // readings_per_stray: the nearest distance that at least k of
+    its readings reach. Up to k - 1 stray readings nearer than the scene are outvoted, while an
+    object covering k readings is seen. readings_per_stray 0: k = 1, the plain minimum; a sector
+    of fewer known readings than readings_per_stray also reads its minimum (the simulator's
+    3 x 5 rays per sector). NaN where n(s) = 0. `xp` is the array module (numpy here; jax.numpy
+    where the simulator applies the same rule).
+    """
+    known = (~xp.isnan(reading)).sum(-1)
+    k = 1 + known // readings_per_stray if readings_per_stray else xp.ones_like(known)
+    nearest = xp.sort(reading, axis=-1)  # NaN last
+    return xp.take_along_axis(nearest, (k - 1)[..., None], axis=-1)[..., 0]
+
+
+def _by_sector(depth: np.ndarray, sector: np.ndarray, n: int) -> np.ndarray:
+    """[n, M] the readings depth [N] of each sector (sector [N]), NaN-padded to the longest."""
+    order = np.argsort(sector, kind="stable")
+    count = np.bincount(sector, minlength=n)
+    slot = np.arange(sector.size) - np.repeat(np.cumsum(count) - count, count)
+    grouped = np.full((n, max(1, int(count.max(initial=0)))), np.nan)
+    grouped[sector[order], slot] = depth[order]
+    return grouped
+
+
+def reduce_sectors(
+    depth,
+    sector,
+    sensor: Sensor,
+    blind_fraction=BLIND_FRACTION,
+    readings_per_stray=READINGS_PER_STRAY,
+) -> np.ndarray:
     """[num_sectors] float32 observation from readings depth [N] (m) lying in sectors sector [N].
 
     The one reduction from readings to the observation, for depth images and scans alike; the
@@ -124,9 +210,10 @@ def reduce_sectors(depth, sector, sensor: Sensor, blind_fraction=BLIND_FRACTION)
     For each sector s (0 = rightmost), with n(s) readings of which u(s) are unknown:
 
     1. Blind: if u(s) >= blind_fraction * n(s) (so also when n(s) = 0) it reads range_min (near).
-    2. Otherwise it reads the minimum of its known readings clipped to [range_min, range_max]: a
-       reading below range_min (0 and -inf included) reads range_min, one above range_max (+inf: no
-       hit within range) reads range_max.
+    2. Otherwise it reads its nearest known reading that enough of them confirm (`sector_nearest`:
+       the k-th nearest, k = 1 + known // readings_per_stray; 0: the minimum), clipped to
+       [range_min, range_max]: a reading below range_min (0 and -inf included) reads range_min,
+       one above range_max (+inf: no hit within range) reads range_max.
 
     The simulator (`jaxnav.core.sensors`) applies the same rule to its rays, with the camera's
     unknowns: rays nearer than range_min, rays at dark obstacles, dropped rays and (with
@@ -136,16 +223,25 @@ def reduce_sectors(depth, sector, sensor: Sensor, blind_fraction=BLIND_FRACTION)
     """
     if not 0 < blind_fraction <= 1:
         raise ValueError(f"blind_fraction: must be in (0, 1], got {blind_fraction}")
+    _check_readings_per_stray(readings_per_stray)
     depth = np.asarray(depth, np.float64).ravel()
     sector = np.asarray(sector, np.int64).ravel()
     n = sensor.num_sectors
-    unknown = np.isnan(depth)
     count = np.bincount(sector, minlength=n)
-    blind = np.bincount(sector[unknown], minlength=n) >= blind_fraction * count
-    minima = np.full(n, np.inf)
-    np.minimum.at(minima, sector[~unknown], depth[~unknown])
-    near = np.clip(minima, sensor.range_min, sensor.range_max)
+    blind = np.bincount(sector[np.isnan(depth)], minlength=n) >= blind_fraction * count
+    # NaN only in sectors without known readings, which are blind
+    nearest = sector_nearest(_by_sector(depth, sector, n), readings_per_stray)
+    near = np.clip(nearest, sensor.range_min, sensor.range_max)
     return np.where(blind, sensor.range_min, near).astype(np.float32)
+
+
+def _check_readings_per_stray(value, owner: str = "") -> None:
+    """A ValueError naming the field unless value is 0 or a whole number >= 2."""
+    if not (value == 0 or (value >= 2 and value == int(value))):
+        raise ValueError(
+            f"{owner}readings_per_stray: must be 0 (the plain minimum) or a whole number >= 2, "
+            f"got {value}"
+        )
 
 
 def floor_mask(reading, known, rise, camera_height, sensor, xp=np):
@@ -185,13 +281,23 @@ def _angle_sectors(angles, sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
     return keep, np.clip(idx, 0, n - 1)  # a beam exactly at +fov/2 belongs to the last sector
 
 
-def scan_to_sectors(ranges, angles, sensor: Sensor) -> np.ndarray:
+def scan_to_sectors(
+    ranges,
+    angles,
+    sensor: Sensor,
+    blind_fraction=BLIND_FRACTION,
+    *,
+    readings_per_stray=READINGS_PER_STRAY,
+    max_unknown=None,
+) -> np.ndarray:
     """[num_sectors] float32 observation from a laser scan, as the simulator computes it.
 
     ranges [N] m and angles [N] rad as in a ROS LaserScan (0 ahead, positive to the left). Beams
-    within +-fov/2 are kept and turned into camera depth (range * cos(angle)). A range of 0 or below
-    (-inf included: nearer than the scanner measures) reads range_min; +inf and NaN (no return) read
-    range_max. Then `reduce_sectors` (a scan has no unknown readings: its minimum, clipped).
+    within +-fov/2 are kept and turned into camera depth (range * cos(angle)), read as REP 117
+    defines them: NaN is unknown (no valid measurement; `depthimage_to_laserscan` writes it for
+    columns the camera returned nothing in), like a depth image's 0; -inf (too close) and ranges
+    of 0 or below read range_min; +inf (no return within range) reads range_max. Then
+    `reduce_sectors`, and with `max_unknown` the frame check (`check_frame`).
     """
     ranges = np.asarray(ranges, np.float64).ravel()
     angles = np.asarray(angles, np.float64).ravel()
@@ -201,43 +307,58 @@ def scan_to_sectors(ranges, angles, sensor: Sensor) -> np.ndarray:
     r = ranges[keep]
     with np.errstate(invalid="ignore"):
         depth = np.where(r > 0, r * np.cos(angles[keep]), 0.0)  # 0: reads range_min
-    depth[np.isnan(r) | np.isposinf(r)] = np.inf  # no return: reads range_max
-    return reduce_sectors(depth, sector, sensor)
+    depth[np.isposinf(r)] = np.inf  # no return within range: reads range_max
+    depth[np.isnan(r)] = np.nan  # unknown: counts towards the blind share
+    check_frame(depth, max_unknown)
+    return reduce_sectors(depth, sector, sensor, blind_fraction, readings_per_stray)
 
 
 def depth_image_to_sectors(
-    depth, sensor: Sensor, rows=None, column_angles=None, blind_fraction=BLIND_FRACTION, vfov=None
+    depth,
+    sensor: Sensor,
+    rows=None,
+    column_angles=None,
+    blind_fraction=BLIND_FRACTION,
+    vfov=None,
+    *,
+    camera: Intrinsics | None = None,
+    readings_per_stray=READINGS_PER_STRAY,
+    max_unknown=None,
 ) -> np.ndarray:
     """[num_sectors] float32 observation from a depth image [H, W] in metres (camera depth, z).
 
     Column 0 is the LEFT of the image of a forward-looking camera, so sector 0 holds the rightmost
     columns. 0, NaN and negative pixels are unknown (the Astra's 0 means too close or no return),
-    +inf reads range_max; a sector at least `blind_fraction` unknown reads range_min
-    (`reduce_sectors`). Two ways to pick the pixels:
+    +inf reads range_max; a sector at least `blind_fraction` unknown reads range_min, the others
+    their nearest reading confirmed by 1 + known // readings_per_stray pixels (`reduce_sectors`).
+    With `max_unknown`, a frame more unknown than that is refused (`check_frame`: `BlindFrame`).
+    Two ways to pick the pixels:
 
-    vfov: the image's vertical field of view, rad (a pinhole camera: the Astra's 49.5 deg is
-        0.864). The pixels where the simulator casts its rays are read (`ray_pixels`: every
-        column within +-fov/2, binned by angle, one pixel per row of `sensor.elevations`) and
-        those that see the floor are left out (`floor_mask`, given `sensor.camera_height`): the
-        simulator's observation, for one row or several. rows and column_angles must be None.
-    Otherwise (vfov None) the pixels of `rows` are read in every column, none taken for floor:
+    vfov or camera: the image's vertical field of view, rad (a pinhole camera with square pixels
+        centred: the Astra's 49.5 deg is 0.864), or its calibration (`Intrinsics`, a CameraInfo's
+        K). The pixels where the simulator casts its rays are read (`ray_pixels`: every column
+        within +-fov/2, binned by angle, one pixel per row of `sensor.elevations`) and those that
+        see the floor are left out (`floor_mask`, given `sensor.camera_height`): the simulator's
+        observation, for one row or several. rows and column_angles must be None.
+    Otherwise the pixels of `rows` are read in every column, none taken for floor:
     rows: row indices or a slice; None = all rows. On the robot pass the rows around the horizon
-        (`horizon_rows`) for a one-row sensor: lower rows see the floor, which is no obstacle
-        but would read as one ~0.65 m ahead.
-    column_angles: [W] angle of each column (rad, positive = left, e.g. `pinhole_column_angles`);
-        when given, columns are binned by angle like `scan_to_sectors` instead of equal slices
-        (columns beyond +-fov/2 are dropped; the image is otherwise taken to span exactly
-        `sensor.fov`). Equal slices of a pinhole image are up to ~1.5 deg off the simulator's
-        equal-angle bins.
+        (`horizon_rows`, `Intrinsics.horizon_rows`) for a one-row sensor: lower rows see the
+        floor, which is no obstacle but would read as one ~0.65 m ahead.
+    column_angles: [W] angle of each column (rad, positive = left, e.g.
+        `Intrinsics.column_angles`); when given, columns are binned by angle like
+        `scan_to_sectors` instead of equal slices (columns beyond +-fov/2 are dropped; the image
+        is otherwise taken to span exactly `sensor.fov`). Equal slices of a pinhole image are up
+        to ~1.5 deg off the simulator's equal-angle bins.
     """
     depth = np.asarray(depth, np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth image must be [H, W], got shape {depth.shape}")
-    if vfov is not None:
+    rules = dict(readings_per_stray=readings_per_stray, max_unknown=max_unknown)
+    if vfov is not None or camera is not None:
         if rows is not None or column_angles is not None:
             raise ValueError("depth image: give vfov, or rows and column_angles, not both")
-        pixels = ray_pixels(sensor, depth.shape[0], depth.shape[1], vfov)
-        return rays_to_sectors(depth, pixels, sensor, blind_fraction)
+        pixels = ray_pixels(sensor, depth.shape[0], depth.shape[1], vfov, camera=camera)
+        return rays_to_sectors(depth, pixels, sensor, blind_fraction, **rules)
     band = depth if rows is None else depth[rows]
     if band.ndim != 2 or band.shape[0] == 0:
         raise ValueError(f"rows {rows!r} select no image rows")
@@ -252,8 +373,61 @@ def depth_image_to_sectors(
         sector = np.searchsorted(starts, np.arange(width)[::-1], side="right") - 1
     with np.errstate(invalid="ignore"):
         readings = np.where(band > 0, band, np.nan)  # 0, NaN, negative: unknown
+    check_frame(readings, max_unknown)
     sector = np.broadcast_to(sector, readings.shape)
-    return reduce_sectors(readings, sector, sensor, blind_fraction)
+    return reduce_sectors(readings, sector, sensor, blind_fraction, readings_per_stray)
+
+
+class Intrinsics(NamedTuple):
+    """A pinhole depth camera's calibration, pixels (a CameraInfo's K: fx, fy, cx, cy), for images
+    of width x height; pixel centres lie at whole numbers (column 0 on the left, row 0 at the top).
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @classmethod
+    def from_hfov(cls, width: int, height: int, hfov: float) -> Intrinsics:
+        """Square pixels, the principal point at the image's centre, `hfov` rad across the width."""
+        if not 0 < hfov < math.pi:
+            raise ValueError(f"hfov: must be in (0, pi) rad, got {hfov}")
+        focal = 0.5 * width / math.tan(0.5 * hfov)
+        return cls(focal, focal, 0.5 * (width - 1), 0.5 * (height - 1), width, height)
+
+    @classmethod
+    def from_vfov(cls, width: int, height: int, vfov: float) -> Intrinsics:
+        """Square pixels, the principal point at the image's centre, `vfov` rad over the height."""
+        if not 0 < vfov < math.pi:
+            raise ValueError(f"vfov: must be in (0, pi) rad, got {vfov}")
+        focal = 0.5 * height / math.tan(0.5 * vfov)
+        return cls(focal, focal, 0.5 * (width - 1), 0.5 * (height - 1), width, height)
+
+    def fits(self, height: int, width: int) -> None:
+        """A ValueError unless the calibration is for images of this size."""
+        if (self.height, self.width) != (height, width):
+            raise ValueError(
+                f"camera calibration is for {self.width}x{self.height} images, "
+                f"the image is {width}x{height}"
+            )
+
+    def column_angles(self) -> np.ndarray:
+        """[width] angle (rad, positive = left) of each column's centre from the optical axis."""
+        return np.arctan((self.cx - np.arange(self.width)) / self.fx)
+
+    def horizon_rows(self, half_width_deg: float = 2.0, tilt: float = 0.0) -> np.ndarray:
+        """Row indices within +-half_width_deg of the horizontal through the camera, tilted
+        `tilt` rad down (the horizon then moves up the image); always at least one row."""
+        centre = self.cy - self.fy * math.tan(tilt)
+        half = self.fy * math.tan(math.radians(half_width_deg))
+        lo = max(0, math.ceil(centre - half))
+        hi = min(self.height - 1, math.floor(centre + half))
+        if lo > hi:  # band thinner than a row: the row nearest the horizon
+            lo = hi = min(self.height - 1, max(0, round(centre)))
+        return np.arange(lo, hi + 1)
 
 
 class RayPixels(NamedTuple):
@@ -265,22 +439,26 @@ class RayPixels(NamedTuple):
     rise: np.ndarray  # [R, K] height gained per metre of depth along each pixel's ray, m/m
 
 
-def ray_pixels(sensor: Sensor, height: int, width: int, vfov: float, azimuths=None) -> RayPixels:
+def ray_pixels(
+    sensor: Sensor, height: int, width: int, vfov=None, azimuths=None, camera=None
+) -> RayPixels:
     """The pixels of a depth image [height, width] that see along the simulator's rays.
 
-    The camera is a pinhole with square pixels, its principal point at the image centre and a
-    vertical field of view `vfov` (rad). Columns: every column whose angle lies within +-fov/2,
-    binned into sectors by angle as the simulator's rays are; or, with `azimuths` [K] (rad,
-    positive = left, e.g. `SensorConfig.ray_angles`), the column nearest each. Rows: in each
-    column, for each of `sensor.elevations`, the pixel whose ray's elevation from the optical
-    axis is nearest (a row of rays at one elevation is a curve on the image, not an image row).
-    A ray beyond the top or bottom of the image (rows wider than the camera's vertical field of
-    view at the image's sides) reads the edge row.
+    The camera is a pinhole: `camera` (`Intrinsics`, its calibration), or with square pixels, its
+    principal point at the image centre and a vertical field of view `vfov` (rad); give one.
+    Columns: every column whose angle lies within +-fov/2, binned into sectors by angle as the
+    simulator's rays are; or, with `azimuths` [K] (rad, positive = left, e.g.
+    `SensorConfig.ray_angles`), the column nearest each. Rows: in each column, for each of
+    `sensor.elevations`, the pixel whose ray's elevation from the optical axis is nearest (a row of
+    rays at one elevation is a curve on the image, not an image row). A ray beyond the top or
+    bottom of the image (rows wider than the camera's vertical field of view at the image's
+    sides) reads the edge row.
     """
-    if not 0 < vfov < math.pi:
-        raise ValueError(f"vfov: must be in (0, pi) rad, got {vfov}")
-    focal = 0.5 * height / math.tan(0.5 * vfov)
-    across = (0.5 * (width - 1) - np.arange(width)) / focal  # tan of each column's angle
+    if (vfov is None) == (camera is None):
+        raise ValueError("ray_pixels: give the camera's vfov or its Intrinsics, one of them")
+    camera = camera or Intrinsics.from_vfov(width, height, vfov)
+    camera.fits(height, width)
+    across = (camera.cx - np.arange(width)) / camera.fx  # tan of each column's angle
     angles = np.arctan(across)
     if azimuths is None:
         keep, sector = _angle_sectors(angles, sensor)
@@ -296,16 +474,25 @@ def ray_pixels(sensor: Sensor, height: int, width: int, vfov: float, azimuths=No
     # The pixel ray (1, t, y) (forward, left, up, per metre of depth) has elevation
     # atan(y / sqrt(1 + t^2)): y = tan(e) * sqrt(1 + t^2) puts it at elevation e.
     up = np.tan(np.asarray(sensor.elevations))[:, None] * np.hypot(1.0, across[cols])[None, :]
-    rows = np.clip(np.rint(0.5 * (height - 1) - focal * up), 0, height - 1).astype(np.int64)
-    y = (0.5 * (height - 1) - rows) / focal  # the chosen pixels' own rays
+    rows = np.clip(np.rint(camera.cy - camera.fy * up), 0, height - 1).astype(np.int64)
+    y = (camera.cy - rows) / camera.fy  # the chosen pixels' own rays
     pitch = sensor.camera_pitch
     return RayPixels(rows, cols, sector, math.cos(pitch) * y - math.sin(pitch))
 
 
-def rays_to_sectors(depth, pixels: RayPixels, sensor: Sensor, blind_fraction=BLIND_FRACTION):
+def rays_to_sectors(
+    depth,
+    pixels: RayPixels,
+    sensor: Sensor,
+    blind_fraction=BLIND_FRACTION,
+    *,
+    readings_per_stray=READINGS_PER_STRAY,
+    max_unknown=None,
+):
     """[num_sectors] float32 observation from a depth image [H, W] (m) read at `pixels`
     (`ray_pixels`): 0, NaN and negative pixels are unknown, floor pixels are left out
-    (`floor_mask`; none without `sensor.camera_height`), the rest go to `reduce_sectors`."""
+    (`floor_mask`; none without `sensor.camera_height`), the rest go to `reduce_sectors`; with
+    `max_unknown`, all of them, floor included, to `check_frame` first."""
     reading = np.asarray(depth, np.float64)[pixels.rows, pixels.cols[None, :]]  # [R, K]
     with np.errstate(invalid="ignore"):
         known = reading > 0
@@ -315,14 +502,18 @@ def rays_to_sectors(depth, pixels: RayPixels, sensor: Sensor, blind_fraction=BLI
         with np.errstate(invalid="ignore"):
             floor = floor_mask(reading, known, pixels.rise, sensor.camera_height, sensor)
     readings = np.where(known, reading, np.nan)
+    check_frame(
+        readings, max_unknown
+    )  # floor included: a pixel that sees it shows the camera works
     sector = np.broadcast_to(pixels.sector, reading.shape)
-    return reduce_sectors(readings[~floor], sector[~floor], sensor, blind_fraction)
+    return reduce_sectors(
+        readings[~floor], sector[~floor], sensor, blind_fraction, readings_per_stray
+    )
 
 
 def pinhole_column_angles(width: int, hfov: float) -> np.ndarray:
     """[W] angle (rad, positive = left) of each pixel column's centre for a pinhole camera."""
-    focal = 0.5 * width / math.tan(0.5 * hfov)
-    return np.arctan((0.5 * (width - 1) - np.arange(width)) / focal)
+    return Intrinsics.from_hfov(width, 1, hfov).column_angles()
 
 
 def horizon_rows(
@@ -331,16 +522,9 @@ def horizon_rows(
     """Row indices within +-half_width_deg of the horizontal through the camera (pinhole model).
 
     vfov: vertical field of view, rad. tilt: camera pitch, rad, positive = looking down (the
-    horizon then moves up the image). Always at least one row.
+    horizon then moves up the image). Always at least one row (`Intrinsics.horizon_rows`).
     """
-    focal = 0.5 * height / math.tan(0.5 * vfov)
-    centre = 0.5 * (height - 1) - focal * math.tan(tilt)
-    half = focal * math.tan(math.radians(half_width_deg))
-    lo = max(0, math.ceil(centre - half))
-    hi = min(height - 1, math.floor(centre + half))
-    if lo > hi:  # band thinner than a row: the row nearest the horizon
-        lo = hi = min(height - 1, max(0, round(centre)))
-    return np.arange(lo, hi + 1)
+    return Intrinsics.from_vfov(1, height, vfov).horizon_rows(half_width_deg, tilt)
 
 
 def action_to_twist(action, commands: np.ndarray, speed_calibration: float = 1.0) -> Twist:
@@ -373,7 +557,12 @@ class Controller:
     speed_calibration: float = 1.0
     """Multiplies both speeds of every command (see `action_to_twist`)."""
     blind_fraction: float = BLIND_FRACTION
-    """A depth-image sector at least this share unknown (0/NaN) reads near (`reduce_sectors`)."""
+    """A sector at least this share unknown (0/NaN) reads near (`reduce_sectors`)."""
+    readings_per_stray: int = READINGS_PER_STRAY
+    """A sector reads its nearest reading confirmed by 1 + known // this readings
+    (`sector_nearest`); 0: the plain minimum."""
+    max_unknown: float | None = MAX_UNKNOWN
+    """A frame more than this share unknown is refused (`check_frame`: BlindFrame); None: never."""
 
     def __post_init__(self):
         if not 0 < self.speed_calibration < math.inf:
@@ -384,6 +573,9 @@ class Controller:
             raise ValueError(
                 f"Controller.blind_fraction: must be in (0, 1], got {self.blind_fraction}"
             )
+        _check_readings_per_stray(self.readings_per_stray, "Controller.")
+        if self.max_unknown is not None and not 0 <= self.max_unknown <= 1:
+            raise ValueError(f"Controller.max_unknown: must be in [0, 1], got {self.max_unknown}")
 
     def act(self, obs) -> Twist:
         """The command for an observation [D] (sectors in metres, right to left; the goal task's
@@ -397,14 +589,33 @@ class Controller:
             return finite_twist(self.policy(obs), self.speed_calibration)
         return action_to_twist(self.policy(obs), self.policy.commands, self.speed_calibration)
 
-    def image_obs(self, depth, rows=None, column_angles=None, vfov=None) -> np.ndarray:
-        """The observation of a depth image [H, W] in metres (see `depth_image_to_sectors`)."""
-        sensor, fraction = self.policy.sensor, self.blind_fraction
-        return depth_image_to_sectors(depth, sensor, rows, column_angles, fraction, vfov)
+    def image_obs(
+        self, depth, rows=None, column_angles=None, vfov=None, camera=None, sensor=None
+    ) -> np.ndarray:
+        """The observation of a depth image [H, W] in metres (see `depth_image_to_sectors`);
+        `sensor` replaces the policy's (e.g. its mount set to the robot's)."""
+        return depth_image_to_sectors(
+            depth,
+            sensor or self.policy.sensor,
+            rows,
+            column_angles,
+            self.blind_fraction,
+            vfov,
+            camera=camera,
+            readings_per_stray=self.readings_per_stray,
+            max_unknown=self.max_unknown,
+        )
 
     def scan_obs(self, ranges, angles) -> np.ndarray:
         """The observation of a laser scan: ranges [N] m at angles [N] rad (0 ahead, + left)."""
-        return scan_to_sectors(ranges, angles, self.policy.sensor)
+        return scan_to_sectors(
+            ranges,
+            angles,
+            self.policy.sensor,
+            self.blind_fraction,
+            readings_per_stray=self.readings_per_stray,
+            max_unknown=self.max_unknown,
+        )
 
     def image_to_twist(self, depth, rows=None, column_angles=None, vfov=None) -> Twist:
         """The command for a depth image [H, W] in metres (see `depth_image_to_sectors`)."""

@@ -7,17 +7,22 @@ On the robot, in the folder `python -m jaxnav.export RUN --bundle DIR` wrote (nu
         --ros-args -r cmd_vel:=commands/velocity
 
 (`python -m jaxnav.robot_side.ros_node` works too where jaxnav is installed.) The flags set the
-defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, rate_hz, max_age,
-speed_calibration, blind_fraction, vfov_deg, band_deg, tilt_deg, camera_height), which
-`--ros-args -p` overrides.
+defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, stamped,
+camera_info_topic, enable_topic, goal_topic, odom_topic, goal_status_topic, header_stamps,
+rate_hz, max_age, speed_calibration, blind_fraction, readings_per_stray, max_unknown, vfov_deg,
+band_deg, tilt_deg, camera_height), which `--ros-args -p` overrides.
 
 What it does (the logic is `ControlLoop` below, which has no ROS in it and is tested alone;
 `python -m jaxnav.replay` drives the same loop from a recorded bag):
 
 - A timer at `rate_hz` (default: 1 / the control period the policy file stores, else 10 Hz) sends
   the policy's command for the NEWEST sensor message; messages in between are dropped, not queued.
-- It sends zero velocity when that message is older than `max_age` (default 0.25 s), before the
-  first message, and when a message cannot be converted or the policy fails (logged; it carries on).
+- It sends zero velocity when that message is older than `max_age` (default 0.25 s), aged from its
+  header.stamp where that is set (else from its arrival; `--no-header-stamps`: always from its
+  arrival), before the first message, when a stamp is ahead of this computer's clock, when a frame
+  is almost all unknown (over `max_unknown`, default 90 %: a covered lens or sunlight), when a
+  message cannot be converted or the policy fails (logged; it carries on), and while `false` was
+  last published on `enable_topic` (std_msgs/Bool, default `~/enable`) until `true` comes.
 - A policy file that fails its checks (`policy.NumpyPolicy.from_npz`: unreadable, not a regular
   file, NaN weights, absurd commands, wrong sizes) ends the node with one `error: ...` line and
   exit status 2 before any command is sent; so does a bad parameter.
@@ -26,29 +31,40 @@ What it does (the logic is `ControlLoop` below, which has no ROS in it and is te
   started without it and this node installs its own handlers. Python runs them between callbacks,
   so within one timer period.
 
-Output: `cmd_vel` by default. The Kobuki driver (kobuki_ros) listens on `commands/velocity`: remap
-(`--ros-args -r cmd_vel:=commands/velocity`), or feed a velocity mux. The driver stops the base by
-itself when no command has come for `cmd_vel_timeout_sec` (0.6 s by default), a second line behind
-this node's watchdog. Run `kobuki_safety_controller` beside it (enable it by publishing on its
-`enable` topic): on a bumper, cliff or wheel-drop event it commands backing off (0.1 m/s) or a stop
-on its own `cmd_vel`, which a mux must rank above this node. The camera's blind zone (nearer than
-~0.6 m) reads near (see `observation.reduce_sectors`), but the bumper is the last resort.
+Output: `cmd_vel` by default, geometry_msgs/Twist, or with `--stamped` TwistStamped (frame
+`base_link`: what Nav2 and newer distributions use). The Kobuki driver (kobuki_ros) takes Twist
+on `commands/velocity`: remap (`--ros-args -r cmd_vel:=commands/velocity`), or feed a velocity
+mux. The driver stops the base by itself when no command has come for `cmd_vel_timeout_sec`
+(0.6 s by default), a second line behind this node's watchdog. Run `kobuki_safety_controller`
+beside it (enable it by publishing on its `enable` topic): on a bumper, cliff or wheel-drop event
+it commands backing off (0.1 m/s) or a stop on its own `cmd_vel`, which a mux must rank above this
+node. The camera's blind zone (nearer than ~0.6 m) reads near (see `observation.reduce_sectors`),
+but the bumper is the last resort.
 
 Goal policies (exported from the `goal` task) also need the goal and the robot's pose, in one
 frame: a geometry_msgs/PoseStamped on `goal_topic` (default `goal_pose`, what RViz's "2D Goal
 Pose" tool publishes) and nav_msgs/Odometry on `odom_topic` (default `odom`, the Kobuki driver's).
 The goal must be given in the odometry's frame (`odom`; a goal in another frame, e.g. `map`, is
 refused with zero velocity until one in the right frame comes: transform it first, e.g. with tf2).
-The node sends zero velocity before the first goal, when the odometry is older than `max_age`, and
-once the robot is within the policy's success radius of the goal (until a new goal comes).
+The node sends zero velocity before the first goal, when the odometry is older than `max_age`,
+after an odometry jump (a step farther or a turn wider than the robot can make, `odometry_jump`)
+until the odometry has been consistent for `ODOM_RESUME` messages, and once the robot is within
+the policy's success radius of the goal, until a new goal comes (the goal stays reached if the
+robot drifts out again). Each tick it publishes the goal's status on `goal_status_topic`
+(std_msgs/String, default `goal_status`): "no goal", "driving", "reached", "odometry jump" or
+"stopped: <why>".
 
-Depth images may be 32FC1 (metres) or 16UC1 (millimetres). For a policy trained with one row of
-rays (a horizontal fan) only image rows within +-band_deg of the horizon are read; for one trained
-with several rows (`--sensor.rows 5`) the pixels along its rays are read and those that see the
-floor are left out, by the simulator's own rule (`observation.floor_mask`), which needs the
-camera's pitch and height (tilt_deg, camera_height; default: the policy file's). rclpy and the message packages are
-imported inside `main` only: everything else here is numpy, and reads messages by their fields
-(`MessageReader`), so rclpy's messages and those the `rosbags` library deserialises both work.
+Depth images may be 32FC1 (metres) or 16UC1 (millimetres). Their column angles and ray rows come
+from the camera's calibration, the K of sensor_msgs/CameraInfo on `camera_info_topic` (default:
+`camera_info` beside the image topic); until one comes (or with K all zero), from `vfov_deg` where
+set, else from the policy file's field of view taken to span the image's width. For a policy
+trained with one row of rays (a horizontal fan) only image rows within +-band_deg of the horizon
+are read; for one trained with several rows (`--sensor.rows 5`) the pixels along its rays are read
+and those that see the floor are left out, by the simulator's own rule (`observation.floor_mask`),
+which needs the camera's pitch and height (tilt_deg, camera_height; default: the policy file's).
+rclpy and the message packages are imported inside `main` only: everything else here is numpy,
+and reads messages by their fields (`MessageReader`), so rclpy's messages and those the `rosbags`
+library deserialises both work.
 """
 
 from __future__ import annotations
@@ -64,11 +80,13 @@ import numpy as np
 
 from .observation import (
     BLIND_FRACTION,
+    MAX_UNKNOWN,
+    READINGS_PER_STRAY,
+    BlindFrame,
     Controller,
+    Intrinsics,
     Sensor,
     Twist,
-    depth_image_to_sectors,
-    horizon_rows,
 )
 from .policy import FrameStack, NumpyPolicy, goal_observation
 
@@ -77,6 +95,18 @@ DEFAULT_RATE_HZ = 10.0  # the paper's ~10 Hz, where the policy file does not giv
 # s; a 30 Hz camera has missed ~7 frames by then; the Kobuki driver's own timeout is 0.6 s
 DEFAULT_MAX_AGE = 0.25
 ASTRA_VFOV_DEG = 49.5  # Orbbec Astra vertical field of view (the simulator has no vertical extent)
+# s a header stamp may lead its own arrival: one clock, or clocks kept within milliseconds by
+# NTP; a stamp further ahead would keep a stalled sensor's last message fresh that much longer.
+MAX_AHEAD = 0.05
+OTHER_CLOCK = " (by header.stamp: another clock? header_stamps:=false ages by arrival)"
+CMD_FRAME = "base_link"  # the frame of TwistStamped commands (Nav2's robot_base_frame)
+# Odometry steps the robot can make (`odometry_jump`): the Kobuki's top speeds, twice over, for the
+# time between two messages (at most ODOM_GAP) plus ODOM_JITTER of stamp or delivery jitter.
+TOP_SPEED, TOP_YAW_RATE = 0.7, math.pi  # m/s, rad/s
+ODOM_MARGIN = 2.0
+ODOM_JITTER = 0.05  # s
+ODOM_GAP = 1.0  # s; after a longer silence the robot has been stopped (stale odometry)
+ODOM_RESUME = 5  # consistent messages after a jump before the goal is driven to again
 
 # sensor_msgs/Image encodings of depth: (numpy dtype, metres per unit)
 DEPTH_ENCODINGS = {
@@ -115,18 +145,43 @@ def scan_msg_to_arrays(ranges, angle_min: float, angle_increment: float):
     return ranges, angle_min + angle_increment * np.arange(ranges.size)
 
 
+def header_time(msg) -> float | None:
+    """msg.header.stamp in seconds; None where the message has no stamp or it is zero (unset)."""
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    if stamp is None:
+        return None
+    seconds = stamp.sec + 1e-9 * stamp.nanosec
+    return seconds if seconds > 0 else None
+
+
+def camera_info_intrinsics(msg) -> Intrinsics:
+    """The `Intrinsics` of a sensor_msgs/CameraInfo: K (row-major 3x3, fx 0 cx / 0 fy cy / 0 0 1)
+    for images of its width x height. A ValueError where K is all zero (an uncalibrated camera) or
+    holds no positive, finite focal lengths."""
+    k = np.asarray(msg.k if hasattr(msg, "k") else msg.K, np.float64).ravel()
+    if k.size != 9:
+        raise ValueError(f"K has {k.size} values, not 9")
+    if not k.any():
+        raise ValueError("K is all zero (an uncalibrated camera)")
+    fx, cx, fy, cy = (float(v) for v in k[[0, 2, 4, 5]])
+    if not (np.isfinite(k).all() and fx > 0 and fy > 0 and msg.width > 0 and msg.height > 0):
+        raise ValueError(f"K {k.tolist()} for {msg.width}x{msg.height} images is not a pinhole's")
+    return Intrinsics(fx, fy, cx, cy, int(msg.width), int(msg.height))
+
+
 @dataclasses.dataclass(frozen=True)
 class MessageReader:
     """A sensor_msgs/Image (depth) or sensor_msgs/LaserScan message -> the policy's observation."""
 
     scan: bool = False
     """The messages are LaserScans; otherwise depth images (32FC1 metres or 16UC1 millimetres)."""
-    vfov_deg: float = ASTRA_VFOV_DEG
-    """Depth camera's vertical field of view, deg (finds the horizon rows, or the sensor's rows)."""
+    vfov_deg: float = math.nan
+    """Without a camera calibration: the depth image's vertical field of view, deg (square pixels,
+    principal point at the centre); NaN: the policy's horizontal field of view spans the image."""
     band_deg: float = 2.0
     """One-row policies: only image rows within +-band_deg of the horizon are read
-    (`horizon_rows`); 0: all rows. Policies trained with several rows read the pixels of their
-    rays, floor left out (`observation.ray_pixels`, `floor_mask`)."""
+    (`Intrinsics.horizon_rows`); 0: all rows. Policies trained with several rows read the pixels
+    of their rays, floor left out (`observation.ray_pixels`, `floor_mask`)."""
     tilt_deg: float = math.nan
     """Camera pitch, deg, positive = looking down; NaN: the policy file's (0 for older files)."""
     camera_height: float = math.nan
@@ -134,7 +189,7 @@ class MessageReader:
     file's."""
 
     def __post_init__(self):
-        if not 0 < self.vfov_deg < 180:
+        if not (math.isnan(self.vfov_deg) or 0 < self.vfov_deg < 180):
             raise ValueError(f"vfov_deg: must be in (0, 180), got {self.vfov_deg}")
         if not self.band_deg >= 0:
             raise ValueError(f"band_deg: must be >= 0, got {self.band_deg}")
@@ -150,23 +205,33 @@ class MessageReader:
             changes["camera_height"] = self.camera_height
         return dataclasses.replace(sensor, **changes)
 
-    def __call__(self, msg, controller: Controller) -> np.ndarray:
-        """[num_sectors] float32 observation of `msg` for `controller`'s policy and settings."""
+    def camera(self, given: Intrinsics | None, height: int, width: int, sensor) -> Intrinsics:
+        """The calibration to read a height x width image with: `given` (camera_info's; a
+        ValueError if it is for another size), else from vfov_deg, else the policy's fov."""
+        if given is not None:
+            given.fits(height, width)
+            return given
+        if not math.isnan(self.vfov_deg):
+            return Intrinsics.from_vfov(width, height, math.radians(self.vfov_deg))
+        return Intrinsics.from_hfov(width, height, sensor.fov)
+
+    def __call__(self, msg, controller: Controller, camera: Intrinsics | None = None):
+        """[num_sectors] float32 observation of `msg` for `controller`'s policy and settings;
+        `camera`: the depth camera's calibration (CameraInfo), where known."""
         if self.scan:
             ranges, angles = scan_msg_to_arrays(msg.ranges, msg.angle_min, msg.angle_increment)
             return controller.scan_obs(ranges, angles)
         depth = image_msg_to_array(
             msg.encoding, msg.height, msg.width, msg.data, msg.step, bool(msg.is_bigendian)
         )
-        sensor, vfov = self.mount(controller.policy.sensor), math.radians(self.vfov_deg)
+        sensor = self.mount(controller.policy.sensor)
+        camera = self.camera(camera, *depth.shape, sensor)
         if len(sensor.elevations) > 1:
-            return depth_image_to_sectors(
-                depth, sensor, vfov=vfov, blind_fraction=controller.blind_fraction
-            )
+            return controller.image_obs(depth, camera=camera, sensor=sensor)
         rows = None
         if self.band_deg > 0:
-            rows = horizon_rows(msg.height, vfov, self.band_deg, sensor.camera_pitch)
-        return controller.image_obs(depth, rows)
+            rows = camera.horizon_rows(self.band_deg, sensor.camera_pitch)
+        return controller.image_obs(depth, rows, camera.column_angles(), sensor=sensor)
 
 
 def control_rate(policy, rate_hz: float | None = None) -> float:
@@ -188,6 +253,18 @@ def yaw_of(q) -> float:
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
+def odometry_jump(before, after, dt: float) -> str | None:
+    """What is wrong with odometry pose `after` (x, y, yaw) dt s after `before`: a step or turn
+    beyond what the robot can make (ODOM_MARGIN times its top speeds, over min(dt, ODOM_GAP) +
+    ODOM_JITTER s), or a pose that is not finite; None where it can follow."""
+    span = min(max(dt, 0.0), ODOM_GAP) + ODOM_JITTER
+    moved = math.dist(before[:2], after[:2])
+    turned = abs(math.remainder(after[2] - before[2], math.tau))
+    if moved <= ODOM_MARGIN * TOP_SPEED * span and turned <= ODOM_MARGIN * TOP_YAW_RATE * span:
+        return None  # NaN fails both tests: a jump
+    return f"{moved:.2f} m and {math.degrees(turned):.0f} deg in {dt:.3g} s"
+
+
 class GoalInput:
     """The goal task's inputs on the robot: the newest goal and odometry pose, in one frame."""
 
@@ -196,51 +273,79 @@ class GoalInput:
         self.goal_frame: str | None = None
         self.pose: tuple[float, float, float] | None = None  # x, y, yaw
         self.pose_frame: str | None = None
-        self.pose_stamp = -math.inf
+        self.pose_stamp = -math.inf  # when the pose was measured
+        self.pose_received = -math.inf  # when it arrived (its stamp may not lead this)
+        self.reached = False  # latched at the goal until a new goal comes
+        self.jump: str | None = None  # the odometry jump waited out, until ODOM_RESUME steady
+        self._steady = 0  # consistent odometry messages since the jump
 
     def on_goal(self, x: float, y: float, frame: str | None = None) -> None:
-        """A new goal position (m) in `frame`."""
-        self.goal, self.goal_frame = (float(x), float(y)), frame
+        """A new goal position (m) in `frame`: to be driven to, even where it equals the last."""
+        self.goal, self.goal_frame, self.reached = (float(x), float(y)), frame, False
 
-    def on_pose(self, x: float, y: float, yaw: float, stamp: float, frame=None) -> None:
-        """The robot's pose (m, rad) in `frame`, received at `stamp` (s)."""
+    def on_pose(self, x: float, y: float, yaw: float, stamp: float, frame=None, received=None):
+        """The robot's pose (m, rad) in `frame`, measured at `stamp` (s) and received at
+        `received` (default: stamp). Taken as it is: `on_odom_msg` checks for jumps."""
         self.pose, self.pose_frame, self.pose_stamp = (float(x), float(y), float(yaw)), frame, stamp
+        self.pose_received = stamp if received is None else received
 
     def on_goal_msg(self, msg) -> None:
         """A geometry_msgs/PoseStamped goal (its position; the orientation is not used)."""
         p = msg.pose.position
         self.on_goal(p.x, p.y, msg.header.frame_id)
 
-    def on_odom_msg(self, msg, stamp: float) -> None:
-        """A nav_msgs/Odometry message received at `stamp` (s): the robot's pose."""
+    def on_odom_msg(self, msg, stamp: float, received: float | None = None) -> None:
+        """A nav_msgs/Odometry message measured at `stamp` (s; received then, unless `received`):
+        the robot's pose, checked against the previous one (`odometry_jump`)."""
         pose = msg.pose.pose
         x, y, yaw = pose.position.x, pose.position.y, yaw_of(pose.orientation)
-        self.on_pose(x, y, yaw, stamp, msg.header.frame_id)
+        self._follow((x, y, yaw), stamp)
+        self.on_pose(x, y, yaw, stamp, msg.header.frame_id, received)
+
+    def _follow(self, pose, stamp: float) -> None:
+        """A jump from the previous pose starts a wait; ODOM_RESUME consistent messages end it."""
+        if self.pose is None:
+            return
+        jump = odometry_jump(self.pose, pose, stamp - self.pose_stamp)
+        if jump is not None:
+            self.jump, self._steady = jump, 0
+        elif self.jump is not None:
+            self._steady += 1
+            if self._steady >= ODOM_RESUME:
+                self.jump = None
 
     def problem(self, now: float, max_age: float, success_radius: float) -> str | None:
-        """Why the robot must not drive now (None: it may)."""
+        """Why the robot must not drive now (None: it may); latches "goal reached"."""
         if self.goal is None:
             return "no goal yet"
         if self.pose is None:
             return "no odometry yet"
+        if self.pose_stamp - self.pose_received > MAX_AHEAD:
+            return f"odometry stamps over {MAX_AHEAD:g} s ahead of this clock{OTHER_CLOCK}"
         if now - self.pose_stamp > max_age:
             return f"no odometry for over {max_age:g} s"
         if self.goal_frame and self.pose_frame and self.goal_frame != self.pose_frame:
             return f"goal in frame '{self.goal_frame}', odometry in '{self.pose_frame}'"
-        if math.dist(self.goal, self.pose[:2]) <= success_radius:
-            return "goal reached"
-        return None
+        if self.jump is not None:
+            return f"odometry jump of {self.jump}: waiting for {ODOM_RESUME} consistent messages"
+        self.reached = self.reached or math.dist(self.goal, self.pose[:2]) <= success_radius
+        return "goal reached" if self.reached else None
 
 
 class ControlLoop:
     """Keeps the newest sensor message; each `tick` sends the policy's command for it, or STOP.
 
-    STOP (zero velocity) is sent when the loop is shut down, before the first message, when the
-    newest message was received more than `max_age` s before the tick (the camera or its driver
-    stalled), and when the message cannot be read or the policy fails on it (the error is logged and
-    the loop carries on with the next message). A message is read and acted on once, at the first
-    tick that uses it; later ticks repeat its command while it is fresh. Each change of state is
-    logged once. Times are seconds on any one clock (the node's, or a bag's receipt times).
+    STOP (zero velocity) is sent when the loop is shut down or paused (`set_enabled`), before the
+    first message, when the newest message is more than `max_age` s old at the tick (the camera
+    or its driver stalled), when it cannot be read, is almost all unknown (`BlindFrame`) or the
+    policy fails on it (the error is logged and the loop carries on with the next message), and
+    for goal policies whenever `GoalInput.problem` says so. A message is read and acted on once,
+    at the first tick that uses it; later ticks repeat its command while it is fresh. Each change
+    of state is logged once. Times are seconds on any one clock (the node's, or a bag's receipt
+    times). A message's age counts from its arrival, or with `header_stamps` from its
+    header.stamp where that is set (not zero); a stamp more than MAX_AHEAD s ahead of its arrival
+    is refused. `reader(msg, controller, camera)` turns a message into the observation (`camera`:
+    the calibration from `on_camera_info`, or None).
 
     After each tick, `obs` is the observation acted on (None when it sent STOP) and `state` says why:
     "policy" or the reason for stopping.
@@ -249,26 +354,64 @@ class ControlLoop:
     def __init__(
         self,
         controller: Controller,
-        reader: Callable[[object, Controller], np.ndarray],
+        reader: Callable[..., np.ndarray],
         max_age: float = DEFAULT_MAX_AGE,
         log: Callable[[str], None] = _stderr,
         goal: GoalInput | None = None,
+        header_stamps: bool = False,
     ):
         if not max_age > 0:
             raise ValueError(f"max_age: must be > 0 s, got {max_age}")
         self.controller, self.reader, self.max_age, self.log = controller, reader, max_age, log
         self.goal = goal  # the goal task's inputs; None for policies without them
+        self.header_stamps = header_stamps
+        self.camera: Intrinsics | None = None  # the depth camera's calibration, once known
+        self.enabled = True
         self._last = np.zeros(2, np.float32)  # the last command sent, in the policy's units
         self._frames = FrameStack(getattr(controller.policy, "history", 0))
         self._goal_seen = None  # the goal the stacked frames belong to
         self.obs: np.ndarray | None = None
         self.state = "no sensor message yet"
-        self._msg, self._stamp, self._result = None, -math.inf, None
+        self._msg, self._stamp, self._received, self._result = None, -math.inf, -math.inf, None
+        self._camera_refused = None  # the last camera_info problem logged
         self._down = False
+
+    def taken_at(self, msg, received: float) -> float:
+        """When msg was measured (s): its header.stamp with `header_stamps` where set, else
+        `received`."""
+        stamp = header_time(msg) if self.header_stamps else None
+        return received if stamp is None else stamp
 
     def on_observation(self, msg, stamp: float) -> None:
         """Keeps `msg`, received at `stamp` (s), as the newest reading, replacing the previous one."""
-        self._msg, self._stamp, self._result = msg, stamp, None
+        self._msg, self._received, self._result = msg, stamp, None
+        self._stamp = self.taken_at(msg, stamp)
+
+    def on_odometry(self, msg, received: float) -> None:
+        """A nav_msgs/Odometry message received at `received` (s), for the goal inputs."""
+        self.goal.on_odom_msg(msg, self.taken_at(msg, received), received)
+
+    def on_camera_info(self, msg) -> None:
+        """A sensor_msgs/CameraInfo: its K places the depth image's columns and ray rows from now
+        on (`camera_info_intrinsics`); one that cannot be used is logged once and ignored."""
+        try:
+            camera = camera_info_intrinsics(msg)
+        except Exception as err:  # noqa: BLE001 - a bad message must not end the node
+            if str(err) != self._camera_refused:
+                self.log(f"camera_info not used: {err}")
+                self._camera_refused = str(err)
+            return
+        if camera != self.camera:
+            self.camera, self._result, self._camera_refused = camera, None, None
+            c = camera
+            self.log(
+                f"camera_info: fx {c.fx:.1f}, fy {c.fy:.1f}, cx {c.cx:.1f}, cy {c.cy:.1f} px "
+                f"for {c.width}x{c.height} images"
+            )
+
+    def set_enabled(self, enabled: bool) -> None:
+        """False: STOP at every tick until True (std_msgs/Bool on the enable topic)."""
+        self.enabled = bool(enabled)
 
     def tick(self, now: float) -> Twist:
         """The command to send at time `now` (s)."""
@@ -281,6 +424,18 @@ class ControlLoop:
         self.obs, self.state = obs, state
         return twist
 
+    def goal_status(self) -> str:
+        """The goal's status after the last tick: "no goal", "driving", "reached", "odometry
+        jump", or "stopped: " and the loop's state."""
+        goal = self.goal
+        if goal is None or goal.goal is None:
+            return "no goal"
+        if goal.reached:
+            return "reached"
+        if goal.jump is not None:
+            return "odometry jump"
+        return "driving" if self.state == "policy" else f"stopped: {self.state}"
+
     def shutdown(self) -> Twist:
         """Stops for good: returns STOP, and every later tick sends STOP too."""
         self._down = True
@@ -289,10 +444,13 @@ class ControlLoop:
     def _decide(self, now: float):
         if self._down:
             return None, STOP, "shut down"
+        if not self.enabled:
+            return None, STOP, "paused (false on the enable topic)"
         if self._msg is None:
             return None, STOP, "no sensor message yet"
-        if now - self._stamp > self.max_age:
-            return None, STOP, f"no sensor message for over {self.max_age:g} s"
+        stale = self._staleness(now)
+        if stale:
+            return None, STOP, stale
         if self.goal is not None:  # the pose moves between frames: act at every tick
             radius = self.controller.policy.success_radius
             why = self.goal.problem(now, self.max_age, radius)
@@ -301,29 +459,56 @@ class ControlLoop:
             self._result = self._act(self._msg)
         return self._result
 
+    def _staleness(self, now: float) -> str | None:
+        """Why the newest sensor message is too old (or too new) to act on at `now`; None: fresh."""
+        if self._stamp - self._received > MAX_AHEAD:
+            return f"sensor stamps over {MAX_AHEAD:g} s ahead of this clock{OTHER_CLOCK}"
+        if now - self._stamp <= self.max_age:
+            return None
+        if self._received - self._stamp > self.max_age:
+            return f"sensor messages over {self.max_age:g} s old on arrival{OTHER_CLOCK}"
+        return f"no sensor message for over {self.max_age:g} s"
+
     def _act(self, msg):
         try:
-            obs = np.asarray(self.reader(msg, self.controller), np.float32)
+            obs = np.asarray(self.reader(msg, self.controller, self.camera), np.float32)
             if self.goal is not None:
-                policy = self.controller.policy
-                if self.goal.goal != self._goal_seen:  # a new goal: a new episode
-                    self._frames.reset()
-                    self._goal_seen = self.goal.goal
-                obs = self._frames(
-                    goal_observation(
-                        obs, self.goal.pose, self.goal.goal, self._last, policy.command_scale
-                    )
-                )
-                self._last = policy.command(obs)
+                obs = self._goal_obs(obs)
             return obs, self.controller.act(obs), "policy"
+        except BlindFrame as err:
+            return None, STOP, f"sensor blind: {err}"
         except Exception as err:  # noqa: BLE001 - any failure must stop the robot, not the node
             return None, STOP, f"error: {type(err).__name__}: {err}"
+
+    def _goal_obs(self, sectors: np.ndarray) -> np.ndarray:
+        """The goal policy's stacked observation of `sectors`, the pose, the goal and the last
+        command; records the command the policy sends for it."""
+        policy = self.controller.policy
+        if self.goal.goal != self._goal_seen:  # a new goal: a new episode
+            self._frames.reset()
+            self._goal_seen = self.goal.goal
+        obs = self._frames(
+            goal_observation(
+                sectors, self.goal.pose, self.goal.goal, self._last, policy.command_scale
+            )
+        )
+        self._last = policy.command(obs)
+        return obs
 
 
 def twist_msg(twist: Twist, msg_cls):
     """A geometry_msgs/Twist (`msg_cls`) holding the command."""
     msg = msg_cls()
     msg.linear.x, msg.angular.z = float(twist.linear), float(twist.angular)
+    return msg
+
+
+def twist_stamped_msg(twist: Twist, msg_cls, stamp, frame_id: str = CMD_FRAME):
+    """A geometry_msgs/TwistStamped (`msg_cls`) holding the command, stamped `stamp` (a
+    builtin_interfaces/Time) in `frame_id`."""
+    msg = msg_cls()
+    msg.header.stamp, msg.header.frame_id = stamp, frame_id
+    msg.twist.linear.x, msg.twist.angular.z = float(twist.linear), float(twist.angular)
     return msg
 
 
@@ -335,9 +520,24 @@ def add_loop_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--blind-fraction", type=float, default=BLIND_FRACTION, help="unknown share: near"
     )
-    p.add_argument("--vfov-deg", type=float, default=ASTRA_VFOV_DEG, help="camera")
-    p.add_argument("--band-deg", type=float, default=2.0, help="rows within +-this of horizon")
+    p.add_argument(
+        "--readings-per-stray",
+        type=int,
+        default=READINGS_PER_STRAY,
+        help="a sector reads its nearest reading 1 + known // this readings reach (0: minimum)",
+    )
+    p.add_argument(
+        "--max-unknown", type=float, default=MAX_UNKNOWN, help="frame unknown share: stop above"
+    )
     nan, file = math.nan, "nan: the policy file's"
+    p.add_argument(
+        "--vfov-deg",
+        type=float,
+        default=nan,
+        help=f"without camera_info: the image's vertical fov (Astra: {ASTRA_VFOV_DEG}; "
+        "nan: the policy's fov across the image)",
+    )
+    p.add_argument("--band-deg", type=float, default=2.0, help="rows within +-this of horizon")
     p.add_argument("--tilt-deg", type=float, default=nan, help=f"camera pitch, + down ({file})")
     p.add_argument("--camera-height", type=float, default=nan, help=f"camera, m ({file})")
 
@@ -350,60 +550,122 @@ def add_goal_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--odom-topic", default="odom", help="goal policies: nav_msgs/Odometry")
 
 
+def _add_node_flags(p: argparse.ArgumentParser) -> None:
+    """The node's own topics and clock (not the replay's)."""
+    p.add_argument("--cmd-vel", default="cmd_vel", help="velocity command output topic")
+    p.add_argument(
+        "--stamped", action="store_true", help="send geometry_msgs/TwistStamped, not Twist"
+    )
+    p.add_argument(
+        "--camera-info-topic", default="", help="sensor_msgs/CameraInfo (default: beside --topic)"
+    )
+    p.add_argument(
+        "--enable-topic", default="~/enable", help="std_msgs/Bool: false = zero velocity"
+    )
+    p.add_argument(
+        "--goal-status-topic", default="goal_status", help="goal policies: std_msgs/String"
+    )
+    p.add_argument(
+        "--header-stamps",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="age messages by header.stamp where set (--no-header-stamps: by arrival)",
+    )
+
+
 def parse_args(argv=None):
     """Flags (defaults of the node's ROS parameters) and the rest (for rclpy: --ros-args ...)."""
     p = argparse.ArgumentParser(prog="ros_node", description=__doc__.splitlines()[0])
     p.add_argument("--policy", default="policy.npz", help="exported policy (.npz)")
     p.add_argument("--topic", default="/camera/depth/image_raw", help="depth image or scan topic")
     p.add_argument("--scan", action="store_true", help="the topic is a sensor_msgs/LaserScan")
-    p.add_argument("--cmd-vel", default="cmd_vel", help="geometry_msgs/Twist output topic")
+    _add_node_flags(p)
     add_goal_flags(p)
     add_loop_flags(p)
     return p.parse_known_args(argv)
 
 
+def camera_info_topic(get: dict) -> str:
+    """The CameraInfo topic: the parameter, or `camera_info` beside the image topic (the image
+    transport convention: /camera/depth/image_raw -> /camera/depth/camera_info)."""
+    if get["camera_info_topic"]:
+        return get["camera_info_topic"]
+    namespace = get["topic"].rpartition("/")[0]
+    return f"{namespace}/camera_info" if namespace else "camera_info"
+
+
 def make_loop(get: dict, log) -> tuple[ControlLoop, float]:
     """(the node's ControlLoop, its rate in Hz) from the values `get` of the node's parameters:
-    policy, scan and those of `add_loop_flags` (rate_hz None: the policy's rate)."""
+    policy, scan and those of `add_loop_flags` (rate_hz None: the policy's rate); header_stamps
+    where given (absent, as in `python -m jaxnav.replay` on a bag's clock: arrival times)."""
     policy = NumpyPolicy.from_npz(get["policy"])
-    controller = Controller(policy, get["speed_calibration"], get["blind_fraction"])
+    controller = Controller(
+        policy,
+        get["speed_calibration"],
+        get["blind_fraction"],
+        get["readings_per_stray"],
+        get["max_unknown"],
+    )
     reader = MessageReader(
         get["scan"], get["vfov_deg"], get["band_deg"], get["tilt_deg"], get["camera_height"]
     )
     goal = GoalInput() if policy.extra_observations else None
-    loop = ControlLoop(controller, reader, get["max_age"], log, goal)
+    stamps = get.get("header_stamps", False)
+    loop = ControlLoop(controller, reader, get["max_age"], log, goal, header_stamps=stamps)
     return loop, control_rate(policy, get["rate_hz"])
+
+
+def _declare_parameters(node, args) -> dict:
+    """The values of the node's parameters, declared with the flags' values as defaults."""
+    flags = {k: v for k, v in vars(args).items() if v is not None}  # rate_hz may be None
+    get = {k: node.declare_parameter(k, v).value for k, v in flags.items()}
+    if args.rate_hz is None:  # a float parameter; 0 = the policy's rate
+        get["rate_hz"] = node.declare_parameter("rate_hz", 0.0).value or None
+    return get
+
+
+def _subscribe(node, get: dict) -> None:
+    """The node's inputs: the sensor first, its CameraInfo (depth images), the enable topic, and
+    a goal policy's goal and odometry."""
+    from rclpy.qos import qos_profile_sensor_data as sensor_qos
+    from sensor_msgs.msg import CameraInfo, Image, LaserScan
+    from std_msgs.msg import Bool
+
+    msg_type = LaserScan if get["scan"] else Image
+    node.create_subscription(msg_type, get["topic"], node.on_message, sensor_qos)
+    if not get["scan"]:
+        info = camera_info_topic(get)
+        node.create_subscription(CameraInfo, info, node.loop.on_camera_info, sensor_qos)
+    node.create_subscription(Bool, get["enable_topic"], node.on_enable, 10)
+    if node.loop.goal is not None:
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
+
+        node.create_subscription(PoseStamped, get["goal_topic"], node.on_goal, 10)
+        node.create_subscription(Odometry, get["odom_topic"], node.on_odom, sensor_qos)
 
 
 def _make_node(args):
     """The rclpy node, its parameters declared with the flags' values as defaults."""
     from geometry_msgs.msg import Twist as TwistMsg
+    from geometry_msgs.msg import TwistStamped
     from rclpy.node import Node
-    from rclpy.qos import qos_profile_sensor_data
-    from sensor_msgs.msg import Image, LaserScan
+    from std_msgs.msg import String
 
     class PolicyNode(Node):
         def __init__(self):
             super().__init__("jaxnav_policy")
-            flags = {k: v for k, v in vars(args).items() if v is not None}  # rate_hz may be None
-            get = {k: self.declare_parameter(k, v).value for k, v in flags.items()}
-            if args.rate_hz is None:  # a float parameter; 0 = the policy's rate
-                get["rate_hz"] = self.declare_parameter("rate_hz", 0.0).value or None
+            get = _declare_parameters(self, args)
             logger = self.get_logger()
             self.loop, rate = make_loop(get, getattr(logger, "warning", None) or logger.warn)
-            self.pub = self.create_publisher(TwistMsg, get["cmd_vel"], 10)
-            msg_type = LaserScan if get["scan"] else Image
-            self.create_subscription(
-                msg_type, get["topic"], self.on_message, qos_profile_sensor_data
+            self.stamped = get["stamped"]
+            self.pub = self.create_publisher(
+                TwistStamped if self.stamped else TwistMsg, get["cmd_vel"], 10
             )
+            _subscribe(self, get)
+            self.status_pub = None
             if self.loop.goal is not None:
-                from geometry_msgs.msg import PoseStamped
-                from nav_msgs.msg import Odometry
-
-                self.create_subscription(PoseStamped, get["goal_topic"], self.on_goal, 10)
-                self.create_subscription(
-                    Odometry, get["odom_topic"], self.on_odom, qos_profile_sensor_data
-                )
+                self.status_pub = self.create_publisher(String, get["goal_status_topic"], 10)
             self.timer = self.create_timer(1.0 / rate, self.on_timer)
             logger.info(f"{get['policy']}: {get['topic']} -> {get['cmd_vel']} at {rate:g} Hz")
 
@@ -413,18 +675,34 @@ def _make_node(args):
         def on_message(self, msg):
             self.loop.on_observation(msg, self.now())
 
+        def on_enable(self, msg):
+            self.loop.set_enabled(msg.data)
+            if not msg.data:  # stop now, not at the next tick
+                self.on_timer()
+
         def on_goal(self, msg):
             self.loop.goal.on_goal_msg(msg)
 
         def on_odom(self, msg):
-            self.loop.goal.on_odom_msg(msg, self.now())
+            self.loop.on_odometry(msg, self.now())
 
         def on_timer(self):
-            self.pub.publish(twist_msg(self.loop.tick(self.now()), TwistMsg))
+            self.send(self.loop.tick(self.now()))
+            if self.status_pub is not None:
+                status = String()
+                status.data = self.loop.goal_status()
+                self.status_pub.publish(status)
+
+        def send(self, twist: Twist) -> None:
+            if self.stamped:
+                stamp = self.get_clock().now().to_msg()
+                self.pub.publish(twist_stamped_msg(twist, TwistStamped, stamp))
+            else:
+                self.pub.publish(twist_msg(twist, TwistMsg))
 
         def stop(self):
             try:  # best effort: the context may be gone if something else shut it down
-                self.pub.publish(twist_msg(self.loop.shutdown(), TwistMsg))
+                self.send(self.loop.shutdown())
             except Exception as err:  # noqa: BLE001
                 print(f"could not send the stop command: {err}", file=sys.stderr)
 
