@@ -50,6 +50,12 @@ GATHERED = (
         "python benchmarks/time_to_solve.py --preset gpu --full --max-seconds 60 --eval-every 5",
         "the gpu preset: training time to the suite's bar",
     ),
+    (
+        "barn_h100.json",
+        "python -m jaxnav.train --env goal --preset gpu && python benchmarks/barn.py "
+        "--checkpoint RUN --episodes 5",
+        "the gpu preset's goal policy on BARN's 300 worlds (never trained on), 5 episodes a world",
+    ),
 )
 
 
@@ -195,6 +201,15 @@ def _gathered_result(name: str, data: dict) -> str:
                 f"{rows['movers']['env_steps_per_s'] / 1e6:.2f} M with 0-3 moving obstacles"
             )
         return "; ".join(parts)
+    if name.startswith("barn"):
+        groups = data["groups"]
+        per = ", ".join(f"{g} {pct(groups[g]['success_rate'])}" for g in ("easy", "medium", "hard"))
+        m = groups["overall"]
+        return (
+            f"**{pct(m['success_rate'])} success**, {pct(1 - m['collision_free_rate'])} collided, "
+            f"{pct(m['timeout_rate'])} timed out; BARN score {m['barn_score']:.3f} "
+            f"({m['barn_score_own_speed']:.3f} at the robot's 0.7 m/s); by difficulty: {per}"
+        )
     if name.startswith("throughput"):
         row = next((r for r in data["rows"] if r.get("variant") == "default"), data["rows"][-1])
         return f"{row['train']['env_steps_per_s'] / 1e6:.2f} M env-steps/s (compile {row['train']['compile_s']} s)"
