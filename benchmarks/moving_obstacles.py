@@ -22,7 +22,7 @@ from pathlib import Path
 from report import run_info, write_json
 
 from jaxnav.evaluate import evaluate
-from jaxnav.io.checkpoint import load_policy
+from jaxnav.runs import load_policy
 
 DEFAULT_JSON = Path(__file__).parent / "results" / "moving_obstacles_cpu.json"
 KEYS = ("collision_free_rate", "mean_speed", "success_rate", "spl")  # those a task reports

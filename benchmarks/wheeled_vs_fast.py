@@ -172,7 +172,7 @@ def main() -> None:
     parser.add_argument("--json", default=str(DEFAULT_JSON), help="write the results here")
     args = parser.parse_args()
     if args.checkpoint:
-        from jaxnav.io.checkpoint import load_policy
+        from jaxnav.runs import load_policy
 
         policies = [load_policy(args.checkpoint)]
     else:

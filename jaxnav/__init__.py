@@ -30,7 +30,7 @@ _SOURCES = {
     "LayoutError": "jaxnav.io.layouts",
     "RoomLayout": "jaxnav.io.layouts",
     "load_layout": "jaxnav.io.layouts",
-    "load_policy": "jaxnav.io.checkpoint",
+    "load_policy": "jaxnav.runs",
     "make_brax_env": "jaxnav.brax_env",  # imports brax, only when asked for
     "make_env": "jaxnav.tasks.registry",
     "train": None,

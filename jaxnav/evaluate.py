@@ -57,8 +57,8 @@ from jaxnav.core.scene import PHYSICS, SCENES_DIR, SceneConfig
 from jaxnav.io import barn
 from jaxnav.io.files import check_writable, read_json, write_atomic
 from jaxnav.io.layouts import LayoutError, RoomLayout, check_goal_distance, load_layouts
-from jaxnav.io.runconfig import add_field_flags, overrides_from_args
 from jaxnav.policy import BASELINES, Policy
+from jaxnav.runconfig import add_field_flags, overrides_from_args
 from jaxnav.tasks.registry import make_env, observation_size, task_entry
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
@@ -739,7 +739,8 @@ def _load_policy(args) -> Policy:
         raise UsageError("--env: only with --policy (a checkpoint evaluates its own task)")
     from flax.errors import FlaxError
 
-    from jaxnav.io.checkpoint import CheckpointError, load_policy  # lazy: only checkpoints need it
+    from jaxnav.io.checkpoint import CheckpointError
+    from jaxnav.runs import load_policy  # lazy: only checkpoints need it
 
     try:
         policy = load_policy(args.checkpoint)

@@ -37,9 +37,10 @@ import numpy as np
 
 from jaxnav.cli import Parser, UsageError, print_error
 from jaxnav.core.types import ContinuousActions
-from jaxnav.io.checkpoint import CheckpointError, SavedPolicy, read_policy, resolve
+from jaxnav.io.checkpoint import CheckpointError, resolve
 from jaxnav.ppo.networks import LEAKY_SLOPE, normalize
 from jaxnav.robot_side.policy import FORMAT_VERSION, NumpyPolicy
+from jaxnav.runs import SavedPolicy, read_policy
 
 FORMATS = ("numpy", "onnx")
 SUFFIX = {"numpy": ".npz", "onnx": ".onnx"}

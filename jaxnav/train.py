@@ -30,7 +30,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxnav import distributed
+from jaxnav import distributed, runs
 from jaxnav.cli import (
     EXIT_INTERRUPTED,
     GroupHelp,
@@ -44,9 +44,9 @@ from jaxnav.cli import (
 )
 from jaxnav.io import checkpoint, files, runlog
 from jaxnav.io.layouts import LayoutError, layout_to_dict, load_layouts, parse_layouts
-from jaxnav.io.runconfig import GROUPS, RunConfig, add_flags, group_class, overrides_from_args
 from jaxnav.ppo.config import PRESETS, derived_minibatch, preset
 from jaxnav.ppo.train import make_train
+from jaxnav.runconfig import GROUPS, RunConfig, add_flags, group_class, overrides_from_args
 from jaxnav.tasks.base import ACTIONS
 from jaxnav.tasks.registry import TASKS, make_env, task_defaults
 
@@ -187,7 +187,7 @@ def check_new_out(out: Path) -> None:
 
 def _is_run_config(path: Path) -> bool:
     try:
-        checkpoint.load_config(path.parent)
+        runs.load_config(path.parent)
     except (ValueError, OSError, KeyError, TypeError):
         return False
     return True
@@ -305,8 +305,8 @@ def _run_config(out: Path, ckpt: Path) -> RunConfig:
     """The run's config.json (the one source of its budget), checked against the checkpoint's copy:
     they may differ in ppo.total_steps only."""
     if not (out / "config.json").exists():
-        return checkpoint.load_config(ckpt)
-    config, saved = checkpoint.load_config(out), checkpoint.load_config(ckpt)
+        return runs.load_config(ckpt)
+    config, saved = runs.load_config(out), runs.load_config(ckpt)
     mine, theirs = config.to_dict(), saved.to_dict()
     mine["ppo"]["total_steps"] = theirs["ppo"]["total_steps"]
     differ = [k for k in mine if mine[k] != theirs[k]]
@@ -334,7 +334,7 @@ def resume(
     """
     out = Path(out)
     if not checkpoint.list_checkpoints(out) and (out / "config.json").is_file():
-        config = _with_budget(checkpoint.load_config(out), total_steps)
+        config = _with_budget(runs.load_config(out), total_steps)
         print(f"jaxnav: {out} has no checkpoint yet; starting it from its config.json", flush=True)
         return run(config, out, progress, stop, fresh=False)
     main, lock, locked = distributed.is_main(), files.RunLock(out), False

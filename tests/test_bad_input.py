@@ -28,10 +28,10 @@ import jaxnav.train
 from jaxnav.core.scene import SceneConfig
 from jaxnav.io import checkpoint
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout, save_layouts
-from jaxnav.io.runconfig import RunConfig
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import init_stats
 from jaxnav.ppo.train import TrainState, make_network
+from jaxnav.runconfig import RunConfig
 from jaxnav.tasks.avoid import AvoidConfig
 
 # A valid room; each bad layout breaks one thing in a copy of it (tests/test_layouts.py checks the

@@ -10,12 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxnav import runs
 from jaxnav.io import checkpoint
 from jaxnav.io.checkpoint import CheckpointError
-from jaxnav.io.runconfig import RunConfig
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import init_stats
 from jaxnav.ppo.train import TrainState, make_network
+from jaxnav.runconfig import RunConfig
 from jaxnav.tasks.avoid import AvoidConfig
 
 PPO = preset("cpu", num_envs=2, rollout_length=4, minibatch_size=8, total_steps=8, hidden=(8,))
@@ -126,7 +127,7 @@ def test_corrupt_file_is_named(tmp_path, state, name):
         if name == "train_state.npz":
             checkpoint.restore_train_state(ckpt, state[0])
         else:
-            checkpoint.load_policy(ckpt)
+            runs.load_policy(ckpt)
     assert_one_line(err, str(ckpt / name))
     with pytest.raises(CheckpointError) as err:
         checkpoint.verify(ckpt)
@@ -141,9 +142,9 @@ def test_corrupt_newest_falls_back_to_previous(tmp_path, state, capsys):
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and str(newest) in lines[0] and str(older) in lines[0], lines
     checkpoint.restore_train_state(checkpoint.resolve(tmp_path), state[0])
-    assert checkpoint.load_policy(tmp_path).name.endswith("update_000001")
+    assert runs.load_policy(tmp_path).name.endswith("update_000001")
     with pytest.raises(CheckpointError) as err:  # named explicitly: no fallback
-        checkpoint.load_policy(newest)
+        runs.load_policy(newest)
     assert_one_line(err, str(newest / "train_state.npz"), "corrupt")
     truncate(older / "meta.json")  # none intact: the newest, whose load names the fault
     assert checkpoint.resolve(tmp_path) == newest

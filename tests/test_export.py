@@ -18,11 +18,11 @@ import jaxnav
 from jaxnav import export
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.io import checkpoint
-from jaxnav.io.runconfig import RunConfig
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.networks import RunningStats, normalize
 from jaxnav.ppo.train import TrainState, make_network
 from jaxnav.robot_side.policy import NumpyPolicy
+from jaxnav.runconfig import RunConfig
 from jaxnav.tasks.avoid import AvoidConfig
 
 

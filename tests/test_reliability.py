@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from conftest import TINY_FLAGS
 
-from jaxnav import cli
+from jaxnav import cli, runs
 from jaxnav import train as train_module
 from jaxnav.io import checkpoint, files, runlog
 from jaxnav.ppo.networks import init_stats
@@ -125,7 +125,7 @@ def test_metrics_never_truncated_before_the_kept_rows_are_on_disk(tmp_path, monk
 def test_resume_budget_comes_from_the_run_config(fake, tmp_path, capsys):
     assert fake("--out", "run", *TINY_FLAGS) == 0
     run = tmp_path / "run"
-    config = checkpoint.load_config(run)
+    config = runs.load_config(run)
     more = config.ppo.total_steps * 2
     extended = train_module._with_budget(config, more)
     files.write_atomic(run / "config.json", json.dumps(extended.to_dict()))

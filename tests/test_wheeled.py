@@ -17,7 +17,7 @@ import jaxnav
 from jaxnav.cli import Parser
 from jaxnav.core.scene import SceneConfig
 from jaxnav.io.layouts import Box, RoomLayout
-from jaxnav.io.runconfig import add_flags, overrides_from_args
+from jaxnav.runconfig import add_flags, overrides_from_args
 
 WHEELED = SceneConfig(physics="wheeled")
 BOX_FACE = 2.8  # x of the box's near face in ROOM

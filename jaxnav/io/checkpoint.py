@@ -14,8 +14,6 @@ processes, process 0 writes the state gathered from all: `jaxnav.distributed.to_
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import hashlib
 import json
 import os
@@ -30,9 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from jaxnav.io.files import MAX_BINARY_BYTES, FileProblem, read_bytes, read_json
-from jaxnav.io.runconfig import RunConfig
-from jaxnav.policy import Policy
+from jaxnav.io.files import FileProblem, read_json
 
 CKPT_DIR = "checkpoints"
 PREFIX = "update_"
@@ -49,7 +45,7 @@ class CheckpointError(ValueError):
 # ---------------------------------------------------------------- writing
 
 
-def save(run_dir: Path, ts, config: RunConfig, meta: dict, keep: int = 3) -> Path:
+def save(run_dir: Path, ts, config, meta: dict, keep: int = 3) -> Path:
     """Writes checkpoint `update_<ts.update>` atomically; keeps the newest `keep` of them."""
     update = int(ts.update)
     target = path_of(run_dir, update)
@@ -156,7 +152,7 @@ def _digest(file: Path) -> str:
     try:
         return _sha256(file)
     except OSError as err:
-        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
+        raise CheckpointError(f"{file}: unreadable ({one_line(err)})") from None
 
 
 def resolve(path: str | os.PathLike) -> Path:
@@ -190,22 +186,11 @@ def resolve(path: str | os.PathLike) -> Path:
     return found[-1]
 
 
-def _one_line(err: BaseException) -> str:
+def one_line(err: BaseException) -> str:
     return " ".join(f"{type(err).__name__}: {err}".split())
 
 
 # ---------------------------------------------------------------- reading
-
-
-def load_config(folder: Path) -> RunConfig:
-    """The RunConfig in `folder`/config.json (a run or checkpoint folder); errors name the file."""
-    file = Path(folder) / "config.json"
-    try:
-        return RunConfig.from_dict(read_json(file))
-    except FileProblem as err:
-        raise CheckpointError(f"{file}: unreadable run config ({err.detail})") from None
-    except (ValueError, TypeError) as err:
-        raise CheckpointError(f"{file}: unreadable run config ({err})") from None
 
 
 def load_meta(ckpt: Path) -> dict:
@@ -231,7 +216,7 @@ def load_tree(file: Path, template):
         with np.load(file, allow_pickle=False) as data:
             saved = {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
+        raise CheckpointError(f"{file}: unreadable ({one_line(err)})") from None
     version = saved.pop("format_version", None)
     if version is None and any(k.startswith("leaf_") for k in saved):
         raise CheckpointError(
@@ -276,105 +261,3 @@ def restore_train_state(ckpt: Path, template):
     ts = load_tree(ckpt / "train_state.npz", template)
     verify(ckpt)  # after the content checks: their messages name the field at fault
     return ts
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class SavedPolicy:
-    """A checkpoint's policy, its weights checked against its run config (from `read_policy`)."""
-
-    ckpt: Path
-    """The checkpoint folder it was read from."""
-    config: RunConfig
-    """The run's settings (config.json): network, sensor and task."""
-    params: dict
-    """Actor and critic weights (flax variables), shaped as `network` builds them."""
-    obs_stats: object
-    """The observation normaliser (a RunningStats, [D] each); applied when ppo.normalize_obs."""
-
-    @property
-    def num_actions(self) -> int:
-        """A: the width of the actor's output layer."""
-        actor = self.params["params"]["actor"]
-        return int(np.shape(actor[f"Dense_{len(actor) - 1}"]["bias"])[0])
-
-    @functools.cached_property
-    def network(self):
-        """The ActorCritic module the weights belong to."""
-        from jaxnav.ppo.train import make_network
-        from jaxnav.tasks.registry import critic_size
-
-        ppo, task = self.config.ppo, self.config.task
-        return make_network(ppo, task.action_spec, critic_size(task, ppo.privileged_critic))
-
-    @property
-    def observation_size(self) -> int:
-        """D: the depth sectors and the task's extra entries (the goal task's goal and command)."""
-        from jaxnav.tasks.registry import observation_size
-
-        return observation_size(self.config.task, self.config.sensor)
-
-    @property
-    def distribution(self):
-        """The actor's action distribution (`jaxnav.ppo.distributions`)."""
-        from jaxnav.ppo.distributions import make_distribution
-
-        return make_distribution(self.config.task.action_spec)
-
-    def logits(self, obs: jax.Array) -> jax.Array:
-        """obs [..., D] -> the actor's output [..., K] (logits; a Gaussian's means and log-stds
-        for continuous actions); jittable."""
-        from jaxnav.ppo.networks import normalize
-
-        x = normalize(self.obs_stats, obs) if self.config.ppo.normalize_obs else obs
-        return self.network.apply(self.params, x)[0]
-
-
-def read_policy(ckpt: Path) -> SavedPolicy:
-    """The policy of checkpoint folder `ckpt`: weights, normaliser and config, checked to fit."""
-    from jaxnav.ppo.networks import RunningStats
-
-    config = load_config(ckpt)
-    file = ckpt / "policy.msgpack"
-    try:
-        raw = serialization.msgpack_restore(read_bytes(file, MAX_BINARY_BYTES))
-        params = jax.tree_util.tree_map(jnp.asarray, raw["params"])
-        stats = RunningStats(**{k: jnp.asarray(v) for k, v in raw["obs_stats"].items()})
-        saved = SavedPolicy(ckpt, config, params, stats)
-        saved.num_actions  # noqa: B018 (the actor's output layer exists)
-    except Exception as err:  # noqa: BLE001 (damaged bytes make msgpack raise many kinds)
-        raise CheckpointError(f"{file}: unreadable ({_one_line(err)})") from None
-    _check_fits(saved, file)
-    verify(ckpt)  # after the content checks: their messages name the field at fault
-    return saved
-
-
-def _check_fits(saved: SavedPolicy, file: Path) -> None:
-    """The weights have the shapes of the network (and sensor) that config.json describes."""
-    size = saved.observation_size
-    expected = jax.eval_shape(saved.network.init, jax.random.PRNGKey(0), jnp.zeros((1, size)))
-    shapes = lambda tree: {  # noqa: E731
-        jax.tree_util.keystr(path): tuple(np.shape(x))
-        for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]
-    }
-    want, got = shapes(expected), shapes(saved.params)
-    want[".obs_stats.mean"], got[".obs_stats.mean"] = (size,), np.shape(saved.obs_stats.mean)
-    if want != got:
-        key = next(k for k in [*want, *got] if want.get(k) != got.get(k))
-        raise CheckpointError(
-            f"{file}: weights do not match the network of {saved.ckpt / 'config.json'} "
-            f"({key}: saved {got.get(key)}, the config's network {want.get(key)})"
-        )
-
-
-def load_policy(path: str | os.PathLike, deterministic: bool = True) -> Policy:
-    """The trained policy of a run or checkpoint folder: greedy (argmax; the clipped mean of
-    continuous actions) or sampling actions."""
-    saved = read_policy(resolve(path))
-    dist = saved.distribution
-
-    def act(obs, key):
-        out = saved.logits(obs)
-        return dist.mode(out) if deterministic else dist.sample(key, out)
-
-    name = f"{saved.ckpt.parent.parent.name}/{saved.ckpt.name}"
-    return Policy(name=name, act=act, env_kwargs=saved.config.env_kwargs(), env=saved.config.env)

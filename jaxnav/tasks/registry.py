@@ -42,7 +42,7 @@ def register(
 ):
     """Makes task `name` available to `make_env`, the CLIs and saved runs. `defaults` are fields
     of a run's config groups ({"ppo": {...}, "randomize": {...}}, any group of
-    `jaxnav.io.runconfig.GROUPS`: over the preset's PPO settings, `randomize.TRAINING` and the
+    `jaxnav.runconfig.GROUPS`: over the preset's PPO settings, `randomize.TRAINING` and the
     other groups' defaults) with every preset, `preset_defaults[preset]` over them with that
     preset, all under the user's own settings (`task_defaults`)."""
     TASKS[name] = TaskEntry(

@@ -1,0 +1,79 @@
+"""The package's layers point one way (docs/development.md): each module imports only from its own
+layer or those below it, `ppo` and `tasks` not from each other, and no two modules import each
+other, directly or round a cycle. Read from the source (an AST walk): no module is imported.
+
+    robot_side  <  core  <  io, wrappers  <  ppo, tasks, viz  <  the top-level modules
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "jaxnav"
+RANK = {"robot_side": 0, "core": 1, "io": 2, "wrappers": 2, "ppo": 3, "tasks": 3, "viz": 3}
+TOP = 4  # jaxnav/*.py: the command lines and what composes a run
+APART = {("ppo", "tasks"), ("tasks", "ppo")}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def layer(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in RANK else "top"
+
+
+def imports(path: Path) -> set[str]:
+    """The jaxnav modules `path` imports, anywhere in the file (inside functions too)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.startswith("jaxnav")}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module.startswith("jaxnav"):
+                found.add(node.module)
+                found |= {f"{node.module}.{a.name}" for a in node.names}
+    return found
+
+
+def graph() -> dict[str, set[str]]:
+    modules = {module_name(p): p for p in PACKAGE.rglob("*.py")}
+    return {m: {t for t in imports(p) if t in modules and t != m} for m, p in modules.items()}
+
+
+def test_layers_point_one_way():
+    wrong = []
+    for module, targets in graph().items():
+        here = layer(module)
+        for target in targets:
+            there = layer(target)
+            rank_here, rank_there = RANK.get(here, TOP), RANK.get(there, TOP)
+            if rank_there > rank_here or (here, there) in APART:
+                wrong.append(f"{module} -> {target}")
+    assert not wrong, "imports against the layers:\n" + "\n".join(sorted(wrong))
+
+
+def test_no_import_cycles():
+    g = graph()
+    packages = {m for m in g if (PACKAGE / Path(*m.split(".")[1:]) / "__init__.py").exists()}
+    g = {m: {t for t in ts if t not in packages} for m, ts in g.items() if m not in packages}
+    seen, stack, cycles = set(), [], []
+
+    def visit(m):
+        if m in stack:
+            cycles.append(" -> ".join([*stack[stack.index(m) :], m]))
+            return
+        if m in seen:
+            return
+        seen.add(m)
+        stack.append(m)
+        for t in sorted(g.get(m, ())):
+            visit(t)
+        stack.pop()
+
+    for m in sorted(g):
+        visit(m)
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)
