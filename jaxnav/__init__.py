@@ -5,12 +5,7 @@ The public names are imported on first use, so `jaxnav.robot_side` (numpy only) 
 
 __version__ = "0.1.0"
 
-import contextlib
 import importlib
-import sys
-from importlib.abc import Loader, MetaPathFinder
-from importlib.machinery import PathFinder
-from io import StringIO  # `import io` would be shadowed by the subpackage jaxnav.io
 
 __all__ = [
     "LayoutError",
@@ -45,39 +40,6 @@ def __getattr__(name: str):
         return importlib.import_module(f"jaxnav.{name}")
     return getattr(importlib.import_module(_SOURCES[name]), name)
 
-
-class _QuietLoader(Loader):
-    """Runs a module with stdout discarded (its `print`s only)."""
-
-    def __init__(self, loader: Loader):
-        self.loader = loader
-
-    def create_module(self, spec):
-        return self.loader.create_module(spec)
-
-    def exec_module(self, module):
-        with contextlib.redirect_stdout(StringIO()):
-            self.loader.exec_module(module)
-
-
-class _QuietWarpProbe(MetaPathFinder):
-    """mujoco.mjx.warp prints two lines on stdout when its optional Warp backend is absent; jaxnav
-    uses MJX's JAX implementation only. Whichever jaxnav module imports mjx first, this silences it."""
-
-    NAME = "mujoco.mjx.warp"
-
-    def find_spec(self, name, path=None, target=None):
-        if name != self.NAME:
-            return None
-        sys.meta_path.remove(self)  # once is enough
-        spec = PathFinder.find_spec(name, path, target)
-        if spec is not None and spec.loader is not None:
-            spec.loader = _QuietLoader(spec.loader)
-        return spec
-
-
-if _QuietWarpProbe.NAME not in sys.modules:
-    sys.meta_path.insert(0, _QuietWarpProbe())
 
 # Ctrl-C honoured from the first instant of `python -m jaxnav.train` (and evaluate, export).
 importlib.import_module("jaxnav.cli").early_interrupts()

@@ -77,3 +77,24 @@ def test_no_import_cycles():
     for m in sorted(g):
         visit(m)
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+def test_importing_jaxnav_changes_no_global_state():
+    """`import jaxnav` (and its submodules) installs no signal handler and no import hook, and
+    MJX's import prints nothing (its absent Warp backend's lines are kept off stdout)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import signal, sys\n"
+        "ours = lambda: [f for f in sys.meta_path if 'jaxnav' in type(f).__module__]\n"
+        "state = lambda: (ours(), signal.getsignal(signal.SIGINT), sys.stdout, sys.excepthook)\n"
+        "before = state()\n"
+        "import jaxnav\n"
+        "print(before == state())\n"
+        "import jaxnav.tasks.base, jaxnav.evaluate\n"
+        "print(before == state())\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "True\nTrue\n"  # and nothing else printed

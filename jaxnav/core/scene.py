@@ -21,8 +21,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
+from jaxnav.core import mjx
 from jaxnav.core.assets import scenes_dir
 from jaxnav.core.checks import require_finite
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec

@@ -19,9 +19,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from flax import struct
-from mujoco import mjx
 
-from jaxnav.core import motion
+from jaxnav.core import mjx, motion
 from jaxnav.core.episode import sample
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams
