@@ -22,7 +22,10 @@ robot's calibrated one.
 One reduction per sector, the same rule as on the robot (`jaxnav.robot_side.observation`): if at
 least `blind_fraction` of its non-floor rays are invalid (a sector of floor only included), the
 sector reads `range_min` (near: the camera cannot tell "too close" from "nothing", and near is the
-safe reading); otherwise the minimum of its valid readings, clipped to the range.
+safe reading); otherwise its nearest valid reading that 1 + n // readings_per_stray of its n valid
+readings reach (the robot side's `sector_nearest`: a few stray readings are outvoted), clipped to
+the range. With the default 3 x 5 rays a sector has fewer than `readings_per_stray` readings, so
+that is the minimum.
 """
 
 from __future__ import annotations
@@ -37,7 +40,13 @@ import numpy as np
 from jaxnav.core.checks import require_finite
 from jaxnav.core.geometry import ray_cast
 from jaxnav.core.robot import RobotSpec
-from jaxnav.robot_side.observation import FLOOR_MARGIN, FLOOR_MARGIN_SLOPE, floor_mask
+from jaxnav.robot_side.observation import (
+    FLOOR_MARGIN,
+    FLOOR_MARGIN_SLOPE,
+    READINGS_PER_STRAY,
+    floor_mask,
+    sector_nearest,
+)
 
 SENSOR_MODELS = ("camera", "lidar")
 
@@ -69,6 +78,9 @@ class SensorConfig:
     """Farthest readable depth, m; farther surfaces are invalid (Astra: 8)."""
     blind_fraction: float = 0.5
     """A sector whose non-floor rays are invalid in at least this share reads range_min."""
+    readings_per_stray: int = READINGS_PER_STRAY
+    """A sector of n valid readings reads its (1 + n // this)-th nearest, as the robot side does
+    (`sector_nearest`); 0: the minimum. Below this many rays per sector it is the minimum."""
     far_invalid: bool = False
     """Surfaces beyond range_max (and rays meeting nothing) are invalid, as the Astra reports them
     (0); False (default): they read range_max, as a LaserScan's inf does."""
@@ -105,6 +117,11 @@ class SensorConfig:
             raise ValueError(
                 f"SensorConfig.range_min: must be in [0, range_max = {self.range_max}) m, "
                 f"got {self.range_min}"
+            )
+        if self.readings_per_stray < 0 or self.readings_per_stray == 1:
+            raise ValueError(
+                "SensorConfig.readings_per_stray: must be 0 (the minimum) or >= 2, "
+                f"got {self.readings_per_stray}"
             )
         if not 0 <= self.blind_fraction <= 1:
             raise ValueError(
@@ -207,7 +224,14 @@ def reduce_sectors(reading, valid, floor, cfg: SensorConfig, xp=jnp):
     reading, valid, floor = group(reading), group(valid), group(floor)
     counted = (~floor).sum(-1)
     invalid = (~floor & ~valid).sum(-1)
-    nearest = xp.where(valid & ~floor, reading, xp.inf).min(-1)
+    per_sector = reading.shape[-1]  # static: below readings_per_stray, k is always 1
+    if cfg.readings_per_stray and per_sector >= cfg.readings_per_stray:
+        nearest = sector_nearest(
+            xp.where(valid & ~floor, reading, xp.nan), cfg.readings_per_stray, xp=xp
+        )
+        nearest = xp.where(xp.isnan(nearest), xp.inf, nearest)
+    else:
+        nearest = xp.where(valid & ~floor, reading, xp.inf).min(-1)
     near = invalid >= cfg.blind_fraction * counted  # as the robot side: at least that share
     out = xp.where(near, cfg.range_min, xp.where(xp.isinf(nearest), cfg.range_max, nearest))
     return xp.clip(out, cfg.range_min, cfg.range_max)
