@@ -6,7 +6,8 @@ python -m jaxnav.export runs/avoid-cpu --format onnx --out policy.onnx   # for o
 
 RUN is a run folder (its latest intact checkpoint is taken) or one checkpoint folder. A bundle is one
 folder holding `jaxnav_robot/` (a copy of `jaxnav.robot_side`: numpy, and rclpy for the ROS 2 node),
-`policy.npz` and `README.txt` with the commands to run on the robot; it is made in a temporary
+`policy.npz`, the ROS 2 launch file, its configuration and a Dockerfile (`jaxnav.bundle`), and
+`README.txt` with the commands to run on the robot; it is made in a temporary
 folder beside DIR and renamed into place when complete (a previous bundle there is replaced
 whole), so DIR never holds half a bundle. Both formats hold the actor MLP and the observation
 normaliser, so they take raw sector distances (metres; the goal task's goal and last
@@ -25,7 +26,6 @@ import argparse
 import contextlib
 import inspect
 import json
-import math
 import os
 import shutil
 import sys
@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnav.bundle import FILES, FOLDERS, ROBOT_PACKAGE, Deployment, write_deployment
 from jaxnav.cli import Parser, UsageError, print_error
 from jaxnav.core.types import ContinuousActions
 from jaxnav.io.checkpoint import CheckpointError, resolve
@@ -323,52 +324,15 @@ def check_out(out: Path, flag: str = "--out") -> None:
         raise ExportError(f"{flag} {out}: cannot write ({err.strerror or err})") from None
 
 
-ROBOT_PACKAGE = "jaxnav_robot"  # the name of jaxnav/robot_side in a bundle
-README = """jaxnav policy for the TurtleBot 2i, exported from {ckpt}
-
-Needs Python 3 with numpy, and ROS 2 (rclpy) for the node; no jax. Run in this folder:
-
-  # depth camera -> policy -> Kobuki base (kobuki_ros listens on commands/velocity)
-  python3 -m {package}.ros_node --policy policy.npz --ros-args -r cmd_vel:=commands/velocity
-
-  # a LaserScan instead of the depth image
-  python3 -m {package}.ros_node --policy policy.npz --scan --topic /scan \\
-      --ros-args -r cmd_vel:=commands/velocity
-
-  # the robot moves slower or faster than commanded: scale both speeds
-  python3 -m {package}.ros_node --policy policy.npz \\
-      --ros-args -r cmd_vel:=commands/velocity -p speed_calibration:=1.2
-
-  # the camera's measured height (m) and pitch (deg, down +), for the floor rule of policies
-  # trained with several rows (default: the mount they were trained with)
-  python3 -m {package}.ros_node --policy policy.npz \\
-      --ros-args -r cmd_vel:=commands/velocity -p camera_height:=0.3 -p tilt_deg:=1.0
-
-  # all flags (camera tilt, rows read around the horizon, topics)
-  python3 -m {package}.ros_node --help
-
-Without ROS, in Python:
-
-  from {package} import Controller, NumpyPolicy
-  from {package}.observation import horizon_rows
-  controller = Controller(NumpyPolicy.from_npz("policy.npz"))
-  # the pixels of the trained rays, floor left out (Astra: 49.5 deg vertical field of view)
-  twist = controller.image_to_twist(depth, vfov=0.864)  # depth [H, W] in metres -> (m/s, rad/s)
-  # or, for a one-row policy, the image rows near the horizon
-  twist = controller.image_to_twist(depth, horizon_rows(depth.shape[0], vfov=0.864))
-
-Trained with: {sensor}; actions (forward m/s, yaw rad/s): {actions}.
-"""
-
-
 def bundle(path, folder, check: bool = True) -> Path:
     """Writes all the robot needs for the policy of run/checkpoint folder `path` into `folder`:
-    `jaxnav_robot/` (a copy of jaxnav.robot_side), `policy.npz` and `README.txt`; returns it."""
+    `jaxnav_robot/` (a copy of jaxnav.robot_side), `policy.npz`, README.txt and the deployment
+    files of `jaxnav.bundle` (launch file, configuration, Dockerfile); returns it."""
     saved = read_policy(resolve(path))
     return _bundle(saved, folder, check)[0]
 
 
-BUNDLE = ("policy.npz", ROBOT_PACKAGE, "README.txt")  # all a bundle folder holds
+BUNDLE = ("policy.npz", ROBOT_PACKAGE, "README.txt", *FOLDERS, *FILES)  # all a bundle folder holds
 
 
 def check_bundle(folder: Path) -> None:
@@ -384,11 +348,12 @@ def check_bundle(folder: Path) -> None:
                 f"--bundle {folder}: holds {', '.join(others[:3])}, not part of a bundle; give a "
                 "new or empty folder, or a previous bundle (which is replaced)"
             )
-        if ROBOT_PACKAGE in held and not (folder / ROBOT_PACKAGE).is_dir():
-            raise ExportError(
-                f"--bundle {folder}: its {ROBOT_PACKAGE} is not a folder, so not a previous "
-                "bundle's; remove it or give another folder"
-            )
+        for name in (ROBOT_PACKAGE, *FOLDERS):
+            if name in held and not (folder / name).is_dir():
+                raise ExportError(
+                    f"--bundle {folder}: its {name} is not a folder, so not a previous "
+                    "bundle's; remove it or give another folder"
+                )
         folder.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=folder.parent):
             pass
@@ -402,7 +367,7 @@ def _bundle(saved: SavedPolicy, folder, check: bool = True):
     check_bundle(folder)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
-        result = _fill_bundle(saved, tmp, check)
+        result = _fill_bundle(saved, tmp, check, folder.name)
         _put_in_place(tmp, folder)
     except ExportError as err:  # its message names the temporary folder: name the bundle
         raise type(err)(str(err).replace(str(tmp), str(folder))) from None
@@ -411,27 +376,15 @@ def _bundle(saved: SavedPolicy, folder, check: bool = True):
     return folder, result
 
 
-def _fill_bundle(saved: SavedPolicy, folder: Path, check: bool):
-    """Writes policy.npz (checked), the robot package and README.txt into `folder`; returns the
-    check of policy.npz."""
+def _fill_bundle(saved: SavedPolicy, folder: Path, check: bool, name: str = "robot"):
+    """Writes policy.npz (checked), the robot package and the deployment files (README.txt
+    included) into `folder`, the bundle `name`; returns the check of policy.npz."""
     arrays = actor_arrays(saved)
     result = write_checked(saved, arrays, "numpy", folder / "policy.npz", check, "--bundle")
     source = Path(__file__).parent / "robot_side"
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
     shutil.copytree(source, folder / ROBOT_PACKAGE, ignore=ignore)
-    sensor = saved.config.sensor
-    commands = ", ".join(
-        f"{name} ({v:g}, {w:g})"
-        for name, (v, w) in zip(arrays["action_names"], arrays["commands"], strict=True)
-    )
-    text = README.format(
-        ckpt=saved.ckpt,
-        package=ROBOT_PACKAGE,
-        sensor=f"{math.degrees(sensor.fov):g} deg field of view in {sensor.num_sectors} sectors, "
-        f"{sensor.range_min:g}-{sensor.range_max:g} m",
-        actions=commands,
-    )
-    (folder / "README.txt").write_text(text)
+    write_deployment(folder, Deployment.from_policy(arrays, saved.config, saved.ckpt, name))
     return result
 
 
