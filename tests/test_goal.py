@@ -456,7 +456,8 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
     room families and the 'random' rooms alike, and on the cpu preset from the families only,
     corridors and clutter most often; in runs and in `make_env` without layouts, under the
     user's settings; `avoid` keeps `TRAINING` as it is."""
-    from jaxnav.tasks.registry import GOAL_CPU_FAMILIES, training_randomize
+    from jaxnav.tasks.presets import GOAL_CPU_FAMILIES
+    from jaxnav.tasks.registry import training_randomize
     from jaxnav.train import build_config
 
     cpu, gpu = (build_config(p, env="goal").randomize for p in ("cpu", "gpu"))

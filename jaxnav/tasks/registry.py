@@ -17,6 +17,7 @@ from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import SCENES_DIR, SceneConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.io.layouts import RoomLayout, load_layout
+from jaxnav.tasks import presets
 from jaxnav.tasks.avoid import AvoidConfig, AvoidEnv
 from jaxnav.tasks.goal import GoalConfig, GoalEnv
 
@@ -54,52 +55,8 @@ def register(
     )
 
 
-register("avoid", AvoidEnv, AvoidConfig)
-# A goal episode lasts about a hundred steps and each new one floods the room's grid, so the goal
-# task draws new episodes for 1/64 of the robots per step rather than 1/16 (1.8x the env's pace on
-# an H200 when a reset flooded twice), each rollout's at its start: with both, every one of four
-# seeds met the time-to-solve bar within 20 s (docs/results.md, "Point-goal navigation").
-# On the CPU the goal task trains 512 robots for 28 M steps (about 10 minutes of 2 cores,
-# docs/results.md, "A flood a row at a time"): 2 cores simulate them at a better pace per
-# robot than 256, and per step the success on the benchmark rooms settles higher than 256's
-# (docs/results.md, "A goal reset and a sensor the CPU computes once"), in 2 epochs per
-# update: per step they learn as 4 do, and 2 cores train 1.3x as many steps in 10 minutes. On
-# the gpu preset its networks are 256 x 256: on an H200 they meet the bar in half the time of
-# 64 x 64, at 0.8-0.9 x the pace (docs/results.md, "Wider networks for the goal task").
-# It trains in the room families of the benchmark suite ('all': with the 'random' rooms, alike),
-# and the cpu preset weighs them towards those a reactive policy finds hard (goals behind
-# partitions, clutter), away from those it has solved (open rooms, L/T/U) and the 'random' rooms:
-# in the cpu preset's shape on an H200 success settles 3 points higher than with 'all' (0.892
-# against 0.859, five seeds each; corridors 0.6 -> 0.8), and on the 2-core CPU both seeds met the
-# bar sooner; with the gpu preset's samples and networks 'all' ends 2-3 points higher
-# (docs/results.md, "Training rooms for the goal task"). Its critic also sees the distance
-# to go along the free space and how it changes around the robot (`privileged_critic`): in the
-# cpu preset's shape on an H200 the bar comes in fewer steps and success holds about 90 %, where
-# it settled at 0.89 (docs/results.md, "A critic that sees the way to go").
-GOAL_CPU_FAMILIES = (
-    "open:0.5,ltu:0.5,pillars:1.5,joined,furniture,low_overhang,clutter:3,corridor:5"
-)
-register(
-    "goal",
-    GoalEnv,
-    GoalConfig,
-    defaults={
-        "ppo": {"reset_share": 1 / 64, "reset_ahead": True, "privileged_critic": True},
-        "randomize": {"families": "all"},
-    },
-    preset_defaults={
-        "cpu": {
-            "ppo": {
-                "num_envs": 512,
-                "minibatch_size": 4096,
-                "num_epochs": 2,
-                "total_steps": 28_000_000,
-            },
-            "randomize": {"families": GOAL_CPU_FAMILIES},
-        },
-        "gpu": {"ppo": {"hidden": (256, 256)}},
-    },
-)
+register("avoid", AvoidEnv, AvoidConfig, **presets.AVOID)
+register("goal", GoalEnv, GoalConfig, **presets.GOAL)
 
 
 def task_entry(name: str) -> TaskEntry:

@@ -1,0 +1,33 @@
+"""The tasks' own training settings over the PPO presets, as data: {group: {field: value}} for
+every preset (`defaults`) and per preset (`preset_defaults`), under the user's flags
+(`registry.task_defaults`). Why each value: docs/results.md, "What was decided and why" (the
+goal task's rows).
+"""
+
+AVOID: dict = {}  # the paper's task trains with the presets as they are
+
+# The goal task's room families on the cpu preset: weighted towards what a reactive policy finds
+# hard (goals behind partitions, clutter), away from the rooms it has solved.
+GOAL_CPU_FAMILIES = (
+    "open:0.5,ltu:0.5,pillars:1.5,joined,furniture,low_overhang,clutter:3,corridor:5"
+)
+
+GOAL = {
+    "defaults": {
+        # Short episodes whose resets flood the room: fewer new episodes per step, drawn ahead.
+        "ppo": {"reset_share": 1 / 64, "reset_ahead": True, "privileged_critic": True},
+        "randomize": {"families": "all"},
+    },
+    "preset_defaults": {
+        "cpu": {
+            "ppo": {
+                "num_envs": 512,
+                "minibatch_size": 4096,
+                "num_epochs": 2,
+                "total_steps": 28_000_000,
+            },
+            "randomize": {"families": GOAL_CPU_FAMILIES},
+        },
+        "gpu": {"ppo": {"hidden": (256, 256)}},
+    },
+}
