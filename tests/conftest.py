@@ -38,6 +38,7 @@ import pytest  # noqa: E402
 import jaxnav  # noqa: E402
 from jaxnav.core.randomize import TRAINING, RandomizeConfig  # noqa: E402
 from jaxnav.core.scene import SCENES_DIR  # noqa: E402
+from jaxnav.core.sensors import SensorConfig  # noqa: E402
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout  # noqa: E402
 from jaxnav.viz import render  # noqa: E402
 from jaxnav.wrappers import AutoReset, EpisodeStats  # noqa: E402
@@ -80,6 +81,41 @@ def probe_env():
         RoomLayout(name="wall", size=(3.0, 3.0), robot_pos=(0.0, 0.0), robot_yaw=0.0),
     ]
     env = jaxnav.make_env("avoid", layouts=layouts, randomize=EXACT)
+    return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+# A room 20 m long (rays straight ahead read beyond range_max) whose obstacles on the left and
+# right differ, so a mirrored sector order would show.
+LOPSIDED = RoomLayout(
+    name="lopsided",
+    size=(20.0, 4.0),
+    robot_pos=(0.0, 0.0),
+    robot_yaw=0.0,
+    obstacles=(
+        Box(pos=(2.0, 0.7), size=(0.4, 0.6)),
+        Box(pos=(3.0, -0.9), size=(0.5, 0.5), yaw=0.5),
+        Cylinder(pos=(1.2, -0.35), radius=0.1),
+    ),
+)
+LOW_BOX_HEIGHTS = (0.05, 0.12, 0.25)
+
+
+def low_box(height) -> Box:
+    """A box `height` m tall whose face is 0.85 m ahead of the robot's centre in `corridor`."""
+    return Box(pos=(1.0, 0.0), size=(0.3, 1.2), height=height)
+
+
+# The rooms of `one_row_env`'s bank, in order: LOPSIDED, then a corridor per low box height.
+ONE_ROW_ROOMS = [LOPSIDED, *(corridor(low_box(h)) for h in LOW_BOX_HEIGHTS)]
+
+
+@pytest.fixture(scope="session")
+def one_row_env():
+    """`avoid` with one row of rays (a horizontal fan: what a LaserScan reads) in ONE_ROW_ROOMS,
+    exact physics and sensing: (env, jitted reset, jitted step)."""
+    env = jaxnav.make_env(
+        "avoid", layouts=ONE_ROW_ROOMS, randomize=EXACT, sensor=SensorConfig(rows=1)
+    )
     return env, jax.jit(env.reset), jax.jit(env.step)
 
 

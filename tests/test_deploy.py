@@ -5,12 +5,10 @@ import math
 import jax
 import numpy as np
 import pytest
-from conftest import EXACT
+from conftest import LOPSIDED, ONE_ROW_ROOMS, start_in
 from test_robot_side import ASTRA_VFOV, floor_image
 
-import jaxnav
 from jaxnav.core.sensors import SensorConfig, ray_depths
-from jaxnav.io.layouts import Box, Cylinder, RoomLayout
 from jaxnav.robot_side import observation as deploy
 from jaxnav.robot_side.observation import Sensor
 
@@ -21,26 +19,15 @@ COMMANDS = np.array([[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]], np.float32)  # forwar
 
 
 @pytest.fixture(scope="module")
-def scene():
+def scene(one_row_env):
     """(obs [8], per-ray depths [24], ray angles [24], robot-side Sensor) of a lopsided room.
 
     Obstacles on the left and right differ so a mirrored sector order would fail; the room is 20 m
     long so the rays straight ahead read beyond range_max (clipped).
     """
-    layout = RoomLayout(
-        name="lopsided",
-        size=(20.0, 4.0),
-        robot_pos=(0.0, 0.0),
-        robot_yaw=0.0,
-        obstacles=(
-            Box(pos=(2.0, 0.7), size=(0.4, 0.6)),
-            Box(pos=(3.0, -0.9), size=(0.5, 0.5), yaw=0.5),
-            Cylinder(pos=(1.2, -0.35), radius=0.1),
-        ),
-    )
     # One row of rays: what a LaserScan, or the horizon row of a depth image, reads.
-    env = jaxnav.make_env("avoid", layouts=[layout], randomize=EXACT, sensor=SensorConfig(rows=1))
-    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    env, reset, _ = one_row_env
+    state = start_in(env, reset, ONE_ROW_ROOMS.index(LOPSIDED))
     params = state.info["params"]
     depths = jax.jit(ray_depths, static_argnums=(2, 3))(
         params, state.data.qpos, env.sensor, env.robot

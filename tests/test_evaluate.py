@@ -216,7 +216,10 @@ def test_one_batch_matches_per_room_rollouts():
         assert 0.0 < got["coverage"] <= 1.0
 
 
+@pytest.mark.slow
 def test_cli_suite_writes_families_and_one_picture_each(tmp_path):
+    """Slow: the command line evaluates every room of the benchmark suite and draws a picture per
+    family, compiling the suite's batched rollout."""
     out = tmp_path / "suite.json"
     args = ["--policy", "forward", "--suite", "benchmark", "--episodes", "1", "--steps", "5"]
     assert main([*args, "--json", str(out)]) == 0

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import EXACT, corridor
+from conftest import EXACT, LOW_BOX_HEIGHTS, ONE_ROW_ROOMS, corridor, low_box, start_in
 
 import jaxnav
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig
@@ -17,50 +17,61 @@ from jaxnav.io.layouts import Box, Cylinder
 from jaxnav.robot_side.observation import Sensor, floor_mask, reduce_sectors
 
 CAMERA = SensorConfig(rows=5, far_invalid=True)
+SHELF = Box(pos=(1.5, 0.0), size=(0.4, 1.2), bottom=0.4, height=0.6)
+HIGH_SHELF = Box(pos=(1.5, 0.0), size=(0.4, 1.2), bottom=0.5, height=0.6)
+FLOOR_POLE = Cylinder(pos=(3.5, 1.2), radius=0.05)
+NEAR_WALL = Box(pos=(0.55, 0.0), size=(0.2, 2.8))  # face 0.45 m ahead: inside the 0.6 m blind zone
+# Every camera probe room of this module in one layout bank: the env compiles once and a test
+# starts in its room by its index here.
+ROOMS = [corridor(o) for o in (*map(low_box, LOW_BOX_HEIGHTS), SHELF, HIGH_SHELF, FLOOR_POLE)]
+ROOMS.append(corridor(NEAR_WALL))
 
 
-def first_obs(obstacle, sensor=CAMERA, size=(8.0, 3.0)):
-    env = jaxnav.make_env("avoid", [corridor(obstacle, size)], randomize=EXACT, sensor=sensor)
-    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
-    return env, state, np.asarray(state.obs)
+@pytest.fixture(scope="module")
+def camera_env():
+    """`avoid` with the camera's rows in ROOMS: (env, jitted reset, jitted step)."""
+    env = jaxnav.make_env("avoid", ROOMS, randomize=EXACT, sensor=CAMERA)
+    return env, jax.jit(env.reset), jax.jit(env.step)
 
 
-@pytest.mark.parametrize("height", [0.05, 0.12, 0.25])
-def test_low_obstacles_are_seen_only_with_rows(height):
-    box = Box(pos=(1.0, 0.0), size=(0.3, 1.2), height=height)  # face 0.85 m ahead of the centre
-    _, _, fan = first_obs(box, SensorConfig(rows=1))
-    _, _, camera = first_obs(box)
+def first_obs(compiled, obstacle, rooms=ROOMS):
+    """(env, jitted step, first state, its observation) in the corridor of `obstacle`."""
+    env, reset, step = compiled
+    state = start_in(env, reset, rooms.index(corridor(obstacle)))
+    return env, step, state, np.asarray(state.obs)
+
+
+@pytest.mark.parametrize("height", LOW_BOX_HEIGHTS)
+def test_low_obstacles_are_seen_only_with_rows(one_row_env, camera_env, height):
+    box = low_box(height)
+    *_, fan = first_obs(one_row_env, box, ONE_ROW_ROOMS)
+    *_, camera = first_obs(camera_env, box)
     assert fan[3:5].min() > 2.0  # the horizontal fan at 0.295 m looks over it
     assert camera[3:5].min() == pytest.approx(0.85 + 0.05, abs=0.12)  # camera 0.05 m behind
 
 
-def test_overhang_is_seen_and_collides():
-    shelf = Box(pos=(1.5, 0.0), size=(0.4, 1.2), bottom=0.4, height=0.6)
-    env, state, obs = first_obs(shelf)
+def test_overhang_is_seen_and_collides(camera_env):
+    _, step, state, obs = first_obs(camera_env, SHELF)
     assert obs[3:5].min() < 2.0  # the upper rows see the shelf's underside and face
-    step = jax.jit(env.step)
     for _ in range(30):
         state = step(state, jnp.int32(0))
         if bool(state.done):
             break
     assert bool(state.metrics["collision"])  # the top deck (0.47 m) hits a 0.4 m underside
     assert float(state.data.qpos[0]) < 1.3 - 0.177 + 0.08
-    high = Box(pos=(1.5, 0.0), size=(0.4, 1.2), bottom=0.5, height=0.6)
-    env, state, _ = first_obs(high)
-    step = jax.jit(env.step)
+    _, step, state, _ = first_obs(camera_env, HIGH_SHELF)
     for _ in range(45):  # 2.25 m at 0.5 m/s: through under the shelf
         state = step(state, jnp.int32(0))
     assert not bool(state.metrics["collision"]) and float(state.data.qpos[0]) > 2.0  # under it
 
 
-def test_floor_is_not_an_obstacle():
-    _, _, obs = first_obs(Cylinder(pos=(3.5, 1.2), radius=0.05), size=(8.0, 3.0))
+def test_floor_is_not_an_obstacle(camera_env):
+    *_, obs = first_obs(camera_env, FLOOR_POLE)
     assert obs.min() > 1.0  # the lowest row meets the floor 0.74 m out: not an obstacle
 
 
-def test_blind_zone_reads_near():
-    wall = Box(pos=(0.55, 0.0), size=(0.2, 2.8))  # face 0.45 m ahead: inside the 0.6 m blind zone
-    _, _, obs = first_obs(wall)
+def test_blind_zone_reads_near(camera_env):
+    *_, obs = first_obs(camera_env, NEAR_WALL)
     np.testing.assert_allclose(obs[2:6], 0.6)
 
 

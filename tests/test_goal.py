@@ -314,20 +314,34 @@ def test_family_goals_are_reachable_and_often_behind_walls():
     assert max(detours) > 1.5  # some goals lie behind a wall
 
 
-def test_geodesic_progress_pays_for_a_detour():
+# A 6 x 4 m room split by a partition open 1 m at its north end, the goal east behind it.
+DETOUR = RoomLayout(
+    name="detour",
+    size=(6.0, 4.0),
+    obstacles=(Box(pos=(0.0, -0.5), size=(0.2, 3.0)),),  # open 1 m at the north end
+    robot_pos=(-1.53, -1.07),  # off the 0.2 m grid's lines, which probes could round across
+    robot_yaw=np.pi / 2,  # north, along the wall
+    goal_pos=(1.5, -1.0),  # east, behind the wall
+)
+AT_WALL = dataclasses.replace(DETOUR, name="at_wall", robot_pos=(-0.35, -1.07), robot_yaw=0.0)
+ON_GRID = dataclasses.replace(DETOUR, name="on_grid", robot_pos=(-1.5, -1.0))
+
+
+@pytest.fixture(scope="module")
+def detour_env():
+    """`goal` in the rooms behind a partition (layouts 0, 1, 2: DETOUR, AT_WALL, ON_GRID), 200-step
+    episodes: (env, jitted reset, jitted step), compiled once for the tests below."""
+    env = jaxnav.make_env(
+        "goal", layouts=[DETOUR, AT_WALL, ON_GRID], randomize=EXACT, max_steps=200
+    )
+    return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+def test_geodesic_progress_pays_for_a_detour(detour_env):
     """Behind a wall, driving around it gains geodesic progress; the straight line would punish
     the first leg. Summed over the path the progress is the geodesic distance covered."""
-    wall = RoomLayout(
-        name="detour",
-        size=(6.0, 4.0),
-        obstacles=(Box(pos=(0.0, -0.5), size=(0.2, 3.0)),),  # open 1 m at the north end
-        robot_pos=(-1.5, -1.0),
-        robot_yaw=np.pi / 2,
-        goal_pos=(1.5, -1.0),
-    )
-    env = jaxnav.make_env("goal", layouts=[wall], randomize=EXACT)
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
-    state = start_in(env, reset, 0)
+    env, reset, step = detour_env
+    state = start_in(env, reset, 2)
     geodesic = jax.jit(jaxnav.core.goals.geodesic)
     start_geo = float(geodesic(state.info["field"], state.info["goal"], state.data.qpos[:2]))
     assert start_geo > 5.0  # 1.9 m north, 3 m east, 1.9 m south (the straight line is 3 m)
@@ -340,7 +354,7 @@ def test_geodesic_progress_pays_for_a_detour():
     np.testing.assert_allclose(total, start_geo - geo, atol=1e-4)
 
 
-def test_privileged_critic_sees_the_way_to_go():
+def test_privileged_critic_sees_the_way_to_go(detour_env):
     """What only the critic sees (`state.info["critic"]`): the distance to go as the progress
     reward measures it, how much closer a 0.3 m step in each of 8 directions would bring the
     robot, and the share of the time limit used. Behind a wall a step along it towards its open
@@ -348,18 +362,8 @@ def test_privileged_critic_sees_the_way_to_go():
     open the best step is along the straight line."""
     from jaxnav.tasks.goal import CRITIC_FEATURES, LOOK
 
-    detour = RoomLayout(
-        name="detour",
-        size=(6.0, 4.0),
-        obstacles=(Box(pos=(0.0, -0.5), size=(0.2, 3.0)),),  # open 1 m at the north end
-        robot_pos=(-1.53, -1.07),  # off the 0.2 m grid's lines, which probes could round across
-        robot_yaw=np.pi / 2,  # north, along the wall
-        goal_pos=(1.5, -1.0),  # east, behind the wall
-    )
-    at_wall = dataclasses.replace(detour, name="at_wall", robot_pos=(-0.35, -1.07), robot_yaw=0.0)
-    env = jaxnav.make_env("goal", layouts=[detour, at_wall], randomize=EXACT, max_steps=200)
+    env, reset, step = detour_env
     assert env.task.critic_observations == CRITIC_FEATURES == 10
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
     state = start_in(env, reset, 0)
     geodesic = jax.jit(jaxnav.core.goals.geodesic)
     goal, field = state.info["goal"], state.info["field"]

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import EXACT, KOBUKI, corridor
+from conftest import EXACT, KOBUKI, corridor, start_in
 
 import jaxnav
 from jaxnav.core.robot import TURTLEBOT2I
@@ -53,25 +53,27 @@ def test_speeds_reached_without_sideways_sliding(fast_env):
 def test_velocity_smoother_and_latency():
     """From rest, speed ramps at the smoother's 0.3 m/s^2 after `latency` steps of delay, and
     braking from 0.5 m/s takes about 1.7 s."""
+    # Without latency (the Kobuki's own pipeline) both checks share one env: the board's room is
+    # layout 0, a room clear for 3.5 m ahead is layout 1.
+    clear = corridor(Box(pos=(3.8, 0.0), size=(0.1, 0.1)), size=(8.0, 3.0))
+    kobuki = jaxnav.make_env("avoid", [BOARD, clear], randomize=KOBUKI, max_steps=200)
+    kobuki_jitted = jax.jit(kobuki.reset), jax.jit(kobuki.step)
     for latency in (0, 2):
-        cfg = dataclasses.replace(KOBUKI, latency_steps=(latency, latency))
-        env = jaxnav.make_env("avoid", [BOARD], randomize=cfg, max_steps=100)
-        reset, step = jax.jit(env.reset), jax.jit(env.step)
-        state = reset(jax.random.PRNGKey(0))
+        if latency == 0:
+            env, (reset, step) = kobuki, kobuki_jitted
+        else:
+            cfg = dataclasses.replace(KOBUKI, latency_steps=(latency, latency))
+            env = jaxnav.make_env("avoid", [BOARD], randomize=cfg, max_steps=100)
+            reset, step = jax.jit(env.reset), jax.jit(env.step)
+        state = start_in(env, reset, 0)
         speeds = []
         for _ in range(6):
             state = step(state, jnp.int32(0))
             speeds.append(body_velocity(state)[0])
         expected = [0.03 * max(0, k + 1 - latency) for k in range(6)]  # 0.3 m/s^2 x 0.1 s
         np.testing.assert_allclose(speeds, expected, atol=2e-3)
-    env = jaxnav.make_env(
-        "avoid",
-        [corridor(Box(pos=(3.8, 0.0), size=(0.1, 0.1)), size=(8.0, 3.0))],
-        randomize=KOBUKI,
-        max_steps=200,
-    )
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
-    state = reset(jax.random.PRNGKey(0))
+    env, (reset, step) = kobuki, kobuki_jitted
+    state = start_in(env, reset, 1)
     for _ in range(20):  # up to 0.5 m/s
         state = step(state, jnp.int32(0))
     assert body_velocity(state)[0] == pytest.approx(0.5, abs=0.01)

@@ -36,12 +36,12 @@ def interrupt(out, sig):
 
 
 # SIGINT's own handling (exit at once in one line, an unfinished folder removed) is tested in
-# test_reliability.py; its checkpoint-and-resume is the same path as SIGTERM's, so it runs with
-# the slow tests.
-@pytest.mark.parametrize(
-    "sig", [pytest.param(signal.SIGINT, marks=pytest.mark.slow), signal.SIGTERM]
-)
+# test_reliability.py; its checkpoint-and-resume is the same path as SIGTERM's.
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_checkpoints_then_resume_matches_uninterrupted(tiny_run, tmp_path, sig):
+    """Slow: two training processes (the interrupted run and its resume) each start Python and
+    compile the whole trainer before the bit-for-bit comparison can be made."""
     reference, _ = tiny_run  # the same flags, never interrupted
     out = tmp_path / "run"
     code, stdout, stderr = interrupt(out, sig)

@@ -95,7 +95,10 @@ def test_cli_refuses_existing_run_and_bad_flags(tiny_run, tmp_path):
     assert proc.returncode == 2 and "missing.json" in proc.stderr and "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_evaluate_cli_on_checkpoint(tiny_run, tmp_path):
+    """Slow: an evaluation process starts Python, loads the checkpoint and compiles the env and
+    the trained policy's rollout (the fast tier evaluates in-process with built-in policies)."""
     out, _ = tiny_run
     report = tmp_path / "eval.json"
     proc = subprocess.run(
