@@ -468,8 +468,9 @@ def _add_barn(results: dict, rooms, names, groups: dict, meta: dict) -> None:
     results["barn"] = {"optimal_speed": barn.OPTIMAL_SPEED, "own_speed": top_speed}
 
 
-def _pool(rooms: list[dict]) -> dict:
-    """Metrics pooled over all episodes of `rooms` (speed uses each room's control period)."""
+def pool(rooms: list[dict]) -> dict:
+    """Metrics pooled over all episodes of `rooms` (speed uses each room's control period); the
+    twin pools its rooms with it too."""
     cat = lambda k: np.concatenate([e[k] for e in rooms])  # noqa: E731
     periods = np.concatenate([np.full(len(e["steps"]), e["control_period"]) for e in rooms])
     task = {k: np.concatenate([e["metrics"][k] for e in rooms]) for k in rooms[0]["metrics"]}
@@ -536,7 +537,7 @@ def evaluate(
         physics=physics,
     )
     names = unique_names(layouts)
-    per_layout = {name: _pool([room]) for name, room in zip(names, rooms, strict=True)}
+    per_layout = {name: pool([room]) for name, room in zip(names, rooms, strict=True)}
     for name, m in per_layout.items():
         _check_finite(m, name)
     keys = ("paths", "collided", "qpos", "params", "env")
@@ -550,7 +551,7 @@ def evaluate(
     }
     results = {
         "layouts": per_layout,
-        "overall": _pool(rooms),
+        "overall": pool(rooms),
         "policy": policy.name,
         "physics": rooms[0]["env"].scene.cfg.physics,
         "steps": steps,
@@ -563,7 +564,7 @@ def evaluate(
         sizes = np.cumsum([0] + [len(v) for v in groups.values()])
         results["suite"] = suite
         results["families"] = {
-            f: _pool(rooms[a:b]) for f, a, b in zip(groups, sizes[:-1], sizes[1:], strict=True)
+            f: pool(rooms[a:b]) for f, a, b in zip(groups, sizes[:-1], sizes[1:], strict=True)
         }
         results["_families"] = {f: names[a] for f, a in zip(groups, sizes[:-1], strict=False)}
         meta = suite_meta(suite)

@@ -708,20 +708,6 @@ def run_room(policy_path, layout: RoomLayout, index: int, cfg: TwinConfig, video
     return room
 
 
-def room_metrics(rooms: list[dict]) -> dict:
-    """`jaxnav.evaluate.metrics` over every episode of `rooms` (each with its "coverage" and,
-    goal policies, "spl")."""
-    from jaxnav.evaluate import metrics
-
-    cat = lambda k: np.concatenate([room[k] for room in rooms])  # noqa: E731
-    periods = np.concatenate([np.full(len(r["steps"]), r["control_period"]) for r in rooms])
-    task = {k: np.concatenate([r["metrics"][k] for r in rooms]) for k in rooms[0]["metrics"]}
-    spl = cat("spl") if "spl" in rooms[0] else None
-    return metrics(
-        cat("collided"), cat("steps"), cat("distance"), periods, task, cat("coverage"), spl
-    )
-
-
 def _score_room(room: dict, layout: RoomLayout, radius: float, success_radius) -> None:
     """Adds the room's "coverage" and (goal policies) "spl" per episode, as evaluate measures."""
     from jaxnav.core.families import coverage
@@ -763,10 +749,12 @@ def run_twin(
 
 def _results(policy_path, cfg: TwinConfig, names, rooms, suite, groups) -> dict:
     """The results of `run_twin` from each room's `run_room` record."""
+    from jaxnav.evaluate import pool
+
     steps = sum(int(r["steps"].sum()) for r in rooms)
     results = {
-        "layouts": {name: room_metrics([room]) for name, room in zip(names, rooms, strict=True)},
-        "overall": room_metrics(rooms),
+        "layouts": {name: pool([room]) for name, room in zip(names, rooms, strict=True)},
+        "overall": pool(rooms),
         "policy": str(policy_path),
         "physics": "wheeled",
         "steps": cfg.steps,
@@ -780,7 +768,7 @@ def _results(policy_path, cfg: TwinConfig, names, rooms, suite, groups) -> dict:
         ends = np.cumsum([0] + [len(v) for v in groups.values()])
         spans = zip(groups, ends[:-1], ends[1:], strict=True)
         results["suite"] = suite
-        results["families"] = {family: room_metrics(rooms[a:b]) for family, a, b in spans}
+        results["families"] = {family: pool(rooms[a:b]) for family, a, b in spans}
     return results
 
 
