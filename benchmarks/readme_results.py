@@ -26,6 +26,8 @@ import sys
 import time
 from pathlib import Path
 
+from report import write_json
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 OUT = RESULTS / "readme.json"
@@ -267,7 +269,7 @@ def main() -> None:
     if args.paper:
         cpu.append(paper_line(Path(args.run or RESULTS / "readme-run")))
     results = {"lines": cpu + gathered_lines()}
-    OUT.write_text(json.dumps(results, indent=2) + "\n")
+    write_json(OUT, results)  # with the command and commit
     print(render(results))
     if args.write_readme:
         write_readme(results)
