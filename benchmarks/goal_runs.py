@@ -1,7 +1,7 @@
 """One line per `time_to_solve_goal.py` result: where its evaluations settle, and when the bar
 was first met. The goal tables of docs/results.md come from it.
 
-    python benchmarks/goal_runs.py benchmarks/results/sweeps/goal/cpu_shape7_*.json
+    python benchmarks/goal_runs.py benchmarks/results/time_to_solve_goal_*.json
     python benchmarks/goal_runs.py --last 5 --families corridor clutter RUN.json ...
 
 Columns: env steps trained, training seconds (evaluations and compile apart), env-steps/s, the

@@ -39,3 +39,18 @@ def test_render_names_command_machine_and_date(script):
     assert script.render({"lines": [line]}).splitlines()[-1] == (
         "| w | `python -m x` | m, 2026-01-01 | r |"
     )
+
+
+def test_every_result_says_where_it_came_from():
+    """Each result JSON in benchmarks/results names its command, its git commit and its date
+    (`benchmarks/report.py`'s `write_json` adds them)."""
+    results = sorted((ROOT / "benchmarks" / "results").rglob("*.json"))
+    if not results:
+        pytest.skip("benchmarks/ is not in this checkout")
+    for path in results:
+        data = json.loads(path.read_text())
+        name = path.relative_to(ROOT)
+        assert data.get("command"), f"{name}: no command"
+        commit = data.get("commit", "")
+        assert len(commit) == 40 and int(commit, 16) >= 0, f"{name}: commit {commit!r}"
+        assert data.get("date"), f"{name}: no date"
