@@ -42,7 +42,7 @@ def main() -> None:
     p.add_argument("--json", type=Path, default=HERE / "results" / "barn.json")
     args = p.parse_args()
     import jaxnav
-    from jaxnav.evaluate import evaluate
+    from jaxnav.evaluation import evaluate
 
     train_s = None
     if args.train:

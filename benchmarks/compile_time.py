@@ -3,6 +3,12 @@ compilation cache saves a repeated run with the same shapes.
 
     python benchmarks/compile_time.py --preset cpu             # avoid and goal, on this machine
     python benchmarks/compile_time.py --preset gpu --json benchmarks/results/compile_time_h100.json
+    python benchmarks/compile_time.py --pieces --json benchmarks/results/compile_time_cpu.json
+
+`--pieces`: each piece of the training program lowered and compiled on its own in this process,
+with the preset's shapes (`PIECES`), `--repeats` times in fresh programs (medians): trace+lower
+and XLA compile seconds, and the size of its HLO (ops of the lowered StableHLO, characters of the
+optimised HLO).
 
 Per task: in this process, `trainer.run_chunk` lowered (tracing: `jax.stages` `.lower`) and
 compiled (`.compile`) on its own, with the size of its HLO text; then `python -m jaxnav.train` run
@@ -32,7 +38,7 @@ def split(env: str, preset: str) -> dict:
     import jax
 
     from jaxnav.ppo.train import make_train
-    from jaxnav.train import build_config, make_run_env
+    from jaxnav.training import build_config, make_run_env
 
     config = build_config(preset, env=env, overrides={"ppo": {"updates_per_chunk": 1}})
     tick = time.perf_counter()
@@ -53,6 +59,113 @@ def split(env: str, preset: str) -> dict:
         "compile_s": round(compiled, 1),
         "hlo_chars": hlo,
     }
+
+
+PIECES = {
+    "env_reset": "the task's reset, vmapped over the robots",
+    "env_step": "the task's step, vmapped over the robots",
+    "autoreset_draw": "AutoReset.draw: a rollout's new episodes in one batch (reset_ahead)",
+    "autoreset_step": "AutoReset(EpisodeStats) step, as the rollout takes it",
+    "init": "Trainer.init: reset of every robot, network and optimiser",
+    "rollout": "the rollout scan (policy, auto-reset step)",
+    "learn": "GAE, epochs x minibatch scan of loss, grad and optax",
+    "chunk": "Trainer.run_chunk, one update (what a run compiles)",
+}
+
+
+def piece_programs(env_name: str, preset: str) -> dict:
+    """{piece: (function, abstract args)} of `PIECES` for the preset's shapes."""
+    import jax
+
+    from jaxnav.ppo.train import make_train
+    from jaxnav.training import build_config, make_run_env
+    from jaxnav.wrappers import AutoReset, EpisodeStats
+
+    config = build_config(preset, env=env_name, overrides={"ppo": {"updates_per_chunk": 1}})
+    cfg, env = config.ppo, make_run_env(config)
+    trainer = make_train(cfg, env)
+    parts, shape = trainer.parts, jax.eval_shape
+    keys = jax.ShapeDtypeStruct((cfg.num_envs, 2), jax.numpy.uint32)
+    key = jax.ShapeDtypeStruct((2,), jax.numpy.uint32)
+    ts = shape(trainer.init, key)
+    rolled = shape(parts["rollout"], ts)  # (env_state, key, traj)
+    action = jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), rolled[2].action
+    )
+    wrapped = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place)
+    state = shape(jax.vmap(env.reset), keys)
+    programs = {
+        "env_reset": (jax.vmap(env.reset), (keys,)),
+        "env_step": (jax.vmap(env.step), (state, action)),
+    }
+    if cfg.reset_ahead:
+        fresh = shape(lambda s: wrapped.draw(s, cfg.rollout_length)[1], ts.env_state)
+        one = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), fresh)
+        programs["autoreset_draw"] = (
+            lambda s: wrapped.draw(s, cfg.rollout_length),
+            (ts.env_state,),
+        )
+        programs["autoreset_step"] = (wrapped.step, (ts.env_state, action, one))
+    else:
+        programs["autoreset_step"] = (wrapped.step, (ts.env_state, action))
+    programs["init"] = (trainer.init.__wrapped__, (key,))
+    programs["rollout"] = (parts["rollout"], (ts,))
+    programs["learn"] = (parts["learn"], (ts, *rolled))
+    programs["chunk"] = (trainer.run_chunk.__wrapped__, (ts,))
+    return programs
+
+
+def time_piece(fn, args, repeats: int) -> dict:
+    """Median trace+lower and compile seconds of `fn` on `args` over `repeats` fresh jits; the
+    sizes of its HLO."""
+    import statistics
+
+    import jax
+
+    lowers, compiles = [], []
+    for _ in range(repeats):
+        jax.clear_caches()
+        tick = time.perf_counter()
+        lowered = jax.jit(fn).lower(*args)
+        lowers.append(time.perf_counter() - tick)
+        tick = time.perf_counter()
+        compiled = lowered.compile()
+        compiles.append(time.perf_counter() - tick)
+    text = lowered.as_text()
+    return {
+        "lower_s": round(statistics.median(lowers), 2),
+        "compile_s": round(statistics.median(compiles), 2),
+        "lower_runs_s": [round(x, 2) for x in lowers],
+        "compile_runs_s": [round(x, 2) for x in compiles],
+        "hlo_ops": sum(
+            " = stablehlo." in line or ' = "stablehlo.' in line for line in text.splitlines()
+        ),
+        "hlo_kchars": len(text) // 1000,
+        "compiled_kchars": len(compiled.as_text() or "") // 1000,
+    }
+
+
+def pieces(env: str, preset: str, repeats: int, only=None) -> dict:
+    """{piece: time_piece(...)} of one task, printed as they come."""
+    rows = {}
+    for name, (fn, args) in piece_programs(env, preset).items():
+        if only and name not in only:
+            continue
+        rows[name] = time_piece(fn, args, repeats)
+        print(env, name, rows[name], flush=True)
+    return rows
+
+
+def print_pieces(rows: dict) -> None:
+    print(
+        f"{'env':<6} {'piece':<15} {'lower s':>8} {'compile s':>10} {'HLO ops':>8} {'opt kchars':>10}"
+    )
+    for env, table in rows.items():
+        for name, r in table.items():
+            print(
+                f"{env:<6} {name:<15} {r['lower_s']:>8} {r['compile_s']:>10} {r['hlo_ops']:>8} "
+                f"{r['compiled_kchars']:>10}"
+            )
 
 
 def cli_runs(env: str, preset: str) -> dict:
@@ -96,7 +209,7 @@ def cli_runs(env: str, preset: str) -> dict:
 
 
 def _one_update(env: str, preset: str) -> int:
-    from jaxnav.train import build_config
+    from jaxnav.training import build_config
 
     return build_config(preset, env=env).ppo.batch_size
 
@@ -106,7 +219,21 @@ def main() -> None:
     p.add_argument("--preset", default="cpu")
     p.add_argument("--envs", default="avoid,goal")
     p.add_argument("--json", type=Path, default=HERE / "results" / "compile_time.json")
+    p.add_argument("--pieces", action="store_true", help="time each piece (module doc)")
+    p.add_argument("--only", default="", help="with --pieces: these pieces only (comma list)")
+    p.add_argument("--repeats", type=int, default=3, help="with --pieces: fresh jits per piece")
     args = p.parse_args()
+    if args.pieces:
+        only = [x for x in args.only.split(",") if x]
+        rows = {env: pieces(env, args.preset, args.repeats, only) for env in args.envs.split(",")}
+        info = run_info("command", "device", "jax", "mujoco", "date")
+        flags = os.environ.get("XLA_FLAGS", "")
+        write_json(
+            args.json,
+            {**info, "preset": args.preset, "xla_flags": flags, "pieces": PIECES, "rows": rows},
+        )
+        print_pieces(rows)
+        return
     rows = {}
     for env in args.envs.split(","):
         rows[env] = {**split(env, args.preset), **cli_runs(env, args.preset)}

@@ -66,7 +66,7 @@ def fresh_run(root: Path, env: str, preset: str) -> Path:
     from jaxnav.ppo.networks import init_stats
     from jaxnav.ppo.train import TrainState, make_network
     from jaxnav.tasks.registry import critic_size, observation_size
-    from jaxnav.train import build_config
+    from jaxnav.training import build_config
 
     config = build_config(preset, env=env)
     size = observation_size(config.task, config.sensor)

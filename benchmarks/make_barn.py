@@ -8,7 +8,7 @@ BARN Challenge repository and writes, into `--out`:
 
 - `easy.json`, `medium.json`, `hard.json`: worlds 0-99, 100-199 and 200-299, rooms `world_N`
   converted by `jaxnav.io.barn.world_layout` (one suite family per file, see
-  `jaxnav.evaluate.load_suite`). BARN's worlds are numbered in the order of its difficulty metrics
+  `jaxnav.evaluation.load_suite`). BARN's worlds are numbered in the order of its difficulty metrics
   (Perille et al. 2020), easiest first.
 - `suite.json`: `{"score": "barn", "time_limit_s": 100, "rooms": {"world_N": {"optimal_path_m":
   ..., "difficulty_rank": N}}}`, the optimal path length as the challenge's run.py measures it
@@ -39,7 +39,7 @@ OUT = Path(__file__).resolve().parent.parent / "scenes" / "barn"
 WORLDS = "jackal_helper/worlds/BARN"
 COUNT = 300
 GROUPS = {"easy": range(0, 100), "medium": range(100, 200), "hard": range(200, 300)}
-META = "suite.json"  # jaxnav.evaluate.SUITE_META
+META = "suite.json"  # jaxnav.evaluation.SUITE_META
 
 
 def convert(root: Path) -> tuple[dict, dict]:

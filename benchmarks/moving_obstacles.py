@@ -5,7 +5,7 @@
     python benchmarks/moving_obstacles.py --checkpoint runs/goal-gpu --episodes 20 --steps 500 \\
         --json benchmarks/results/moving_obstacles_goal_h200.json
 
-Runs `jaxnav.evaluate.evaluate(policy, suite="benchmark")` twice on the same rooms, spawns and
+Runs `jaxnav.evaluation.evaluate(policy, suite="benchmark")` twice on the same rooms, spawns and
 per-episode robot parameters (same seed): without moving obstacles, and with `--count` (default
 1-3) bouncing cylinders per room at `--speed` (default 0.2-0.5 m/s) added by the evaluation's
 randomisation (`--randomize.moving-count` of `python -m jaxnav.evaluate`). Reports per family and
@@ -21,7 +21,7 @@ from pathlib import Path
 
 from report import run_info, write_json
 
-from jaxnav.evaluate import evaluate
+from jaxnav.evaluation import evaluate
 from jaxnav.runs import load_policy
 
 DEFAULT_JSON = Path(__file__).parent / "results" / "moving_obstacles_cpu.json"

@@ -26,11 +26,12 @@ from report import run_info, write_json
 
 import jaxnav
 from jaxnav.core.goals import ShortestPaths
-from jaxnav.evaluate import eval_randomize, load_suite, make_rollout, spl_from
+from jaxnav.evaluation import eval_randomize, load_suite, make_rollout
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
-from jaxnav.train import build_config, make_run_env
+from jaxnav.tasks.goal import spl_from
+from jaxnav.training import build_config, make_run_env
 
 BAR = {"overall_free": 0.95, "family_free": 0.90, "overall_speed": 0.2, "family_speed": 0.1}
 
@@ -71,7 +72,7 @@ def make_evaluator(policy, config, episodes: int, steps: int):
     control steps in every suite room in one compiled batch, for any `policy(policy_params,
     obs [E, D], key) -> actions [E, ...]` of the run's task, and returns per-episode numpy arrays
     [E]: `collided`, `speed` (m/s) and, for a goal task (one with a `success` metric), `success`
-    and `spl` (`jaxnav.evaluate.spl_from`, the shortest paths of `ShortestPaths` built once per
+    and `spl` (`jaxnav.tasks.goal.spl_from`, the shortest paths of `ShortestPaths` built once per
     room, less the success radius). `family` names each episode's room family."""
     suite = load_suite("benchmark")
     layouts = [room for rooms in suite.values() for room in rooms]

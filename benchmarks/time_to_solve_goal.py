@@ -7,7 +7,7 @@ The bar: over `--episodes` episodes in each of the 32 rooms of `scenes/benchmark
 spawn, a reachable goal drawn per episode at least `goal_min_distance` away, `--steps` control
 steps), a success rate of at least 90 % and an SPL of at least 0.7 (issue 12). Every
 `--eval-every` chunks the greedy policy is evaluated in one compiled batch by `time_to_solve.py`'s
-evaluator; SPL is evaluate's (`jaxnav.evaluate.spl_from`: the grid's shortest path less the
+evaluator; SPL is evaluate's (`jaxnav.tasks.goal.spl_from`: the grid's shortest path less the
 success radius), its shortest paths from `jaxnav.core.goals.ShortestPaths` built once per room.
 Training time excludes the evaluations and the compile, which is reported on its own. `--set
 GROUP.FIELD=VALUE` overrides any run-config field, as in `time_to_solve.py`. With `--full` the
@@ -31,7 +31,7 @@ from time_to_solve import (  # benchmarks/: the script's own folder
 )
 
 from jaxnav.ppo.train import make_train
-from jaxnav.train import build_config, make_run_env
+from jaxnav.training import build_config, make_run_env
 
 SUCCESS_BAR, SPL_BAR = 0.9, 0.7
 

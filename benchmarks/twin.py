@@ -2,6 +2,7 @@
 
     python benchmarks/twin.py --checkpoint runs/avoid-cpu --episodes 5 --tag cpu
     python benchmarks/twin.py --checkpoint runs/avoid-cpu --rooms clutter-0,open-3 --episodes 10
+    python benchmarks/twin.py --checkpoint runs/avoid-cpu --steps 300 --calibration-pitch-deg 2
 
 The run's policy is exported (`jaxnav.export.export`, numpy) and run in the chosen rooms of the
 benchmark suite (default: the first room of every other family) by
@@ -9,7 +10,7 @@ benchmark suite (default: the first room of every other family) by
    the wheeled Kobuki, the velocity smoother, latency and mount error (`--episodes` per room),
    with kobuki_velocity_smoother's rule and again with the simulator's per-axis one (the
    difference is the smoother's share of any gap);
-2. `jaxnav.evaluate.evaluate` on the same rooms and spawns, the evaluation's sim-to-real ranges on,
+2. `jaxnav.evaluation.evaluate` on the same rooms and spawns, the evaluation's sim-to-real ranges on,
    under the fast physics (`--eval-episodes` per room: cheap, so its figure is the tighter one)
    and under the wheeled model (`--wheeled-episodes`), the twin's own physics.
 Prints collision-free rate and mean speed side by side, per room and overall, with the twin's
@@ -17,11 +18,18 @@ binomial standard error, and writes them to `benchmarks/results/twin_<tag>.json`
 and the commit (`report.write_json`), the twin's speed (control steps per second), where its
 loop sent zero velocity, and `observation_gap`: the twin's reading against the simulator's sensor
 at the same poses (where the two runs part). Runs on the CPU; the twin's cost is rendering.
+
+`--calibration-pitch-deg D` runs only the twin, with the camera D deg further down than the
+policy's mount in every episode, three times: the node reading depth at the policy's mount, with
+its start-up calibration (`calibration:=use`), and at the true mount; the collision-free rate and
+speed of each go into the JSON's "calibration" entry (with its own command and commit), the rest
+of the JSON kept.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import tempfile
 import time
@@ -30,11 +38,11 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from report import write_json
+from report import run_info, write_json
 
 from jaxnav import load_policy
 from jaxnav.core.sensors import observe
-from jaxnav.evaluate import (
+from jaxnav.evaluation import (
     eval_randomize,
     evaluate,
     load_suite,
@@ -67,6 +75,13 @@ def parse_args(argv=None):
     p.add_argument("--width", type=int, default=640, help="the twin's depth image width, px")
     p.add_argument("--height", type=int, default=480, help="the twin's depth image height, px")
     p.add_argument("--tag", default="cpu", help="the JSON is results/twin_<tag>.json")
+    p.add_argument(
+        "--calibration-pitch-deg",
+        type=float,
+        help="instead: the camera pitched this much more down than the policy's mount in every "
+        "episode, the node given the policy's mount, its start-up estimate, or the true mount; "
+        "written to the JSON's 'calibration' (the rest kept)",
+    )
     return p.parse_args(argv)
 
 
@@ -171,10 +186,48 @@ def run_twins(npz, rooms, args) -> tuple[dict, dict]:
     return out, first
 
 
+MOUNTS = {"policy's mount": "policy", "start-up calibration": "calibrate", "true mount": "true"}
+
+
+def run_calibration(npz, rooms, args) -> dict:
+    """The twin with the camera pitched `--calibration-pitch-deg` down from the policy's mount
+    (height and yaw errors drawn as usual), once per way the node learns the mount (MOUNTS):
+    {label: results}, with the settings and the command."""
+    out = {}
+    for label, mount in MOUNTS.items():
+        cfg = TwinConfig(
+            episodes=args.episodes, steps=args.steps, seed=args.seed, width=args.width,
+            height=args.height, camera_pitch_error=0.0,
+            camera_pitch_bias=math.radians(args.calibration_pitch_deg), mount=mount,
+        )  # fmt: skip
+        tick = time.perf_counter()
+        full = run_twin(npz, rooms, cfg=cfg, log=print)
+        out[label] = {**strip_private(full), "seconds": round(time.perf_counter() - tick, 1)}
+    return {"pitch_error_deg": args.calibration_pitch_deg, "runs": out}
+
+
+def main_calibration(args, rooms, names) -> None:
+    """--calibration-pitch-deg: the 'calibration' entry of results/twin_<tag>.json."""
+    with tempfile.TemporaryDirectory() as tmp:
+        npz = export(args.checkpoint, "numpy", Path(tmp) / "policy.npz")
+        runs = run_calibration(npz, rooms, args)
+    print(table(names, runs["runs"]))
+    for label, run in runs["runs"].items():
+        print(f"{label}: loop {run['loop_states']}")
+    out = RESULTS / f"twin_{args.tag}.json"
+    previous = json.loads(out.read_text()) if out.exists() else {}
+    runs = {**run_info("command", "commit", "dirty", "date"), "rooms": names, **runs}
+    write_json(out, {**previous, "calibration": runs})
+    print(f"wrote {out}")
+
+
 def main(argv=None) -> None:
     args = parse_args(argv)
     rooms = pick_rooms(args.rooms)
     names = unique_names(rooms)
+    if args.calibration_pitch_deg is not None:
+        main_calibration(args, rooms, names)
+        return
     policy = load_policy(args.checkpoint)
     with tempfile.TemporaryDirectory() as tmp:
         npz = export(args.checkpoint, "numpy", Path(tmp) / "policy.npz")

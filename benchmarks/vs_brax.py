@@ -51,7 +51,7 @@ from time_to_solve import (
 
 from jaxnav.brax_env import BraxEnv, to_command
 from jaxnav.ppo.train import make_train
-from jaxnav.train import build_config, make_run_env
+from jaxnav.training import build_config, make_run_env
 
 TRAINERS = ("jaxnav", "jaxnav-reset-all", "brax")
 

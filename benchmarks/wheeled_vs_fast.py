@@ -5,7 +5,7 @@
     python benchmarks/wheeled_vs_fast.py --episodes 4   # no checkpoint: the forward/random baselines
 
 For each policy (the checkpoint, else the `forward` and `random` baselines):
-1. closed loop: `jaxnav.evaluate.evaluate(policy, suite="benchmark", physics=...)` under "fast"
+1. closed loop: `jaxnav.evaluation.evaluate(policy, suite="benchmark", physics=...)` under "fast"
    and "wheeled" on the same rooms, spawns and per-episode parameters (same seed): collision-free
    rate and mean speed of each, and their difference in points (the issue's target: within 3);
 2. open loop: the fast model's action sequence of every episode, replayed unchanged through the
@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from report import run_info, write_json
 
-from jaxnav.evaluate import eval_randomize, evaluate, first_state, load_suite, make_eval_env
+from jaxnav.evaluation import eval_randomize, evaluate, first_state, load_suite, make_eval_env
 from jaxnav.policy import BASELINES
 
 HORIZONS_S = (1.0, 5.0, 10.0)  # when the open-loop divergence is read

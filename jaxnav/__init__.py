@@ -18,9 +18,10 @@ __all__ = [
     "train",
 ]
 
-# Public name -> the module that defines it. `train` and `evaluate` are the modules themselves (both
-# callable, and the `python -m` entry points: importing them lazily keeps `python -m jaxnav.train`
-# from finding its own module half-imported).
+# Public name -> the module that defines it. `train` and `evaluate` are functions of the library
+# (`jaxnav.training`, `jaxnav.evaluation`); the modules `jaxnav/train.py` and `jaxnav/evaluate.py`
+# only run their command lines (`python -m jaxnav.train`, `jaxnav.cli.train`) and refuse to be
+# imported, so `jaxnav.train` is never rebound to a module.
 _SOURCES = {
     "LayoutError": "jaxnav.io.layouts",
     "RoomLayout": "jaxnav.io.layouts",
@@ -28,18 +29,16 @@ _SOURCES = {
     "load_policy": "jaxnav.runs",
     "make_brax_env": "jaxnav.brax_env",  # imports brax, only when asked for
     "make_env": "jaxnav.tasks.registry",
-    "train": None,
-    "evaluate": None,
+    "train": "jaxnav.training",
+    "evaluate": "jaxnav.evaluation",
 }
 
 
 def __getattr__(name: str):
     if name not in _SOURCES:
         raise AttributeError(f"module 'jaxnav' has no attribute '{name}'")
-    if _SOURCES[name] is None:
-        return importlib.import_module(f"jaxnav.{name}")
     return getattr(importlib.import_module(_SOURCES[name]), name)
 
 
 # Ctrl-C honoured from the first instant of `python -m jaxnav.train` (and evaluate, export).
-importlib.import_module("jaxnav.cli").early_interrupts()
+importlib.import_module("jaxnav.process").early_interrupts()

@@ -48,6 +48,9 @@ SMOOTHER_CONFIG = "config/velocity_smoother.yaml"
 MUX_CONFIG = "config/cmd_vel_mux.yaml"
 FOLDERS = ("launch", "config")  # what `write_deployment` adds to a bundle: these folders,
 FILES = ("Dockerfile",)  # these files, and README.txt
+# Written on the robot into a bundle (`python3 -m jaxnav_robot.calibrate --out config/mount.yaml`):
+# a new bundle in its place keeps them.
+KEPT = ("config/mount.yaml",)
 DRIVER_TOPIC = "commands/velocity"  # kobuki_ros's velocity input (geometry_msgs/Twist)
 POLICY_TOPIC = "policy/cmd_vel"  # the policy's output, the smoother's input
 # cmd_vel_mux inputs: (name, topic, timeout s, priority, description), highest priority first.
@@ -166,6 +169,7 @@ NODE_NOTES = {
     "goal_status_topic": "goal policies: std_msgs/String status",
     "header_stamps": "age sensor messages by header.stamp (false: by arrival)",
     "goal_topic": "goal policies: geometry_msgs/PoseStamped goal, in the odometry's frame",
+    "goal_point": "true: goal_topic carries geometry_msgs/PointStamped (RViz's Publish Point)",
     "odom_topic": "goal policies: nav_msgs/Odometry (the Kobuki driver's)",
     "rate_hz": "commands per second: 1 / the control period the policy was trained with",
     "max_age": "s; sensor data older than this: zero velocity",
@@ -174,8 +178,14 @@ NODE_NOTES = {
     "readings_per_stray": "a sector reads its (1 + known // this)-th nearest (as trained)",
     "max_unknown": "a frame with more unknown readings than this share: zero velocity",
     "band_deg": "one-row policies: image rows within +-this of the horizon are read",
-    "tilt_deg": "camera pitch, deg, down +: as trained; set the measured one",
-    "camera_height": "camera height above the floor, m: as trained; set the measured one",
+    "tilt_deg": "camera pitch, deg, down +: as trained; config/mount.yaml's where calibrated",
+    "camera_height": "camera height above the floor, m: as trained; config/mount.yaml's too",
+    "calibration": "check: refuse to drive where the first frames' mount is off tilt_deg, "
+    "camera_height; use: drive with that mount; off",
+    "calibration_frames": "frames with floor the start-up calibration estimates from",
+    "pitch_tolerance_deg": "calibration check: largest pitch error let pass, deg",
+    "height_tolerance": "calibration check: largest camera height error let pass, m",
+    "roll_tolerance_deg": "calibration check and use: largest roll let pass, deg",
 }
 
 
@@ -295,8 +305,9 @@ with use_mux:=true (default):
     teleop -> cmd_vel_mux/input/teleop (ranked above the policy)
 
 The mux's inputs are config/cmd_vel_mux.yaml's; the smoother's limits config/velocity_smoother.yaml's
-(those the policy was trained with); the node's parameters config/jaxnav.yaml's, which the launch
-arguments override. use_mux:=false: policy -> smoother -> commands/velocity, no mux, no safety
+(those the policy was trained with); the node's parameters config/jaxnav.yaml's, then the camera
+mount of config/mount.yaml where `python3 -m jaxnav_robot.calibrate --out config/mount.yaml`
+wrote one, which the launch arguments override. use_mux:=false: policy -> smoother -> commands/velocity, no mux, no safety
 controller, no teleop. stamped:=true (with use_mux:=false): the node alone, sending
 geometry_msgs/TwistStamped on cmd_vel for a stack that takes them (the smoother and the mux take
 Twist). driver:=true also starts the Kobuki driver (kobuki_node) on device_port.
@@ -384,6 +395,8 @@ def _policy(get, cmd_vel=POLICY_TOPIC, stamped=False):
         overrides["policy"] = str(Path(overrides["policy"]).expanduser().resolve())
     params_file = str(Path(get["params_file"]).expanduser().resolve())
     cmd = ["python3", "-m", "jaxnav_robot.ros_node", "--ros-args", "--params-file", params_file]
+    if (CONFIG / "mount.yaml").is_file():  # python3 -m jaxnav_robot.calibrate's: it wins
+        cmd += ["--params-file", str(CONFIG / "mount.yaml")]
     for name, value in overrides.items():  # after the file: these win
         text = ("true" if value else "false") if isinstance(value, bool) else json.dumps(value)
         cmd += ["-p", f"{name}:={text}"]
@@ -599,8 +612,10 @@ The node alone, without the launch file (ROS 2 sourced, in this folder):
   python3 -m {package}.ros_node --policy policy.npz \\
       --ros-args -r cmd_vel:=commands/velocity -p speed_calibration:=1.2
 
-  # the camera's measured height (m) and pitch (deg, down +), for the floor rule of policies
-  # trained with several rows (default: the mount they were trained with)
+  # the camera's height (m) and pitch (deg, down +), for the floor rule of policies trained
+  # with several rows, measured from the floor (robot on open floor; the launch file reads
+  # config/mount.yaml; the node checks the mount at start-up and refuses to drive where it is off)
+  python3 -m {package}.calibrate --live /camera/depth/image_raw --out config/mount.yaml
   python3 -m {package}.ros_node --policy policy.npz \\
       --ros-args -r cmd_vel:=commands/velocity -p camera_height:=0.3 -p tilt_deg:=1.0
 

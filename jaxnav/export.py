@@ -9,7 +9,8 @@ folder holding `jaxnav_robot/` (a copy of `jaxnav.robot_side`: numpy, and rclpy 
 `policy.npz`, the ROS 2 launch file, its configuration and a Dockerfile (`jaxnav.bundle`), and
 `README.txt` with the commands to run on the robot; it is made in a temporary
 folder beside DIR and renamed into place when complete (a previous bundle there is replaced
-whole), so DIR never holds half a bundle. Both formats hold the actor MLP and the observation
+whole, except what the robot wrote into it: its camera calibration, `config/mount.yaml`, is kept),
+so DIR never holds half a bundle. Both formats hold the actor MLP and the observation
 normaliser, so they take raw sector distances (metres; the goal task's goal and last
 command after them, see `jaxnav.robot_side.policy.goal_observation`). The ONNX model maps `obs`
 float32 [N, D] to `logits` float32 [N, A] and `action` int64 [N] (greedy), or for continuous actions
@@ -35,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnav.bundle import FILES, FOLDERS, ROBOT_PACKAGE, Deployment, write_deployment
+from jaxnav.bundle import FILES, FOLDERS, KEPT, ROBOT_PACKAGE, Deployment, write_deployment
 from jaxnav.cli import Parser, UsageError, print_error
 from jaxnav.core.types import ContinuousActions
 from jaxnav.io.checkpoint import CheckpointError, resolve
@@ -108,6 +109,7 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
         camera_pitch=np.float64(config.robot.camera_pitch),
         floor_margin=np.float64(config.sensor.floor_margin),
         floor_margin_slope=np.float64(config.sensor.floor_margin_slope),
+        far_reads_max=np.int32(config.sensor.far_reads_max),
         control_period=np.float64(config.scene.control_period),  # s; float64: exact 10 Hz
         format_version=np.int32(2),  # what a format-2 reader reads right
     )
@@ -368,6 +370,7 @@ def _bundle(saved: SavedPolicy, folder, check: bool = True):
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
         result = _fill_bundle(saved, tmp, check, folder.name)
+        _keep_robot_files(folder, tmp)
         _put_in_place(tmp, folder)
     except ExportError as err:  # its message names the temporary folder: name the bundle
         raise type(err)(str(err).replace(str(tmp), str(folder))) from None
@@ -386,6 +389,14 @@ def _fill_bundle(saved: SavedPolicy, folder: Path, check: bool, name: str = "rob
     shutil.copytree(source, folder / ROBOT_PACKAGE, ignore=ignore)
     write_deployment(folder, Deployment.from_policy(arrays, saved.config, saved.ckpt, name))
     return result
+
+
+def _keep_robot_files(folder: Path, tmp: Path) -> None:
+    """Copies the files the robot wrote into the previous bundle `folder` (`KEPT`: the camera
+    calibration) into the new one, `tmp`, so replacing a bundle never loses them."""
+    for name in KEPT:
+        if (folder / name).is_file():
+            shutil.copy2(folder / name, tmp / name)
 
 
 def _put_in_place(tmp: Path, folder: Path) -> None:

@@ -14,7 +14,7 @@ observation (the 8 sector distances) and the commanded (v, w) over time, with th
 per tick. numpy, matplotlib and rosbags only: no jax.
 
 A goal policy (exported from the `goal` task) also needs the goal (geometry_msgs/PoseStamped on
-`--goal-topic`) and the odometry (nav_msgs/Odometry on `--odom-topic`), the node's flags and
+`--goal-topic`, or with `--goal-point` PointStamped) and the odometry (nav_msgs/Odometry on `--odom-topic`), the node's flags and
 defaults (a relative name resolves in the root namespace: `goal_pose` is /goal_pose). The messages
 of the three topics go to the loop in their recorded order, each as the node handles it
 (`GoalInput.on_goal_msg`, `on_odom_msg`); the plot and the CSV add the goal's distance and bearing
@@ -41,12 +41,11 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from jaxnav.cli import Parser, UsageError, print_error
+from jaxnav.robot_side.bag import IMAGE, SCAN, decoded, listing, open_bag
 from jaxnav.robot_side.ros_node import ControlLoop, add_goal_flags, add_loop_flags, make_loop
 
-IMAGE, SCAN = "sensor_msgs/msg/Image", "sensor_msgs/msg/LaserScan"
-POSE, ODOM = "geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry"
-# A goal policy's inputs besides the sensor: (flag, its key in the node's settings, message type).
-GOAL_INPUTS = (("--goal-topic", "goal_topic", POSE), ("--odom-topic", "odom_topic", ODOM))
+POSE, POINT = "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PointStamped"
+ODOM = "nav_msgs/msg/Odometry"
 
 
 class ReplayError(UsageError):
@@ -77,24 +76,6 @@ class Replay:
     """Goal policies: (topic, messages in the bag) of the goal and odometry topics."""
 
 
-def _rosbags():
-    """(Reader, typestore) of the rosbags library, or a ReplayError saying how to get it."""
-    try:
-        from rosbags.rosbag2 import Reader
-        from rosbags.typesys import Stores, get_typestore
-    except ImportError:
-        raise ReplayError(
-            "python -m jaxnav.replay needs the 'rosbags' package (pip install rosbags)"
-        ) from None
-    # sensor_msgs/Image and LaserScan are the same in every ROS 2 distribution.
-    return Reader, get_typestore(Stores.ROS2_HUMBLE)
-
-
-def _listing(topics: dict[str, str]) -> str:
-    """The bag's topics, "name (type)", for error messages."""
-    return ", ".join(f"{n} ({t})" for n, t in sorted(topics.items())) or "none"
-
-
 def pick_topic(bag: Path, topics: dict[str, str], topic: str | None) -> str:
     """The topic to replay among `topics` (name -> message type); errors name the bag."""
     fits = {n: t for n, t in topics.items() if t == SCAN or (t == IMAGE and "depth" in n)}
@@ -108,7 +89,7 @@ def pick_topic(bag: Path, topics: dict[str, str], topic: str | None) -> str:
     if len(fits) != 1:
         what = f"several fit ({', '.join(sorted(fits))})" if fits else "none fits"
         raise ReplayError(
-            f"{bag}: no single depth image or LaserScan topic, {what}; topics: {_listing(topics)}; "
+            f"{bag}: no single depth image or LaserScan topic, {what}; topics: {listing(topics)}; "
             "use --topic"
         )
     return next(iter(fits))
@@ -118,13 +99,17 @@ def goal_topics(topics: dict[str, str], get: dict) -> tuple[str, str]:
     """The bag's (goal, odometry) topics for a goal policy, named by the node's settings
     `goal_topic` and `odom_topic` (relative names in the root namespace, where the node runs)."""
     found = []
-    for flag, key, msgtype in GOAL_INPUTS:
+    goal = POINT if get.get("goal_point") else POSE  # the type the node subscribes to
+    for flag, key, msgtype in (
+        ("--goal-topic", "goal_topic", goal),
+        ("--odom-topic", "odom_topic", ODOM),
+    ):
         name = get[key] if get[key].startswith("/") else f"/{get[key]}"
         if topics.get(name) != msgtype:
             what = f"of type {topics[name]}" if name in topics else "not in the bag"
             raise ReplayError(
                 f"{flag} {get[key]}: {name} is {what}, and the goal policy needs its {msgtype} "
-                f"there; topics: {_listing(topics)}"
+                f"there; topics: {listing(topics)}"
             )
         found.append(name)
     return found[0], found[1]
@@ -134,14 +119,7 @@ def replay(bag, get: dict, topic: str | None = None, log=None) -> Replay:
     """Runs the node's loop over the bag's topic (and, for a goal policy, its goal and odometry
     topics). `get`: the node's settings (`make_loop`'s, and `goal_topic`, `odom_topic`)."""
     bag = Path(bag)
-    if not (bag / "metadata.yaml").is_file():
-        raise ReplayError(f"{bag}: no such rosbag2 (a folder holding metadata.yaml)")
-    Reader, typestore = _rosbags()
-    try:
-        reader = Reader(bag)
-        reader.open()
-    except Exception as err:  # noqa: BLE001 - rosbags raises several kinds for a broken bag
-        raise ReplayError(f"{bag}: unreadable rosbag2 ({err})") from None
+    reader, typestore = open_bag(bag)
     try:
         topics = {c.topic: c.msgtype for c in reader.connections}
         topic = pick_topic(bag, topics, topic)
@@ -154,34 +132,10 @@ def replay(bag, get: dict, topic: str | None = None, log=None) -> Replay:
             inputs[goal_topic] = lambda msg, stamp: loop.goal.on_goal_msg(msg)
             inputs[odom_topic] = loop.goal.on_odom_msg
         connections = [c for c in reader.connections if c.topic in inputs]
-        stamped = _decoded(bag, reader, connections, typestore)
+        stamped = decoded(bag, reader, connections, typestore)
         return _run(loop, rate, stamped, inputs, topic, clock)
     finally:
         reader.close()
-
-
-def _decoded(bag: Path, reader, connections, typestore):
-    """(ns, topic, message) of each message on `connections`, in recorded time order across them;
-    a ReplayError naming the bag where its storage or a message cannot be read."""
-    counts, done = dict.fromkeys((c.topic for c in connections), 0), 0
-    messages = iter(reader.messages(connections))
-    while True:
-        try:
-            connection, ns, raw = next(messages)
-        except StopIteration:
-            return
-        except Exception as err:  # noqa: BLE001 - sqlite3, apsw or mcap errors: damaged storage
-            raise ReplayError(f"{bag}: unreadable rosbag2 after {done} messages ({err})") from None
-        counts[connection.topic] += 1
-        try:
-            msg = typestore.deserialize_cdr(raw, connection.msgtype)
-        except Exception as err:  # noqa: BLE001 - truncated CDR: SerdeError, struct.error, ...
-            raise ReplayError(
-                f"{bag}: {connection.topic}: message {counts[connection.topic]} on that topic "
-                f"cannot be decoded as {connection.msgtype} ({err}); the bag is damaged"
-            ) from None
-        done += 1
-        yield ns, connection.topic, msg
 
 
 def _run(loop: ControlLoop, rate: float, stamped, inputs: dict, topic: str, clock: list) -> Replay:

@@ -15,7 +15,8 @@ What is simulated, and how often (the physics timestep is the wheeled model's 5 
 - the camera: 30 frames a second, at a phase drawn per episode (the camera and the node's timer
   are not in step), rendered at the Astra's 640x480 with its calibration (fx = fy = 570.3 px;
   other sizes scale it) from the mount the policy was trained with, off by a mount error drawn
-  per episode (height +-2 cm, pitch +-3 deg, yaw +-2 deg, uniform: the simulator's ranges). Depth
+  per episode (height +-2 cm, pitch +-3 deg, yaw +-2 deg, uniform: the simulator's ranges; the
+  node is given the true mount, or calibrates it at start-up: `TwinConfig.mount`). Depth
   nearer than 0.6 m (the blind zone) or beyond 8 m reads 0, as the Astra reports it; images go to
   the loop as sensor_msgs/Image (16UC1, millimetres, as the Astra driver's image_raw) with a
   CameraInfo, stamped with the twin's clock. The loop keeps only the newest image, so a frame
@@ -39,8 +40,9 @@ What is simulated, and how often (the physics timestep is the wheeled model's 5 
   after `steps` control steps, or (goal policies) once the robot's centre is within the
   policy's success radius of the goal.
 
-Metrics are `python -m jaxnav.evaluate`'s (`jaxnav.evaluate.metrics`, coverage and SPL), per room,
-per family (suites) and overall, in the same JSON keys, with the twin's settings under "twin".
+Metrics are `python -m jaxnav.evaluate`'s (`jaxnav.evaluation.metrics`, coverage and the goal
+task's declared metrics), per room, per family (suites) and overall, in the same JSON keys, with
+the twin's settings under "twin".
 The CPU cost is mostly rendering: `benchmarks/twin.py` measures it and compares the twin with
 `jaxnav.evaluate` on the same rooms (docs/deployment.md).
 
@@ -65,7 +67,7 @@ import numpy as np
 
 from jaxnav.cli import Parser, UsageError, print_error
 from jaxnav.core.assets import scenes_dir
-from jaxnav.core.layout import Cylinder, LayoutError, RoomLayout, is_free
+from jaxnav.core.layout import Cylinder, LayoutError, RoomLayout, expand_grids, is_free
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.io.layouts import check_goal_distance, load_layouts
 from jaxnav.robot_side.policy import NumpyPolicy
@@ -78,6 +80,7 @@ SPAWN_CLEARANCE = 0.3  # m between a drawn spawn's disc and anything (RandomizeC
 FLOOR_GROUP, SOLID_GROUP = 2, 1  # geom groups the depth camera sees: the floor, walls/obstacles
 VIDEO_SIZE = (320, 240)  # px of each of the two views of a video frame
 SMOOTHER_SILENCE = 0.5  # s: the smoother's longest wait for input (3 input periods, at most this)
+MOUNTS = ("true", "calibrate", "check", "policy")  # `TwinConfig.mount`
 
 
 class TwinError(UsageError):
@@ -114,6 +117,8 @@ class TwinConfig:
     """Camera height error, m: uniform in +-this per episode."""
     camera_pitch_error: float = math.radians(3.0)
     """Camera pitch error, rad: uniform in +-this per episode."""
+    camera_pitch_bias: float = 0.0
+    """rad (down +) added to every episode's pitch error: a stand tilted the same way throughout."""
     camera_yaw_error: float = math.radians(2.0)
     """Camera yaw error, rad: uniform in +-this per episode."""
     accel_limit: float = 0.3
@@ -136,10 +141,13 @@ class TwinConfig:
     """m, at least, of the room's walls: a real room's reach the ceiling, and the simulator's are
     unbounded planes (a layout's `wall_height`, 0.5 m by default, is what pictures draw; the
     camera's upper rays pass over a 0.5 m wall beyond 1.2 m)."""
-    calibrated: bool = True
-    """The node is given the episode's true camera height and pitch (its `camera_height` and
-    `tilt_deg`), as deployment asks (measure them on the robot) and as the simulator assumes;
-    False: the policy file's, off by the mount error. The yaw error stays unknown to it."""
+    mount: str = "true"
+    """The camera mount the node reads depth with (its `camera_height`, `tilt_deg`, `calibration`
+    parameters): "true": the episode's true height and pitch, as the simulator assumes, no start-up
+    calibration; "calibrate": the node's start-up calibration from its first frames, its estimate
+    used (`calibration:=use`); "check": the node's default, the policy file's mount checked
+    against that estimate (off by more than the tolerance: it refuses to drive); "policy": the
+    policy file's mount, off by the mount error, unchecked. The yaw error stays unknown to it."""
     goal_min_distance: float = 1.5
     """Goal policies in rooms without a goal: a goal is drawn at least this far (m) from the spawn
     (the goal task's default), on the free cells the spawn can reach."""
@@ -159,6 +167,12 @@ class TwinConfig:
         for name in errors:
             if not 0 <= getattr(self, name) < 0.5:
                 raise ValueError(f"{name}: must be in [0, 0.5), got {getattr(self, name)}")
+        if self.mount not in MOUNTS:
+            raise ValueError(f"mount: must be one of {', '.join(MOUNTS)}, got {self.mount!r}")
+        if not abs(self.camera_pitch_bias) < 0.5:
+            raise ValueError(
+                f"camera_pitch_bias: must be in (-0.5, 0.5), got {self.camera_pitch_bias}"
+            )
         lo, hi = self.latency_steps
         if not 0 <= lo <= hi:
             raise ValueError(f"latency_steps: need 0 <= low <= high, got {self.latency_steps}")
@@ -194,7 +208,7 @@ def room_model(layout: RoomLayout, cfg: TwinConfig) -> mujoco.MjModel:
             pos[axis], size[axis] = side * (half[axis] + t), t
             world.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, size=size, **solid)
             world.geoms[-1].rgba = [0.7, 0.6, 0.5, 1]
-    for ob in layout.obstacles:
+    for ob in expand_grids(layout.obstacles):  # a grid's cells as boxes
         half_h, z = 0.5 * (ob.height - ob.bottom), 0.5 * (ob.height + ob.bottom)
         if isinstance(ob, Cylinder):
             kind, size, quat = mujoco.mjtGeom.mjGEOM_CYLINDER, [ob.radius, half_h, 0], [1, 0, 0, 0]
@@ -391,7 +405,8 @@ def draw_episode(layout: RoomLayout, cfg: TwinConfig, rng, radius: float, goals:
     lo, hi = cfg.latency_steps
     latency = int(rng.integers(lo, hi + 1))
     errors = np.array([cfg.camera_height_error, cfg.camera_pitch_error, cfg.camera_yaw_error])
-    camera = tuple(float(x) for x in rng.uniform(-1.0, 1.0, 3) * errors)
+    camera = rng.uniform(-1.0, 1.0, 3) * errors + (0.0, cfg.camera_pitch_bias, 0.0)
+    camera = tuple(float(x) for x in camera)
     phase = float(rng.uniform(0.0, 1.0 / cfg.frame_rate))
     spawn = _spawn(layout, rng, radius)
     goal = _goal(layout, spawn[:2], cfg, rng, radius) if goals else None
@@ -504,10 +519,11 @@ class Twin:
         mujoco.mj_forward(m, d)
 
     def loop(self, draw: Draw):
-        """The node's loop for the episode, given the true camera height and pitch where
-        `calibrated`."""
-        get = self.get
-        if self.cfg.calibrated:
+        """The node's loop for the episode, reading depth with the mount `TwinConfig.mount` says."""
+        mode = self.cfg.mount
+        calibration = {"calibrate": "use", "check": "check"}.get(mode, "off")
+        get = {**self.get, "calibration": calibration}
+        if mode == "true":
             height, pitch, _ = self.mount(draw)
             get = {**get, "camera_height": height, "tilt_deg": math.degrees(pitch)}
         return make_loop(get, _quiet)[0]
@@ -709,13 +725,17 @@ def run_room(policy_path, layout: RoomLayout, index: int, cfg: TwinConfig, video
 
 
 def _score_room(room: dict, layout: RoomLayout, radius: float, success_radius) -> None:
-    """Adds the room's "coverage" and (goal policies) "spl" per episode, as evaluate measures."""
+    """Adds the room's "coverage" and (goal policies) the goal task's declared metrics per
+    episode (`GoalEnv.eval_metrics`: success, SPL, time to goal), as evaluate measures them."""
     from jaxnav.core.families import coverage
-    from jaxnav.evaluate import spl_values
+    from jaxnav.evaluation import declared_values
+    from jaxnav.tasks.goal import GoalConfig, GoalEnv
 
     room["coverage"] = coverage(layout, room["paths"])
     if room["metrics"]:
-        room["spl"] = spl_values(layout, room, radius, success_radius)
+        task = GoalConfig(success_radius=success_radius)
+        room.update(layout=layout, robot_radius=radius, task=task)
+        room["declared"] = declared_values(GoalEnv.eval_metrics, room)
 
 
 def run_twin(
@@ -725,7 +745,7 @@ def run_twin(
     "overall", "policy", "physics", "steps", "seed"; with a suite "suite" and "families"), and
     "twin": the settings, "loop_states" (ticks per loop state) and "control_steps_per_s".
     "_rooms" holds each room's `run_room` record (per-episode arrays; with `video`, frames)."""
-    from jaxnav.evaluate import load_suite, unique_names
+    from jaxnav.evaluation import load_suite, unique_names
 
     _ensure_gl()
     if (layouts is None) == (suite is None):
@@ -749,7 +769,8 @@ def run_twin(
 
 def _results(policy_path, cfg: TwinConfig, names, rooms, suite, groups) -> dict:
     """The results of `run_twin` from each room's `run_room` record."""
-    from jaxnav.evaluate import pool
+    from jaxnav.evaluation import pool
+    from jaxnav.tasks.goal import GoalEnv
 
     steps = sum(int(r["steps"].sum()) for r in rooms)
     results = {
@@ -763,6 +784,7 @@ def _results(policy_path, cfg: TwinConfig, names, rooms, suite, groups) -> dict:
         "loop_states": dict(sum((r["states"] for r in rooms), Counter()).most_common()),
         "control_steps_per_s": steps / max(sum(r["seconds"] for r in rooms), 1e-9),
         "_rooms": dict(zip(names, rooms, strict=True)),
+        "_eval_metrics": GoalEnv.eval_metrics if rooms[0]["metrics"] else (),
     }
     if suite is not None:
         ends = np.cumsum([0] + [len(v) for v in groups.values()])
@@ -785,7 +807,7 @@ def _ensure_gl() -> None:
 def write_videos(results: dict, folder: Path) -> list[Path]:
     """One GIF per room of the first episode's frames (`run_twin(..., video=True)`): the room
     from above with the path so far, and the robot's camera."""
-    from jaxnav.evaluate import file_stems, printable
+    from jaxnav.evaluation import file_stems, printable
     from jaxnav.viz.render import _write_gif
 
     rooms = results["_rooms"]
@@ -836,7 +858,7 @@ def _policy(path: str) -> NumpyPolicy:
 
 def _rooms(args, policy: NumpyPolicy) -> tuple[list[RoomLayout] | None, str | None]:
     """(layouts, None) of --layouts, or (None, suite) of a --suite that exists."""
-    from jaxnav.evaluate import load_suite
+    from jaxnav.evaluation import load_suite
 
     if args.suite is not None:
         try:
@@ -852,7 +874,7 @@ def _rooms(args, policy: NumpyPolicy) -> tuple[list[RoomLayout] | None, str | No
 
 def _config(args, policy: NumpyPolicy) -> TwinConfig:
     """The settings of the flags; --steps defaults to the suite's time limit, else 600."""
-    from jaxnav.evaluate import suite_meta
+    from jaxnav.evaluation import suite_meta
 
     steps = args.steps
     if steps is None:
@@ -877,7 +899,7 @@ def _check_outputs(args) -> None:
 
 
 def _run(argv) -> None:
-    from jaxnav.evaluate import format_table, strip_private
+    from jaxnav.evaluation import format_table, strip_private
     from jaxnav.io.files import write_atomic
 
     args = parse_args(argv)

@@ -11,8 +11,8 @@ import tempfile
 
 def _session_compilation_cache() -> None:
     """One persistent XLA compilation cache for the session, removed at its end; the subprocesses
-    (CLI runs, notebook kernels) inherit it through the environment, so the tiny runs of several
-    tests that compile the same programs compile them once. It caches compiled code only: every
+    (CLI runs, notebook kernels, the workers of `-n`) inherit it through the environment, so the
+    tiny runs of several tests that compile the same programs compile them once. It caches compiled code only: every
     test still traces and runs its program. Set before jax is imported, which reads the variable
     then (the same name on jax 0.10 and 0.11); a cache folder given by the caller is kept."""
     if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
@@ -30,6 +30,16 @@ FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_pass
 
 _session_compilation_cache()
 os.environ.setdefault("XLA_FLAGS", FAST_XLA)
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """Workers for `-n auto` (pyproject's addopts): one per core this process may use, at most 4.
+    A test file runs whole on one worker (`--dist loadfile`), so its module fixtures are made
+    once; each worker compiles the session fixtures it uses, XLA's part of it shared through the
+    session's compilation cache, so a fifth worker would mostly add memory."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(cores or 1, 4))
+
 
 import chex  # noqa: E402
 import jax  # noqa: E402

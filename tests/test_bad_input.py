@@ -22,9 +22,10 @@ import numpy as np
 import pytest
 
 import jaxnav
-import jaxnav.evaluate
+import jaxnav.cli.evaluate as evaluate_cli
+import jaxnav.cli.train as train_cli
 import jaxnav.export
-import jaxnav.train
+from jaxnav import evaluation
 from jaxnav.core.scene import SceneConfig
 from jaxnav.io import checkpoint
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout, save_layouts
@@ -174,18 +175,18 @@ def assert_one_error_line(code, err: str, *names: str) -> None:
 
 @pytest.fixture
 def train_main(monkeypatch, tmp_path):
-    """`jaxnav.train.main` (with --out in tmp_path unless `out=False`); a config that passes
+    """`jaxnav.cli.train.main` (with --out in tmp_path unless `out=False`); a config that passes
     validation fails the test at once instead of starting to train."""
 
     def refuse(config, *args, **kwargs):
         raise AssertionError(f"{PASSED}: {config}")
 
-    monkeypatch.setattr(jaxnav.train, "run", refuse)
+    monkeypatch.setattr(train_cli, "run", refuse)
     monkeypatch.chdir(tmp_path)
 
     def main(argv, out=True):
         argv = ["--out", tmp_path / "run", *argv] if out else argv
-        return jaxnav.train.main([str(a) for a in argv])
+        return train_cli.main([str(a) for a in argv])
 
     return main
 
@@ -254,7 +255,7 @@ def test_train_bad_layout(files, train_main, capsys, file):
 @pytest.mark.parametrize("file", sorted(BAD_LAYOUTS))
 def test_evaluate_bad_layout(files, capsys, file):
     argv = ["--policy", "forward", "--layouts", files / file]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, "--layouts", file, BAD_LAYOUTS[file][1])
 
 
@@ -267,7 +268,7 @@ def test_layouts_that_are_not_json_rooms(files, capsys, file):
     """Deep nesting, 5000-digit numbers, a FIFO (blocked forever) and devices (4 GB read)."""
     path = file if file.startswith("/") else files / file
     argv = ["--policy", "forward", "--layouts", path]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, "--layouts", str(path), SPECIAL[file])
 
 
@@ -276,23 +277,23 @@ def test_evaluate_unwritable_output_before_evaluating(capsys, monkeypatch, flag)
     def never(*args, **kwargs):
         raise AssertionError("evaluated before checking where the results go")
 
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate", never)
+    monkeypatch.setattr(evaluate_cli, "evaluate", never)
     path = "/proc/results.json" if flag == "--json" else "/proc"
-    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", flag, path], capsys)
+    code, err = _call(evaluate_cli.main, ["--policy", "forward", flag, path], capsys)
     assert_one_error_line(code, err, flag, "/proc", "cannot write")
 
 
 def test_evaluate_never_reports_nan(tmp_path, capsys, monkeypatch):
     """A room whose metrics are not finite is an error, and no JSON is written."""
-    real = jaxnav.evaluate.evaluate_rooms
+    real = evaluation.evaluate_rooms
 
     def diverged(*args, **kwargs):
         return [{**r, "distance": r["distance"] * np.nan} for r in real(*args, **kwargs)]
 
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate_rooms", diverged)
+    monkeypatch.setattr(evaluation, "evaluate_rooms", diverged)
     out = tmp_path / "eval.json"
     argv = ["--policy", "forward", "--episodes", "2", "--steps", "2", "--json", out]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     assert "room 'inference-room'" in err and "mean_speed is nan" in err
     assert not out.exists()
@@ -360,7 +361,7 @@ def test_train_out_is_a_file(tmp_path, monkeypatch, capsys):
     (tmp_path / "taken").write_text("")
     tiny = ["--num-envs", "1", "--rollout-length", "2", "--minibatch-size", "2"]  # if it did train
     argv = ["--out", "taken", *tiny, "--total-steps", "2", "--no-progress"]
-    code, err = _call(jaxnav.train.main, argv, capsys)
+    code, err = _call(train_cli.main, argv, capsys)
     assert_one_error_line(code, err, "--out", "taken")
 
 
@@ -381,7 +382,7 @@ def test_train_resume_broken_run(runs, train_main, capsys, run):
 @pytest.mark.parametrize("run", sorted(BROKEN_RUNS))
 def test_evaluate_broken_checkpoint(runs, capsys, run):
     argv = ["--checkpoint", runs / run, "--episodes", "1", "--steps", "1"]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, "--checkpoint", str(runs / run), BROKEN_RUNS[run][1])
 
 
@@ -436,9 +437,9 @@ def test_export_out_is_not_writable(runs, tmp_path, capsys):
 )
 def test_evaluate_bad_flags(tmp_path, monkeypatch, capsys, argv, names):
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
+    monkeypatch.setattr(evaluate_cli, "evaluate", _never)
     (tmp_path / "a_file").write_text("")
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, *names)
 
 
@@ -448,23 +449,23 @@ def _never(*args, **kwargs):
 
 def test_evaluate_batch_beyond_memory_before_compiling(monkeypatch, capsys):
     """100 million episodes aborted inside XLA; the need is now weighed before compiling."""
-    monkeypatch.setattr(jaxnav.evaluate, "make_rollout", _never)
-    monkeypatch.setattr(jaxnav.evaluate, "_available_memory", lambda: (2**30, "memory"))
+    monkeypatch.setattr(evaluation, "make_rollout", _never)
+    monkeypatch.setattr(evaluation, "_available_memory", lambda: (2**30, "memory"))
     argv = ["--policy", "forward", "--episodes", "100000000", "--steps", "5"]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, "episodes 100,000,000 x 1 room(s) x steps 5: needs about")
     assert "but the memory is 1.1 GB; at 5 steps about " in err
     argv = ["--policy", "forward", "--episodes", "1", "--steps", "200000000"]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, "not even 1 episode per room of 200,000,000 steps fits")
 
 
 def test_evaluate_full_disk_before_evaluating(tmp_path, monkeypatch, capsys):
     """A full disk failed the JSON's write after the whole evaluation."""
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
+    monkeypatch.setattr(evaluate_cli, "evaluate", _never)
     monkeypatch.setattr(shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(1, 1, 0))
     argv = ["--policy", "forward", "--json", tmp_path / "out" / "eval.json"]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, f"--json {tmp_path / 'out'}: 0.0 kB free, the results need")
     assert not list((tmp_path / "out").iterdir())
 
@@ -490,36 +491,36 @@ def test_layouts_of_several_files_in_both_command_lines(tmp_path, monkeypatch, t
     def evaluated(policy, layouts, **kwargs):
         raise Accepted([room.name for room in layouts])
 
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate", evaluated)
+    monkeypatch.setattr(evaluate_cli, "evaluate", evaluated)
     with pytest.raises(Accepted) as names:
-        jaxnav.evaluate.main(["--policy", "forward", "--layouts", str(a), str(b)])
+        evaluate_cli.main(["--policy", "forward", "--layouts", str(a), str(b)])
     assert names.value.args[0] == ["a-0", "b-0", "b-1"]
 
     def trained(config, *args, **kwargs):
         raise Accepted([room["name"] for room in config.layouts])
 
-    monkeypatch.setattr(jaxnav.train, "run", trained)
+    monkeypatch.setattr(train_cli, "run", trained)
     with pytest.raises(Accepted) as names:
         train_main(["--layouts", a, b])
     assert names.value.args[0] == ["a-0", "b-0", "b-1"]
     office = {**unnamed, "name": "office"}
     one, two = _layout_files(tmp_path, one=office, two=[unnamed, office])
-    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", one, two], capsys)
+    code, err = _call(evaluate_cli.main, ["--policy", "forward", "--layouts", one, two], capsys)
     assert_one_error_line(
         code, err, f"--layouts: {two}: room 'office' (#1): name: duplicate room name, also used "
         f"by room #0 of {one}"
     )  # fmt: skip
-    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", a, a], capsys)
+    code, err = _call(evaluate_cli.main, ["--policy", "forward", "--layouts", a, a], capsys)
     assert_one_error_line(code, err, f"--layouts: {a}: given twice")
 
 
 def test_evaluate_goal_on_the_spawn(tmp_path, monkeypatch, capsys):
     """A goal on the spawn reported 100 % success and SPL 0: the goal task refuses it."""
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
+    monkeypatch.setattr(evaluate_cli, "evaluate", _never)
     room = {**GOOD_ROOM, "goal": {"pos": [0.0, 0.1]}}
     (path,) = _layout_files(tmp_path, on_spawn=room)
     argv = ["--policy", "forward", "--env", "goal", "--layouts", path]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(
         code, err, f"--layouts: {path}: room 'office' (#0): goal.pos: 0.100 m from robot.pos "
         "[0.0, 0.0], within the goal task's success radius (0.3 m)"
@@ -528,7 +529,7 @@ def test_evaluate_goal_on_the_spawn(tmp_path, monkeypatch, capsys):
 
 def test_evaluate_layouts_too_big_to_compile(tmp_path, monkeypatch, capsys):
     """10,000 obstacles (with a free spawn or not) and 5,000 rooms compiled for minutes."""
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate", _never)
+    monkeypatch.setattr(evaluate_cli, "evaluate", _never)
     boxes = [
         {"type": "box", "pos": [-49.5 + i % 100, -49.5 + i // 100], "size": [0.3 + 0.7 * full] * 2}
         for full in (False, True)
@@ -544,7 +545,7 @@ def test_evaluate_layouts_too_big_to_compile(tmp_path, monkeypatch, capsys):
         (full, "obstacles: 10000 obstacles: at most 256 per room"),
         (rooms, "5000 rooms: at most 1024"),
     ]:
-        code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", path], capsys)
+        code, err = _call(evaluate_cli.main, ["--policy", "forward", "--layouts", path], capsys)
         assert_one_error_line(code, err, f"--layouts: {path}: ", fragment)
 
 
@@ -567,7 +568,7 @@ def test_unreadable_checkpoint_folder(runs, tmp_path, monkeypatch, capsys):
     shutil.copytree(runs / "good", closed / "run")
     _refuse_stat(monkeypatch, closed)
     argv = ["--checkpoint", closed / "run"]
-    code, err = _call(jaxnav.evaluate.main, argv, capsys)
+    code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, f"--checkpoint {closed / 'run'}: cannot access (Permission")
     code, err = _call(jaxnav.export.main, [closed / "run"], capsys)
     assert_one_error_line(code, err, f"{closed / 'run'}: cannot read (Permission denied)")
@@ -583,7 +584,7 @@ def test_unreadable_layout_file(tmp_path, monkeypatch, capsys):
         return real(file, *args, **kwargs)
 
     monkeypatch.setattr(os, "open", refuse)
-    code, err = _call(jaxnav.evaluate.main, ["--policy", "forward", "--layouts", path], capsys)
+    code, err = _call(evaluate_cli.main, ["--policy", "forward", "--layouts", path], capsys)
     assert_one_error_line(code, err, f"--layouts: {path}: cannot read (Permission denied)")
 
 

@@ -130,6 +130,7 @@ def test_suite_world_0_is_the_reader_output(world_0):
 
 @pytest.mark.slow
 def test_all_300_rooms_load():
+    """Every BARN world loads with a start and a goal. Slow: 300 layouts parsed and validated."""
     rooms = [r for group in GROUPS for r in jaxnav.load_layout(SUITE / f"{group}.json")]
     assert len(rooms) == 300
     assert all(r.goal_pos is not None and r.robot_pos is not None for r in rooms)
@@ -140,7 +141,7 @@ def test_evaluate_reports_barn_scores_per_world_group_and_overall():
     hand-computed for two worlds (optimal paths 10 m and 12 m, 0.1 s steps)."""
     import types
 
-    from jaxnav import evaluate as ev
+    from jaxnav import evaluation as ev
 
     env = types.SimpleNamespace(robot=types.SimpleNamespace(max_linear_speed=0.5))
     rooms = [
@@ -173,7 +174,7 @@ def test_evaluate_reports_barn_scores_per_world_group_and_overall():
 
 
 def test_a_suite_folder_keeps_its_own_data_beside_its_rooms(tmp_path, monkeypatch):
-    from jaxnav import evaluate as ev
+    from jaxnav import evaluation as ev
 
     folder = tmp_path / "mine"
     folder.mkdir()

@@ -128,6 +128,7 @@ def test_importing_jaxnav_does_not_import_brax():
 
 @pytest.mark.slow
 def test_brax_ppo_trains_on_it():
+    """brax's own PPO trains on a jaxnav env. Slow: brax's trainer compiles its own programs."""
     from brax.training.agents.ppo import networks, train
 
     env = small_env(max_steps=50)

@@ -152,6 +152,21 @@ def test_bundle_holds_the_deployment_files(deployed):
     compile((deployed / bundle.LAUNCH_FILE).read_text(), bundle.LAUNCH_FILE, "exec")
 
 
+def test_launch_reads_the_calibrated_mount(deployed, launch):
+    """config/mount.yaml, as `python3 -m jaxnav_robot.calibrate --out` writes it, is passed after
+    config/jaxnav.yaml (so its tilt_deg and camera_height win) where it exists."""
+    mount = deployed / "config" / "mount.yaml"
+    mount.write_text("/**/jaxnav_policy:\n  ros__parameters:\n    tilt_deg: 2.0\n")
+    try:
+        cmd = by_kind(launch())["jaxnav"].kwargs["cmd"]
+    finally:
+        mount.unlink()
+    files = [cmd[i + 1] for i, word in enumerate(cmd) if word == "--params-file"]
+    assert files == [str(deployed / bundle.NODE_CONFIG), str(mount)]
+    cmd = by_kind(launch())["jaxnav"].kwargs["cmd"]
+    assert cmd.count("--params-file") == 1
+
+
 def test_launch_connects_policy_smoother_mux_and_safety_controller(deployed, launch):
     started = by_kind(launch())
     assert set(started) == {"jaxnav", "kobuki_velocity_smoother", "cmd_vel_mux",

@@ -114,7 +114,10 @@ def test_layout_change_does_not_recompile(mixed_env):
     assert len(rooms) >= 2  # different rooms went through the same compiled functions
 
 
+@pytest.mark.slow
 def test_batched_model_matches_per_env_model(mixed_env):
+    """The batched MJX model puts each env's geoms where that env's own model does. Slow: MJX's
+    kinematics compiles for both models."""
     from mujoco import mjx
 
     scene = mixed_env.scene

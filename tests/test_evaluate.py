@@ -3,6 +3,7 @@
 Each `evaluate` call compiles one rollout (~10 s on a 2-core CPU), so the module shares two of them.
 """
 
+import dataclasses
 import json
 import math
 import os
@@ -17,9 +18,10 @@ import numpy as np
 import pytest
 
 import jaxnav
-import jaxnav.evaluate as evaluate_module
+import jaxnav.cli.evaluate as evaluate_module
+from jaxnav.cli.evaluate import main
 from jaxnav.core.scene import SCENES_DIR
-from jaxnav.evaluate import (
+from jaxnav.evaluation import (
     MAX_FILE_STEM,
     METRIC_KEYS,
     eval_randomize,
@@ -27,12 +29,14 @@ from jaxnav.evaluate import (
     file_stems,
     format_table,
     load_suite,
-    main,
     make_rollout,
     metrics,
     strip_private,
 )
 from jaxnav.policy import Policy, forward_policy, random_policy
+from jaxnav.tasks.avoid import AvoidEnv
+from jaxnav.tasks.base import EvalMetric
+from jaxnav.tasks.registry import TASKS
 from jaxnav.viz.plots import METRICS_HEADER, plot_reward_curve
 
 EPISODES, STEPS = 8, 150  # 150 steps: enough for the forward baseline to reach an obstacle
@@ -195,9 +199,10 @@ def _cautious():
     return Policy("cautious", lambda obs, key: jnp.where(obs.min(-1) < 0.7, 1, 0).astype(jnp.int32))
 
 
+@pytest.mark.slow
 def test_one_batch_matches_per_room_rollouts():
     """Two rooms of different families in one compiled batch give each room the metrics of its
-    own env's rollout."""
+    own env's rollout. Slow: it compiles a rollout per room besides the batch's."""
     suite = load_suite("benchmark")
     rooms = [suite["corridor"][0], suite["clutter"][1]]
     episodes, steps = 3, 120
@@ -214,6 +219,35 @@ def test_one_batch_matches_per_room_rollouts():
         assert got["mean_speed"] == pytest.approx(alone["mean_speed"], rel=1e-3), room.name
         assert got["mean_steps"] == alone["mean_steps"], room.name
         assert 0.0 < got["coverage"] <= 1.0
+
+
+class _CleanEnv(AvoidEnv):
+    """`avoid` with one more evaluation metric, declared on the task alone: the mean distance
+    driven by the episodes that did not collide."""
+
+    eval_metrics = (
+        EvalMetric(
+            "clean_distance",
+            value=lambda room: np.asarray(room["distance"], np.float64),
+            over=lambda room: ~np.asarray(room["collided"], bool),
+            column="clean m",
+            width=7,
+        ),
+    )
+
+
+def test_evaluate_reports_what_the_task_declares(room, monkeypatch):
+    """A new task's metric reaches the results, their JSON and the table with no change in
+    evaluation."""
+    monkeypatch.setitem(TASKS, "avoid_clean", TASKS["avoid"]._replace(env_cls=_CleanEnv))
+    policy = dataclasses.replace(forward_policy(), env="avoid_clean")
+    results = evaluate(policy, room, episodes=2, steps=5, seed=0)  # too short to collide
+    for m in [*results["layouts"].values(), results["overall"]]:
+        assert set(m) == {*METRIC_KEYS, "clean_distance"}
+        assert m["clean_distance"] == pytest.approx(m["mean_distance"])
+    assert "clean_distance" in json.loads(json.dumps(strip_private(results)))["overall"]
+    head, _, row, _ = format_table(results).splitlines()
+    assert head.endswith(" clean m") and row.endswith(f"{results['overall']['mean_distance']:7.2f}")
 
 
 @pytest.mark.slow

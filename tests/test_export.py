@@ -136,7 +136,14 @@ def test_bundle_runs_on_a_robot_without_jax(one_run, tmp_path):
     """The bundle's folder alone (no jaxnav, no jax) loads the policy and acts as JAX does."""
     folder = export.bundle(one_run[0], tmp_path / "robot")
     package = sorted(p.name for p in (folder / "jaxnav_robot").glob("*.py"))
-    assert package == ["__init__.py", "observation.py", "policy.py", "ros_node.py"]
+    assert package == [
+        "__init__.py",
+        "bag.py",
+        "calibrate.py",
+        "observation.py",
+        "policy.py",
+        "ros_node.py",
+    ]
     readme = (folder / "README.txt").read_text()
     assert "python3 -m jaxnav_robot.ros_node --policy policy.npz" in readme
     assert "--ros-args -r cmd_vel:=commands/velocity" in readme
@@ -182,13 +189,15 @@ def test_cli_bundle(one_run, tmp_path, capsys):
 
 def test_bundle_is_complete_or_absent(one_run, tmp_path, capsys, monkeypatch):
     """A bundle is made beside its folder and renamed into place: a previous bundle is replaced
-    whole, and a write that fails halfway leaves the previous one (or none) and nothing else."""
+    whole but for the robot's own calibration, and a write that fails halfway leaves the previous one (or none) and nothing else."""
     folder = tmp_path / "robot"
     assert export.main([str(one_run[0]), "--bundle", str(folder)]) == 0
     (folder / "jaxnav_robot" / "stale.py").write_text("")  # gone once replaced
+    (folder / "config" / "mount.yaml").write_text("calibrated on the robot\n")  # kept
     assert export.main([str(one_run[0]), "--bundle", str(folder)]) == 0
     assert sorted(p.name for p in folder.iterdir()) == sorted(export.BUNDLE)
     assert not (folder / "jaxnav_robot" / "stale.py").exists()
+    assert (folder / "config" / "mount.yaml").read_text() == "calibrated on the robot\n"
     before = {p.relative_to(folder): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
 
     def disk_full(*args, **kwargs):

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from jaxnav.core import families
+from jaxnav.core import grid as occupancy
 from jaxnav.core.geometry import signed_distance
+from jaxnav.core.randomize import RandomizeConfig, family_weights
 from jaxnav.io.layouts import Box, RoomLayout
 
 NB, NC, RADIUS = families.FAMILY_BOXES, families.FAMILY_CYLINDERS, 0.177
@@ -112,3 +114,77 @@ def test_coverage_counts_only_reachable_space():
     assert families.coverage(room, [everywhere.reshape(-1, 2)])[0] == pytest.approx(1.0)
     # Straight-line distance (through the wall): 1.9 m is 1.13 m from the nearest reachable cell.
     assert families.coverage(room, [np.array([[1.9, 0.0]])])[0] == 0.0
+
+
+# ------------------------------------------------------------------------------
+# dense_field: a cellular-automaton field on the occupancy grid
+
+GRID_MIX = RandomizeConfig(families="dense_field:3,clutter:1")
+MIXED = 24  # rooms per draw of GRID_MIX
+
+
+@jax.jit
+@chex.assert_max_traces(n=1)
+def _draw_mixed(keys):
+    return jax.vmap(lambda k: families.sample_weighted(k, GRID_MIX, NB, NC, RADIUS))(keys)
+
+
+@pytest.fixture(scope="module")
+def fields():
+    """The dense_field rooms among MIXED draws of GRID_MIX (one compile): [SceneParams]."""
+    batch = jax.device_get(_draw_mixed(jax.random.split(jax.random.PRNGKey(3), MIXED)))
+    one = lambda i: jax.tree_util.tree_map(lambda x: x[i], batch)  # noqa: E731
+    return [one(i) for i in range(MIXED) if batch.grid.cells[i].any()]
+
+
+_clearance = jax.jit(signed_distance)
+
+
+def _fill(room) -> float:
+    """Share of the room's cells that are occupied."""
+    n = np.round(2 * np.asarray(room.room_half) / float(room.grid.cell)).astype(int)
+    return float(room.grid.cells[: n[1], : n[0]].mean())
+
+
+def test_dense_fields_are_barn_like(fields):
+    """Cells 0.1-0.2 m in rooms 3-8 m a side, every cell inside, no obstacle slot used, a free
+    spawn; the smoothed fields cover from a few per cent to about a quarter of the floor."""
+    assert len(fields) >= MIXED // 2
+    fills = [_fill(room) for room in fields]
+    assert 0.0 < min(fills) < 0.08 and 0.15 < max(fills) < 0.4, fills
+    for room in fields:
+        assert 0.1 <= float(room.grid.cell) <= 0.2
+        assert (2.99 <= 2 * room.room_half).all() and (2 * room.room_half <= 8.01).all()
+        centres, half = occupancy.cell_boxes(room.grid)
+        assert (np.abs(centres) + half <= np.asarray(room.room_half) + 1e-4).all()
+        assert not room.box_active.any() and not room.cyl_active.any()
+        gap = float(_clearance(room, room.spawn[:2])) - RADIUS
+        assert gap >= families.SPAWN_CLEARANCE - 1e-4, gap
+
+
+def test_dense_fields_have_a_path_for_the_robot(fields):
+    """On the occupancy grid of the layout (cells inflated by the robot's radius), the spawn's
+    free component reaches the north wall."""
+    for i, room in enumerate(fields[:8]):
+        layout = families.to_layout(room, f"dense-{i}")  # validates the cells and spawn again
+        reach, centres = families.reachable(layout)
+        north = centres[..., 1] > float(room.room_half[1]) - RADIUS - families.SPAWN_CLEARANCE
+        assert (reach & north).any(), i
+
+
+def test_dense_field_mixes_without_recompiling(fields):
+    """`fields` compiled `_draw_mixed` once; other keys reuse it, and the clutter rooms of the
+    mix carry an empty grid of the same shape."""
+    out = _draw_mixed(jax.random.split(jax.random.PRNGKey(9), MIXED))  # a second trace raises
+    g = families.FIELD_CELLS
+    assert out.grid.cells.shape == (MIXED, g, g)
+    plain = ~np.asarray(out.grid.cells).any((1, 2))
+    assert plain.any() and np.asarray(out.box_active)[plain].any()
+
+
+def test_dense_field_is_drawn_by_name_only():
+    """'all' stays the suite's families (a grid costs every room of a batch); by name it mixes."""
+    assert "dense_field" not in family_weights("all")
+    assert family_weights("random:3,dense_field:1")["dense_field"] == pytest.approx(0.25)
+    assert families.grid_size(family_weights("all")) == 0
+    assert families.grid_size(["dense_field"]) == families.FIELD_CELLS

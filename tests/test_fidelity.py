@@ -1,6 +1,6 @@
 """Sim-to-real fidelity: a camera with rows sees low obstacles and overhangs, the floor is not an
-obstacle, the blind zone reads near exactly as on the robot, and the 2i's body collides up to its
-top deck."""
+obstacle, the blind zone reads near and beyond range far exactly as on the robot, and the 2i's
+body collides up to its top deck."""
 
 import dataclasses
 
@@ -11,10 +11,18 @@ import pytest
 from conftest import EXACT, LOW_BOX_HEIGHTS, ONE_ROW_ROOMS, corridor, low_box, start_in
 
 import jaxnav
+from jaxnav.core import families
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig
-from jaxnav.core.sensors import SensorConfig, ray_readings
+from jaxnav.core.robot import RobotSpec
+from jaxnav.core.sensors import SensorConfig, camera_readings, ray_readings, sectors
 from jaxnav.io.layouts import Box, Cylinder
-from jaxnav.robot_side.observation import Sensor, floor_mask, reduce_sectors
+from jaxnav.robot_side.observation import (
+    RayPixels,
+    Sensor,
+    floor_mask,
+    rays_to_sectors,
+    reduce_sectors,
+)
 
 CAMERA = SensorConfig(rows=5, far_invalid=True)
 SHELF = Box(pos=(1.5, 0.0), size=(0.4, 1.2), bottom=0.4, height=0.6)
@@ -121,3 +129,44 @@ def test_fidelity_ranges_are_drawn_per_episode_without_recompiling():
     low = (np.asarray(params.box_height) <= 0.25) & np.asarray(params.box_active)
     hang = np.asarray(params.box_bottom) > 0
     assert low.any() and hang.any()
+
+
+HALL_CAMERA = SensorConfig(rows=5, far_invalid=True, far_reads_max=True)
+
+
+@jax.jit
+def _hall_readings(key):
+    """The simulator's observation [8] and what its camera returned (`Readings` [5, 24]) at a
+    random pose in a `long_hall` room, with depth noise, 2 % dropout and a mount error."""
+    k_room, k_pose, k_mount, k_obs = jax.random.split(key, 4)
+    room = families.long_hall(k_room, 16, 4, RobotSpec().radius)
+    mount = jax.random.uniform(k_mount, (3,), minval=-1.0, maxval=1.0) * jnp.array(
+        [0.02, 0.05, 0.03]
+    )
+    room = room.replace(noise_std=0.01, noise_quad=0.0016, dropout=0.02, camera=mount)
+    # Pose: the spawn, heading along the hall to its farther end, +-0.3 rad uniform.
+    axis = jnp.argmax(room.room_half)
+    along = 0.5 * jnp.pi * axis + jnp.pi * (room.spawn[axis] > 0)
+    yaw = along + jax.random.uniform(k_pose, (), minval=-0.3, maxval=0.3)
+    qpos = jnp.append(room.spawn[:2], yaw)
+    readings = camera_readings(room, qpos, k_obs, HALL_CAMERA, RobotSpec())
+    return sectors(readings, HALL_CAMERA), readings
+
+
+def test_beyond_range_reads_alike_in_the_simulator_and_on_the_robot():
+    """In long halls, where sectors are unknown because the wall lies beyond 8 m, the robot
+    side (`rays_to_sectors` over the simulator's rays as pixels: unknown -> 0, its own floor and
+    far rules) reads every sector as the simulator does, and far sectors read range_max."""
+    cfg = HALL_CAMERA
+    cols = np.arange(cfg.num_sectors * cfg.rays_per_sector)
+    far = near = 0
+    for seed in range(16):
+        obs, (rays, reading, valid, _) = jax.device_get(_hall_readings(jax.random.PRNGKey(seed)))
+        depth = np.where(valid, reading, 0.0)  # the camera's 0: too near, too far, dropped
+        pixels = RayPixels(np.indices(depth.shape)[0], cols, cols // cfg.rays_per_sector, rays.rise)
+        robot = Sensor(cfg.fov, cfg.num_sectors, cfg.range_min, cfg.range_max, cfg.elevations,
+                       float(rays.height), far_reads_max=True)  # fmt: skip
+        np.testing.assert_allclose(obs, rays_to_sectors(depth, pixels, robot), rtol=1e-6)
+        far += int((obs == cfg.range_max).sum())
+        near += int((obs == cfg.range_min).sum())
+    assert far >= 32 and near < far  # beyond-range sectors were met, and read far

@@ -16,10 +16,10 @@ from jaxnav.core.geometry import signed_distance
 from jaxnav.core.goals import GRID_CELL, grid_steps, shortest_paths
 from jaxnav.core.randomize import TRAINING, RandomizeConfig, family_weights, make_bank
 from jaxnav.core.robot import TURTLEBOT2I
-from jaxnav.evaluate import spl_values
 from jaxnav.io.layouts import Box, LayoutError, RoomLayout, parse_layouts
 from jaxnav.ppo.distributions import Gaussian
 from jaxnav.robot_side.policy import FrameStack
+from jaxnav.tasks.goal import spl_values
 
 R = TURTLEBOT2I.radius
 
@@ -158,7 +158,10 @@ def test_collision_penalty_and_time_limit(exact_env):
     assert bool(state.done) and bool(state.truncated)
 
 
+@pytest.mark.slow
 def test_continuous_actions_respect_the_limits():
+    """Commands out of range or NaN are clipped to the action bounds. Slow: the continuous
+    goal env compiles a program of its own."""
     env = jaxnav.make_env("goal", layouts=[OPEN], randomize=EXACT, actions="continuous")
     spec = env.action_spec
     assert (spec.low, spec.high) == ((0.0, -1.5), (0.5, 1.5))
@@ -224,7 +227,7 @@ def test_layout_goal_is_checked():
 @pytest.mark.slow
 def test_goal_success_rises_above_random(tmp_path):
     """A short run in an open room: the success rate of its last updates is well above that of
-    its first (a near-uniform random policy's)."""
+    its first (a near-uniform random policy's). Slow: a training run long enough to learn."""
     import csv
 
     from jaxnav.io.layouts import save_layouts
@@ -283,8 +286,10 @@ def test_traced_flood_matches_breadth_first_search():
     assert (few >= want[0]).all() and np.isinf(few).sum() > np.isinf(want[0]).sum()
 
 
+@pytest.mark.slow
 def test_family_goals_are_reachable_and_often_behind_walls():
-    """Corridors, L/T/U rooms and joined rooms keep their walls; the goal is drawn reachable."""
+    """Corridors, L/T/U rooms and joined rooms keep their walls; the goal is drawn reachable.
+    Slow: a goal env over three sampled families compiles its own reset."""
     randomize = dataclasses.replace(TRAINING, families="corridor,ltu,joined", sampled_room_prob=1.0)
     env = jaxnav.make_env("goal", randomize=randomize)
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 24))
@@ -462,7 +467,7 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
     user's settings; `avoid` keeps `TRAINING` as it is."""
     from jaxnav.tasks.presets import GOAL_CPU_FAMILIES
     from jaxnav.tasks.registry import training_randomize
-    from jaxnav.train import build_config
+    from jaxnav.training import build_config
 
     cpu, gpu = (build_config(p, env="goal").randomize for p in ("cpu", "gpu"))
     assert (cpu.families, gpu.families) == (GOAL_CPU_FAMILIES, "all")
@@ -487,7 +492,7 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     rollout's drawn at its start) go over every preset, its cpu defaults (512 robots, 2 epochs)
     over the cpu preset's and its gpu defaults (256 x 256 networks) over the gpu preset's, all
     under the user's settings; other tasks keep the preset's."""
-    from jaxnav.train import build_config
+    from jaxnav.training import build_config
 
     for name in ("cpu", "gpu", "paper"):
         goal, avoid = build_config(name, env="goal").ppo, build_config(name, env="avoid").ppo

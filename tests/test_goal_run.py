@@ -1,6 +1,9 @@
 """A goal policy end to end: `train --env goal --actions continuous` on the command line, evaluation
 reading the task from the run (success rate, SPL), export to numpy and ONNX, and the robot side
-(goal observation, the control loop's goal inputs, the ROS 2 node's goal and odometry topics)."""
+(goal observation, the control loop's goal inputs, the ROS 2 node's goal and odometry topics).
+
+Slow, all of it: a goal training run on the command line, then its evaluation and export.
+"""
 
 import json
 import subprocess
@@ -138,6 +141,7 @@ def test_ros_node_subscribes_to_goal_and_odometry(goal_run, tmp_path, monkeypatc
     monkeypatch.setitem(sys.modules, "nav_msgs.msg", ns(Odometry=type("Odometry", (), {})))
     geometry = sys.modules["geometry_msgs.msg"]
     geometry.PoseStamped = type("PoseStamped", (), {})
+    geometry.PointStamped = type("PointStamped", (), {})
     node = ros_node._make_node(ros_node.parse_args(["--policy", npz, "--scan"])[0])
     subs = {kind: (topic, callback) for kind, topic, callback in node.subscriptions_}
     assert subs["PoseStamped"][0] == "goal_pose" and subs["Odometry"][0] == "odom"

@@ -2,7 +2,10 @@
 layer or those below it, `ppo` and `tasks` not from each other, and no two modules import each
 other, directly or round a cycle. Read from the source (an AST walk): no module is imported.
 
-    robot_side  <  core  <  io, wrappers  <  ppo, tasks, viz  <  the top-level modules
+    robot_side  <  core  <  io, wrappers  <  ppo, tasks, viz  <  the top-level modules  <  cli
+
+The command lines (`jaxnav.cli`, the `python -m jaxnav.<command>` modules) are the top layer: no
+library module imports them.
 """
 
 from __future__ import annotations
@@ -12,7 +15,11 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxnav"
 RANK = {"robot_side": 0, "core": 1, "io": 2, "wrappers": 2, "ppo": 3, "tasks": 3, "viz": 3}
-TOP = 4  # jaxnav/*.py: the command lines and what composes a run
+TOP = 4  # jaxnav/*.py: the library's top (what composes a run, training, evaluation)
+CLI = 5  # jaxnav/cli/ and the modules `python -m jaxnav.<command>` runs
+# Modules that are command lines still beside their library code (`replay`, `twin`, `export`),
+# or only run one (`train`, `evaluate`: `python -m` entry points).
+COMMANDS = {"train", "evaluate", "export", "replay", "twin"}
 APART = {("ppo", "tasks"), ("tasks", "ppo")}
 
 
@@ -23,7 +30,13 @@ def module_name(path: Path) -> str:
 
 def layer(module: str) -> str:
     parts = module.split(".")
+    if len(parts) > 1 and (parts[1] == "cli" or parts[1] in COMMANDS):
+        return "cli"
     return parts[1] if len(parts) > 1 and parts[1] in RANK else "top"
+
+
+def rank(name: str) -> int:
+    return CLI if name == "cli" else RANK.get(name, TOP)
 
 
 def imports(path: Path) -> set[str]:
@@ -50,8 +63,7 @@ def test_layers_point_one_way():
         here = layer(module)
         for target in targets:
             there = layer(target)
-            rank_here, rank_there = RANK.get(here, TOP), RANK.get(there, TOP)
-            if rank_there > rank_here or (here, there) in APART:
+            if rank(there) > rank(here) or (here, there) in APART:
                 wrong.append(f"{module} -> {target}")
     assert not wrong, "imports against the layers:\n" + "\n".join(sorted(wrong))
 
@@ -92,9 +104,31 @@ def test_importing_jaxnav_changes_no_global_state():
         "before = state()\n"
         "import jaxnav\n"
         "print(before == state())\n"
-        "import jaxnav.tasks.base, jaxnav.evaluate\n"
+        "import jaxnav.tasks.base, jaxnav.evaluation, jaxnav.cli.evaluate\n"
         "print(before == state())\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "True\nTrue\n"  # and nothing else printed
+
+
+def test_train_and_evaluate_are_plain_functions():
+    """`jaxnav.train` and `jaxnav.evaluate` are the library's functions, whatever was imported
+    before: the `python -m` modules of the same names refuse to be imported (which would rebind
+    the package's attribute to a module), naming where the command line lives."""
+    import importlib
+    import inspect
+
+    import pytest
+
+    import jaxnav
+    from jaxnav import evaluation, training
+
+    for name, library in (("train", training), ("evaluate", evaluation)):
+        with pytest.raises(ImportError, match=f"jaxnav.cli.{name}"):
+            importlib.import_module(f"jaxnav.{name}")
+        assert inspect.isfunction(getattr(jaxnav, name))
+        assert getattr(jaxnav, name) is getattr(library, name)
+    from jaxnav import evaluate, train
+
+    assert (train, evaluate) == (training.train, evaluation.evaluate)

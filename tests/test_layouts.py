@@ -46,6 +46,11 @@ GOOD = {
 }
 
 
+def _grid(**fields) -> dict:
+    """A grid obstacle object: 0.2 m cells south-west of the robot, `fields` over it."""
+    return {"type": "grid", "origin": [-1.5, -1.5], "cell": 0.2, "rows": ["#.", ".#"], **fields}
+
+
 def write(tmp_path: Path, obj, name: str = "rooms.json") -> Path:
     path = tmp_path / name
     path.write_text(obj if isinstance(obj, str) else json.dumps(obj))
@@ -134,6 +139,20 @@ def test_round_trip_files(tmp_path):
     assert isinstance(json.loads(path.read_text()), dict)
     assert load_layout(path) == layouts[:1]
     assert [p.name for p in tmp_path.iterdir()] == ["set.json"]  # no temp file left behind
+
+
+def test_grid_round_trip_and_clearance(tmp_path):
+    """A grid obstacle reads, writes and reads back the same; its clearance is that of its
+    occupied cells as boxes (rows north first: the "#" of the top row is the north-west cell)."""
+    room = dict(GOOD, obstacles=[*GOOD["obstacles"], _grid(rows=["#..", "...", "..#"])])
+    (layout,) = parse_layouts(room)
+    path = tmp_path / "grid.json"
+    save_layouts(path, layout)
+    assert load_layout(path) == [layout] and layout.grid is layout.obstacles[2]
+    north_west, south_east = (-1.4, -1.0), (-1.0, -1.4)  # centres of the two occupied cells
+    assert clearance(layout, north_west) == pytest.approx(-0.1, abs=1e-6)
+    assert clearance(layout, south_east) == pytest.approx(-0.1, abs=1e-6)
+    assert clearance(layout, (-1.2, -1.2)) == pytest.approx(0.1 * math.sqrt(2), abs=1e-6)
 
 
 def test_defaults_and_optional_fields():
@@ -272,6 +291,20 @@ BAD = [
     ("tall-wall", _set("room.wall_height", 20.0), "room.wall_height", ["at most 10 m"]),
     ("thin-box", _set("obstacles[0].size", [0.001, 0.4]), "obstacles[0].size", ["0.01 to 100 m"]),
     ("400-digit-integer", _set("room.size", [10**400, 4]), "room.size", ["finite"]),
+    # Grid obstacles (obstacles[0] replaced by one).
+    ("grid-bad-character", _set("obstacles[0]", _grid(rows=["#.", "x."])),
+     "obstacles[0].rows[1]", ['"#" or "."', '"x."']),
+    ("grid-ragged", _set("obstacles[0]", _grid(rows=["#..", "#."])), "obstacles[0].rows[1]",
+     ["3 characters"]),
+    ("grid-not-strings", _set("obstacles[0]", _grid(rows="#.")), "obstacles[0].rows",
+     ["list of 1 to 64 strings"]),
+    ("grid-zero-cell", _set("obstacles[0]", _grid(cell=0)), "obstacles[0].cell", ["positive"]),
+    ("grid-outside", _set("obstacles[0]", _grid(origin=[1.5, 1.5], rows=["##"], cell=0.3)),
+     "obstacles[0]", ["east wall"]),
+    ("two-grids", _set("obstacles", [_grid(), _grid(origin=[0.5, 0.5])]), "obstacles[1]",
+     ["at most one grid"]),
+    ("spawn-in-grid-cell", _set("obstacles[0]", _grid(origin=[-0.1, -0.1])), "robot.pos",
+     ["obstacles[0] (grid)"]),
 ]  # fmt: skip
 
 

@@ -194,6 +194,7 @@ def test_goal_task_movers_keep_clear_and_change_without_recompiling():
 
 @pytest.mark.slow
 def test_movers_that_cannot_be_placed_change_nothing():
+    """Slow: two rollout programs (with and without the mover machinery) compile."""
     # The mover machinery on (a reserved slot, a motion state, advance every step) with no mover
     # placed (moving_clearance beyond any room): the rollout is the static one, to float32
     # round-off (the two programs differ, so XLA may fuse them differently). Over a minute here.

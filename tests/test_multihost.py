@@ -70,6 +70,8 @@ def logged(run):
 
 @pytest.mark.slow
 def test_two_processes_match_one_process_of_two_devices(tmp_path):
+    """Two `jax.distributed` processes train as one process of two devices does. Slow: three
+    training processes, the process boundary being what is tested."""
     out = tmp_path / "run"
     first = finish(*two_processes(tmp_path, ["--out", "run", *FLAGS, "--checkpoint-every", "2"]))
     for i, proc in enumerate(first):

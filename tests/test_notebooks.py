@@ -75,6 +75,8 @@ def outputs(nb) -> list:
 @pytest.mark.slow
 @pytest.mark.parametrize("name", FIGURES)
 def test_notebook_runs_and_draws(executed, name):
+    """Each notebook runs top to bottom in a kernel and draws. Slow: every notebook trains or
+    evaluates in a kernel process of its own."""
     nb, err = executed[name]
     if err is not None:
         pytest.fail(f"{name}.ipynb failed:\n{err}", pytrace=False)

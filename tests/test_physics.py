@@ -50,9 +50,10 @@ def test_speeds_reached_without_sideways_sliding(fast_env):
     assert abs(sideways) < 1e-3
 
 
+@pytest.mark.slow
 def test_velocity_smoother_and_latency():
     """From rest, speed ramps at the smoother's 0.3 m/s^2 after `latency` steps of delay, and
-    braking from 0.5 m/s takes about 1.7 s."""
+    braking from 0.5 m/s takes about 1.7 s. Slow: two envs (with and without latency) compile."""
     # Without latency (the Kobuki's own pipeline) both checks share one env: the board's room is
     # layout 0, a room clear for 3.5 m ahead is layout 1.
     clear = corridor(Box(pos=(3.8, 0.0), size=(0.1, 0.1)), size=(8.0, 3.0))

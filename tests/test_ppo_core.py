@@ -332,3 +332,64 @@ def test_running_stats_match_numpy():
 def test_normalize_before_any_update_is_identity():
     obs = jnp.arange(8.0)
     np.testing.assert_allclose(normalize(init_stats(8), obs), obs, rtol=1e-6)
+
+
+# ---------------------------------------------------------------- the update's pieces
+
+
+class _LineEnv:
+    """A robot on a line, pushed by its action: enough env for PPO's jitted pieces."""
+
+    observation_size = 2
+    metric_names = ("collision",)
+
+    def __init__(self):
+        from jaxnav.tasks.avoid import AvoidConfig
+
+        self.action_spec = AvoidConfig().action_spec
+
+    def _state(self, x, steps, key, reward=0.0, done=False):
+        from jaxnav.core.types import EnvState
+
+        f0 = jnp.float32(0)
+        return EnvState(
+            data=x,
+            obs=jnp.stack([x, steps.astype(jnp.float32)]),  # [2]
+            reward=jnp.float32(reward),
+            done=jnp.bool_(done),
+            truncated=jnp.bool_(done) & (steps >= 5),
+            metrics={"collision": f0},
+            info={"steps": steps, "key": key},
+        )
+
+    def reset(self, key):
+        key, k_x = jax.random.split(key)
+        return self._state(jax.random.uniform(k_x, (), minval=-1.0, maxval=1.0), jnp.int32(0), key)
+
+    def step(self, state, action):
+        x = state.data + 0.1 * (action.astype(jnp.float32) - 1.0)
+        steps = state.info["steps"] + 1
+        done = (jnp.abs(x) > 1.0) | (steps >= 5)
+        return self._state(x, steps, state.info["key"], -jnp.abs(x), done)
+
+
+def test_update_is_its_rollout_then_its_learner():
+    """`Trainer.parts`, the pieces benchmarks/compile_time.py compiles on their own, compose to
+    the update `run_chunk` runs, bit for bit."""
+    from jaxnav.ppo.config import PPOConfig
+    from jaxnav.ppo.train import make_train
+
+    cfg = PPOConfig(num_envs=8, rollout_length=4, minibatch_size=16, updates_per_chunk=1)
+    trainer = make_train(cfg, _LineEnv())
+    ts = trainer.init(jax.random.PRNGKey(0))
+    rollout, learn, update = (jax.jit(trainer.parts[k]) for k in ("rollout", "learn", "update"))
+    split_ts, split_metrics = learn(ts, *rollout(ts))
+    whole_ts, whole_metrics = update(ts)
+    chunk_ts, chunk_metrics = trainer.run_chunk(jax.tree_util.tree_map(jnp.copy, ts))
+    for other in (whole_ts, chunk_ts):
+        leaves = zip(*map(jax.tree_util.tree_leaves, (split_ts, other)), strict=True)
+        for a, b in leaves:
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for k, v in split_metrics.items():
+        np.testing.assert_array_equal(np.asarray(v), np.asarray(whole_metrics[k]))
+        np.testing.assert_array_equal(np.asarray(v), np.asarray(chunk_metrics[k][0]))

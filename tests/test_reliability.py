@@ -1,6 +1,6 @@
 """Nothing lost, nothing silent: what a killed, interrupted, crowded or starved run leaves behind.
 
-Most tests drive `jaxnav.train.main` in-process with a stand-in trainer (numpy-sized state, no
+Most tests drive `jaxnav.cli.train.main` in-process with a stand-in trainer (numpy-sized state, no
 compile), so the loop's files, locks and errors are tested in seconds. The signal tests start real
 processes (tiny flags, the session's shared XLA cache).
 """
@@ -24,8 +24,9 @@ import numpy as np
 import pytest
 from conftest import TINY_FLAGS
 
-from jaxnav import cli, runs
-from jaxnav import train as train_module
+import jaxnav.cli.train as train_cli
+from jaxnav import process, runs
+from jaxnav import training as train_module
 from jaxnav.io import checkpoint, files, runlog
 from jaxnav.ppo.networks import init_stats
 from jaxnav.ppo.train import Trainer, TrainState, make_network
@@ -78,7 +79,7 @@ def fake(monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
 
     def main(*argv):
-        return train_module.main([str(a) for a in argv])
+        return train_cli.main([str(a) for a in argv])
 
     main.state = state
     return main
@@ -135,8 +136,10 @@ def test_resume_budget_comes_from_the_run_config(fake, tmp_path, capsys):
     assert rows(run) == list(range(1, 2 * UPDATES + 1))
 
 
+@pytest.mark.slow
 def test_kill_during_resume_start_up_loses_nothing(tiny_run, tmp_path):
-    """kill -9 while a resume compiles: every row and the new budget are still there."""
+    """kill -9 while a resume compiles: every row and the new budget are still there. Slow: a
+    training run (the CLI's) and a resume in a process of its own, killed mid-compile."""
     out = tmp_path / "run"
     shutil.copytree(tiny_run[0], out)
     before = (out / "metrics.csv").read_text()
@@ -189,7 +192,7 @@ def test_out_of_memory_is_one_line_and_removes_the_unstarted_folder(fake, tmp_pa
 def test_too_many_robots_refused_before_anything_is_written(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     flags = ["--num-envs", "10000000", "--rollout-length", "16", "--total-steps", "160000000"]
-    code = train_module.main(["--out", "run", *flags, "--no-progress"])
+    code = train_cli.main(["--out", "run", *flags, "--no-progress"])
     assert code == 2
     line = one_error_line(capsys.readouterr().err, "--num-envs 10000000", "largest --num-envs")
     fits = int(line.rsplit("about ", 1)[1].replace(",", ""))
@@ -227,11 +230,11 @@ def test_sigint_while_importing_exits_at_once(tmp_path, delay):
 
 def test_an_interrupt_ends_the_children_a_library_started():
     """`import mujoco` starts pyGLFW's version probe, a Python that prints to a pipe back to its
-    parent: ended with its parent, it would print a BrokenPipeError traceback (`cli.end_children`)."""
+    parent: ended with its parent, it would print a BrokenPipeError traceback (`process.end_children`)."""
     script = (
-        "import subprocess, sys; from jaxnav import cli\n"
+        "import subprocess, sys; from jaxnav import process\n"
         "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
-        "cli.end_children()\n"
+        "process.end_children()\n"
         "print(child.wait(timeout=10))\n"
     )
     proc = subprocess.run(
@@ -542,7 +545,7 @@ def test_a_real_read_only_and_full_filesystem(fake, small_tmpfs, capsys):
 
 def test_a_network_too_large_for_memory_is_refused_first(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    code = train_module.main(["--out", "run", "--hidden", "100000000", "100000000"])
+    code = train_cli.main(["--out", "run", "--hidden", "100000000", "100000000"])
     assert code == 2
     one_error_line(capsys.readouterr().err, "--hidden 100000000 100000000", "network alone")
     assert not (tmp_path / "run").exists()
@@ -558,8 +561,8 @@ def test_a_second_signal_while_a_chunk_runs_stops_at_once(monkeypatch, capsys):
     def exit_(code):
         raise Exited(code)
 
-    monkeypatch.setattr(cli.os, "_exit", exit_)
-    stop = cli.Interrupts()
+    monkeypatch.setattr(process.os, "_exit", exit_)
+    stop = process.Interrupts()
     stop.defer(lambda: "kept checkpoint C")
     stop._handle(signal.SIGINT, None)
     assert stop.requested == ["SIGINT"] and "send it again" in capsys.readouterr().err

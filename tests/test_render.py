@@ -12,7 +12,7 @@ from matplotlib.figure import Figure
 from PIL import Image
 
 import jaxnav
-import jaxnav.evaluate
+import jaxnav.cli.evaluate
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.policy import forward_policy
 from jaxnav.viz import plots, render
@@ -28,7 +28,7 @@ def room():
 @pytest.fixture(scope="module")
 def results(room):
     # The inference room's spawn faces a cylinder: the forward baseline drives straight at it.
-    return jaxnav.evaluate.evaluate(forward_policy(), room, episodes=2, steps=STEPS, seed=0)
+    return jaxnav.evaluate(forward_policy(), room, episodes=2, steps=STEPS, seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -94,9 +94,9 @@ def test_render_episode_rejects_bad_poses(episode, tmp_path):
 
 def _cli(results, monkeypatch, tmp_path, capsys):
     """`evaluate --video` in-process on the module's results (no second rollout compile)."""
-    monkeypatch.setattr(jaxnav.evaluate, "evaluate", lambda *args, **kwargs: results)
+    monkeypatch.setattr(jaxnav.cli.evaluate, "evaluate", lambda *args, **kwargs: results)
     argv = ["--policy", "forward", "--plots", tmp_path / "plots", "--video", tmp_path / "video"]
-    code = jaxnav.evaluate.main([str(a) for a in argv])
+    code = jaxnav.cli.evaluate.main([str(a) for a in argv])
     return code, capsys.readouterr()
 
 

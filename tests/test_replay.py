@@ -332,6 +332,27 @@ def test_goal_policy_replays_goal_and_odometry(goal_bag, tmp_path, capsys):
     assert f"; goal inputs: 1 on {GOAL}, 34 on {ODOM}; wrote" in out
 
 
+def test_goal_policy_replays_a_point_goal(goal_bag, tmp_path):
+    """A goal as geometry_msgs/PointStamped (RViz's Publish Point, the node's --goal-point) on
+    another topic replays as the PoseStamped goal does; without --goal-point the replay says
+    which type the node would subscribe to."""
+    bag, npz = goal_bag
+    frames = goal_frames()
+    ns, pose = frames.pop(GOAL)[0]
+    point = TS.types["geometry_msgs/msg/PointStamped"](header=pose.header, point=pose.pose.position)
+    frames["/clicked_point"] = [(ns, point)]
+    points = write_bag(tmp_path / "points", frames)
+    get = dict(vars(replay.parse_args([str(bag), "--policy", str(npz)])))
+    want = replay.replay(bag, get, log=lambda text: None)
+    get.update(goal_topic="/clicked_point", goal_point=True)
+    got = replay.replay(points, get, log=lambda text: None)
+    assert got.state == want.state and "goal reached" in got.state
+    np.testing.assert_array_equal(got.twist, want.twist)
+    np.testing.assert_array_equal(got.goal, want.goal)
+    with pytest.raises(replay.ReplayError, match="needs its geometry_msgs/msg/PoseStamped there"):
+        replay.replay(points, {**get, "goal_point": False}, log=lambda text: None)
+
+
 @pytest.mark.parametrize(
     "drop, flags, message",
     [

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from conftest import TINY_FLAGS, run_cli
 
-from jaxnav import train as train_module
+import jaxnav.cli.train as train_cli
+from jaxnav import training as train_module
 from jaxnav.io import checkpoint
 from jaxnav.ppo.train import make_train
 
@@ -69,12 +70,13 @@ def test_resume_refuses_other_flags(tiny_run):
 
 
 def tiny_config():
-    flags = train_module.parse_args(TINY_FLAGS)
-    return train_module.build_config("cpu", 0, None, train_module.overrides_from_args(flags))
+    flags = train_cli.parse_args(TINY_FLAGS)
+    return train_module.build_config("cpu", 0, None, train_cli.overrides_from_args(flags))
 
 
 @pytest.mark.slow
 def test_same_seed_same_params():
+    """Two runs of one seed give the same parameters. Slow: two whole training runs."""
     config = tiny_config()
     env = train_module.make_run_env(config)
     runs = [make_train(config.ppo, env).train(jax.random.PRNGKey(7))[0].params for _ in range(2)]
@@ -103,6 +105,8 @@ def test_crash_during_checkpoint_write_keeps_previous(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch):
+    """A NaN loss stops the run and keeps the last good checkpoint. Slow: a training run with a
+    poisoned update compiled for it."""
     real = train_module.make_train
 
     def poisoned(cfg, env):

@@ -138,6 +138,8 @@ def test_robot_side_runs_without_jax(tmp_path):
     code = """
         import json
         import numpy as np
+        import jaxnav.robot_side.bag
+        import jaxnav.robot_side.calibrate
         import jaxnav.robot_side.observation
         import jaxnav.robot_side.policy
         import jaxnav.robot_side.ros_node

@@ -228,14 +228,14 @@ def test_node_flags():
     assert ros_node.parse_args(["--no-header-stamps", "--stamped"])[0].header_stamps is False
 
 
-def message(name: str, **defaults):
+def message(kind: str, /, **defaults):
     """A stand-in message class: instances start with `defaults` (made fresh per instance)."""
 
     def __init__(self, **fields):
         for key, value in {**defaults, **fields}.items():
             setattr(self, key, value() if callable(value) else value)
 
-    return type(name, (), {"__init__": __init__})
+    return type(kind, (), {"__init__": __init__})
 
 
 class FakeRos:
@@ -249,6 +249,17 @@ class FakeRos:
     String = message("String", data="")
     Bool = message("Bool", data=False)
     CameraInfo = message("CameraInfo", header=Header, width=0, height=0, k=lambda: [0.0] * 9)
+    KeyValue = message("KeyValue", key="", value="")
+    DiagnosticStatus = type(
+        "DiagnosticStatus",
+        (
+            message(
+                "DiagnosticStatus", level=b"\x00", name="", message="", hardware_id="", values=list
+            ),
+        ),
+        dict(OK=b"\x00", WARN=b"\x01", ERROR=b"\x02"),
+    )
+    DiagnosticArray = message("DiagnosticArray", header=Header, status=list)
 
     def __init__(self, params=None, spin=None):
         self.time, self.params, self.spin_body = 0.0, params or {}, spin
@@ -293,6 +304,9 @@ class FakeRos:
             def destroy_node(self):
                 ros.events.append(("destroy",))
 
+            def get_name(self):
+                return "jaxnav_policy"
+
         rclpy = types.SimpleNamespace(
             init=lambda **kw: self.events.append(("init", kw)),
             spin=lambda node: self.spin_body(self, node),
@@ -315,6 +329,12 @@ class FakeRos:
             "geometry_msgs.msg": types.SimpleNamespace(**geometry),
             "std_msgs": types.SimpleNamespace(),
             "std_msgs.msg": types.SimpleNamespace(Bool=FakeRos.Bool, String=FakeRos.String),
+            "diagnostic_msgs": types.SimpleNamespace(),
+            "diagnostic_msgs.msg": types.SimpleNamespace(
+                DiagnosticArray=FakeRos.DiagnosticArray,
+                DiagnosticStatus=FakeRos.DiagnosticStatus,
+                KeyValue=FakeRos.KeyValue,
+            ),
         }
 
     def install(self, monkeypatch, signals: bool = True):
@@ -727,8 +747,16 @@ def test_node_goal_status_topic(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "nav_msgs", ns())
     monkeypatch.setitem(sys.modules, "nav_msgs.msg", ns(Odometry=type("Odometry", (), {})))
     sys.modules["geometry_msgs.msg"].PoseStamped = type("PoseStamped", (), {})
+    sys.modules["geometry_msgs.msg"].PointStamped = type("PointStamped", (), {})
+    args = ros_node.parse_args(["--policy", npz, "--scan", "--goal-point", "--goal-topic", "/clicked_point"])[0]  # fmt: skip
+    point = ros_node._make_node(args)  # RViz's Publish Point: a PointStamped goal
+    assert ("PointStamped", "/clicked_point") in [s[:2] for s in point.subscriptions_]
     node = ros_node._make_node(ros_node.parse_args(["--policy", npz, "--scan"])[0])
-    assert node.publishers_ == {"cmd_vel": "Twist", "goal_status": "String"}
+    assert node.publishers_ == {
+        "cmd_vel": "Twist",
+        "goal_status": "String",
+        "/diagnostics": "DiagnosticArray",
+    }
     subs = {kind: callback for kind, _, callback in node.subscriptions_}
     on_timer = node.timers_[0][1]
     for t, goal in [(1.0, None), (1.1, (2.0, 0.0)), (1.2, (0.2, 0.0))]:
@@ -740,6 +768,8 @@ def test_node_goal_status_topic(monkeypatch, tmp_path):
             subs["PoseStamped"](ns(header=ns(frame_id="odom"), pose=ns(position=position)))
         on_timer()
     assert [m.data for m in ros.messages("String")] == ["no goal", "driving", "reached"]
+    point.loop.goal.on_goal_msg(ns(header=ns(frame_id="odom"), point=ns(x=1.5, y=-0.5, z=0.0)))
+    assert point.loop.goal.goal == (1.5, -0.5) and point.loop.goal.goal_frame == "odom"
 
 
 def test_node_stamped_commands_and_enable_topic(monkeypatch, tmp_path, policy):
@@ -749,7 +779,7 @@ def test_node_stamped_commands_and_enable_topic(monkeypatch, tmp_path, policy):
     npz = str(write_policy_npz(tmp_path / "policy.npz"))
     ros = FakeRos().install(monkeypatch)
     node = ros_node._make_node(ros_node.parse_args(["--policy", npz, "--stamped"])[0])
-    assert node.publishers_ == {"cmd_vel": "TwistStamped"}
+    assert node.publishers_ == {"cmd_vel": "TwistStamped", "/diagnostics": "DiagnosticArray"}
     subs = {kind: (topic, callback) for kind, topic, callback in node.subscriptions_}
     on_message, on_timer = subs["Image"][1], node.timers_[0][1]
     frame = scene(0.9, 3.0)
@@ -773,4 +803,4 @@ def test_node_stamped_commands_and_enable_topic(monkeypatch, tmp_path, policy):
     logs = [e[1] for e in ros.events if e[0] == "log"]
     assert "paused (false on the enable topic): sending zero velocity" in logs
     ros_node._make_node(ros_node.parse_args(["--policy", npz])[0])
-    assert ros.nodes[-1].publishers_ == {"cmd_vel": "Twist"}
+    assert ros.nodes[-1].publishers_ == {"cmd_vel": "Twist", "/diagnostics": "DiagnosticArray"}

@@ -28,6 +28,8 @@ def train_on(devices: int, out: Path) -> dict:
 
 @pytest.mark.slow
 def test_two_devices_match_one(tmp_path):
+    """Training sharded over two devices gives the one-device result. Slow: two training
+    processes (a device count is fixed per process)."""
     one = train_on(1, tmp_path / "one.npz")
     two = train_on(2, tmp_path / "two.npz")
     assert int(one["devices"]) == 1 and int(two["devices"]) == 2

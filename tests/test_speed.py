@@ -62,7 +62,8 @@ def test_fast_physics_skips_mjx_contacts():
 @pytest.mark.slow  # two env steps and a reset to compile: about 80 s on a 2-core CPU
 def test_episodes_without_mjx_contacts_are_bit_identical(full_and_fast):
     """Every step of every episode up to its end, the colliding step included, is the same bit
-    for bit: pose, velocity, observation, reward and termination."""
+    for bit: pose, velocity, observation, reward and termination. Slow: the full MJX path
+    (contacts, the constraint solver) compiles beside the fast one."""
     full, fast = full_and_fast
     done = full[-1]  # [T, R]
     live = np.cumsum(done, 0) - done == 0  # [T, R]: the step starts in the first episode

@@ -24,6 +24,7 @@ TINY = dict(num_envs=64, rollout_length=32, minibatch_size=512, num_epochs=4, up
 
 @pytest.mark.slow
 def test_tiny_training_improves_reward():
+    """40 tiny updates raise the reward. Slow: a training run long enough to learn."""
     # Without the velocity smoother and latency a random policy collides often, so 40 tiny updates
     # show learning plainly (the sim-to-real default is learnt by the quick start, README Results).
     mixture = RandomizeConfig(sampled_room_prob=0.5, random_spawn_prob=0.5)
@@ -84,7 +85,10 @@ def test_load_policy_acts(tiny_run):
     assert action.shape == (5,) and set(np.asarray(action).tolist()) <= {0, 1, 2}
 
 
+@pytest.mark.slow
 def test_cli_refuses_existing_run_and_bad_flags(tiny_run, tmp_path):
+    """Exit status 2 and one line for an existing run and a bad flag. Slow: two CLI processes,
+    each importing jax, after the tiny run."""
     out, _ = tiny_run
     proc = run_cli("--out", str(out), "--num-envs", "16", "--minibatch-size", "128")
     assert proc.returncode == 2 and "already holds a training run" in proc.stderr
@@ -140,7 +144,7 @@ def test_python_api_names():
 
 
 def test_default_run_folder_never_collides(tmp_path):
-    from jaxnav.train import _new_run_dir
+    from jaxnav.cli.train import _new_run_dir
 
     assert _new_run_dir(tmp_path, "avoid-cpu") == tmp_path / "avoid-cpu"
     (tmp_path / "avoid-cpu").mkdir()
@@ -152,7 +156,7 @@ def test_default_run_folder_never_collides(tmp_path):
 def test_minibatch_follows_num_envs_unless_given(env):
     """A small run never fails on a minibatch size the user did not set: the preset's number of
     minibatches is kept; one the user set is theirs, and its error lists sizes that work."""
-    from jaxnav.train import build_config
+    from jaxnav.training import build_config
 
     base = build_config("cpu", env=env).ppo
     small = build_config("cpu", env=env, overrides={"ppo": {"num_envs": 32}}).ppo
@@ -165,7 +169,7 @@ def test_minibatch_follows_num_envs_unless_given(env):
 
 
 def _help(capsys, *argv) -> str:
-    from jaxnav.train import parse_args
+    from jaxnav.cli.train import parse_args
 
     with pytest.raises(SystemExit) as done:
         parse_args(list(argv))
@@ -189,7 +193,7 @@ def test_help_shows_the_defaults_a_run_uses_grouped(capsys):
 
 
 def test_a_long_compile_says_it_goes_on(capsys):
-    from jaxnav.cli import Waiting, interruptible
+    from jaxnav.process import Waiting, interruptible
 
     waiting = Waiting("compiling...")  # captured output is not a terminal: whole lines
     for seconds in (1, 29, 31, 45, 61, 130):
@@ -207,7 +211,7 @@ def test_a_long_compile_says_it_goes_on(capsys):
 
 
 def test_xla_log_lines_are_kept_out_of_a_command_unless_asked(monkeypatch):
-    from jaxnav.cli import quiet_xla_logs
+    from jaxnav.process import quiet_xla_logs
 
     monkeypatch.delenv("TF_CPP_MIN_LOG_LEVEL", raising=False)
     monkeypatch.setenv("JAXNAV_XLA_LOGS", "1")
@@ -224,7 +228,7 @@ def test_xla_log_lines_are_kept_out_of_a_command_unless_asked(monkeypatch):
 def test_commands_keep_compiled_programs_in_the_user_cache(tmp_path, monkeypatch):
     import jax
 
-    from jaxnav.cli import compile_cache
+    from jaxnav.process import compile_cache
 
     before = jax.config.jax_compilation_cache_dir
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
@@ -240,7 +244,8 @@ def test_commands_keep_compiled_programs_in_the_user_cache(tmp_path, monkeypatch
 @pytest.mark.slow
 def test_a_repeated_run_compiles_nothing_anew(tmp_path):
     """Two processes (the cache is what outlives a process): the second run of the same shapes
-    adds nothing to the cache, and `--no-compile-cache` leaves it alone."""
+    adds nothing to the cache, and `--no-compile-cache` leaves it alone. Slow: three training
+    processes, each compiling or reading the cache (the process boundary is what is tested)."""
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
     cache = tmp_path / "cache" / "jaxnav" / "xla"
@@ -259,7 +264,7 @@ def test_a_repeated_run_compiles_nothing_anew(tmp_path):
 
 def test_train_layouts_of_several_files_are_named_by_file(tmp_path):
     from jaxnav.io.layouts import LayoutError
-    from jaxnav.train import build_config
+    from jaxnav.training import build_config
 
     room = {"room": {"size": [4.0, 4.0]}, "robot": {"pos": [0.0, 0.0], "yaw": 0.0}}
     (tmp_path / "a.json").write_text(json.dumps([room, {**room, "name": "office"}]))

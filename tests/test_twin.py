@@ -22,8 +22,9 @@ from test_robot_side import ROOT, write_policy_npz  # noqa: E402
 
 from jaxnav import twin  # noqa: E402
 from jaxnav.core.randomize import FIDELITY  # noqa: E402
-from jaxnav.evaluate import GOAL_KEYS, METRIC_KEYS  # noqa: E402
+from jaxnav.evaluation import METRIC_KEYS  # noqa: E402
 from jaxnav.io.layouts import Box, RoomLayout, save_layouts  # noqa: E402
+from jaxnav.tasks.goal import GoalEnv  # noqa: E402
 
 SMALL = dict(width=160, height=120)  # px; fx = 142.6, the Astra's 570.3 at 640 wide, scaled
 ROOM = RoomLayout(
@@ -139,7 +140,8 @@ def test_goal_policies_get_goals_and_odometry(needs_gl, tmp_path):
     rooms = [dataclasses.replace(ROOM, goal_pos=(1.5, 1.0)), dataclasses.replace(ROOM, name="b")]
     cfg = twin.TwinConfig(episodes=2, steps=10, **SMALL)
     results = twin.run_twin(npz, rooms, cfg=cfg)
-    assert set(results["overall"]) == {*METRIC_KEYS, *GOAL_KEYS, "success", "path_length"}
+    goal_keys = [m.name for m in GoalEnv.eval_metrics]  # success_rate, spl, time_to_goal
+    assert set(results["overall"]) == {*METRIC_KEYS, *goal_keys, "success", "path_length"}
     goals = results["_rooms"]["b"]["goal"]
     np.testing.assert_array_equal(results["_rooms"]["small"]["goal"], [[1.5, 1.0]] * 2)
     assert (np.linalg.norm(goals - ROOM.robot_pos, axis=-1) >= cfg.goal_min_distance).all()
@@ -187,3 +189,24 @@ def test_camera_quat_looks_along_the_mount():
     forward = -mat.reshape(3, 3)[:, 2]  # MuJoCo cameras look along their -z
     assert math.atan2(forward[1], forward[0]) == pytest.approx(0.2)
     assert -math.asin(forward[2]) == pytest.approx(0.1)
+
+
+def test_the_node_calibrates_the_mount_in_the_twin(needs_gl, tmp_path):
+    """The camera pitched 2 deg down from a 5-row policy's mount: the node's default start-up
+    check refuses to drive; with calibration:=use it drives after its first frames."""
+    rows = dict(elevations=np.linspace(-0.38, 0.17, 5).astype(np.float32))
+    npz = write_policy_npz(
+        tmp_path / "rows.npz", W1=np.zeros((16, 3), np.float32),
+        b1=np.array([10.0, 0.0, 0.0], np.float32), camera_height=np.float32(0.295), **rows,
+    )  # fmt: skip
+    bias = dict(camera_pitch_error=0.0, camera_pitch_bias=math.radians(2.0))
+    moved = {}
+    for mount in ("check", "calibrate"):
+        cfg = twin.TwinConfig(episodes=1, steps=20, mount=mount, **bias, **SMALL)
+        room = twin.run_room(npz, ROOM, 0, cfg)
+        moved[mount] = room["distance"][0]
+        refused = sum(n for s, n in room["states"].items() if s.startswith("camera mount refused"))
+        assert (refused >= 6) == (mount == "check"), room["states"]
+    assert moved["check"] < 0.01 and moved["calibrate"] > 0.1
+    with pytest.raises(ValueError, match="mount: must be one of true, calibrate, check, policy"):
+        twin.TwinConfig(mount="guess")

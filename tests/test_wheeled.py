@@ -1,5 +1,9 @@
 """The wheeled validation model (`SceneConfig(physics="wheeled")`): it tracks the commanded speeds
-on its wheels, stays upright on the floor, collides like the fast model and never recompiles."""
+on its wheels, stays upright on the floor, collides like the fast model and never recompiles.
+
+Slow, all of it: the wheeled model's MJX program (contacts, the constraint solver) and an
+`evaluate --physics wheeled` process compile for these tests alone.
+"""
 
 import json
 import os
@@ -23,6 +27,7 @@ WHEELED = SceneConfig(physics="wheeled")
 BOX_FACE = 2.8  # x of the box's near face in ROOM
 ROOM = corridor(Box(pos=(3.0, 0.0), size=(0.4, 0.8)))
 OPEN = RoomLayout(name="open", size=(6.0, 6.0), robot_pos=(0.0, 0.0), robot_yaw=0.0)
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -4,18 +4,31 @@ calls). It composes `randomize` (the configs and samplers) with `families` (the 
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
-from jaxnav.core import motion
+from jaxnav.core import crowd, motion
+from jaxnav.core import grid as occupancy
 from jaxnav.core.families import sample_weighted
 from jaxnav.core.randomize import (
     LayoutBank,
     RandomizeConfig,
     SceneParams,
+    family_weights,
     free_spawn,
     sample_room,
 )
+
+
+def walker_config(cfg: RandomizeConfig) -> crowd.WalkerConfig:
+    """The walkers `cfg.walkers` adds; rooms of the `crowd` family get theirs only where the
+    families include it (crowd_count is (0, 0) otherwise)."""
+    walkers = crowd.WalkerConfig.parse(cfg.walkers)
+    if not cfg.families or not family_weights(cfg.families).get("crowd"):
+        walkers = dataclasses.replace(walkers, crowd_count=(0, 0))
+    return walkers
 
 
 def _in(key, bounds):
@@ -25,17 +38,20 @@ def _in(key, bounds):
 def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float) -> SceneParams:
     """One episode's scene for a robot of `radius`: a room, a free spawn, physics and sensing.
 
-    With moving obstacles (`cfg.moving_count`, or a layout's `motion`s) it has a `motion` in
-    which nothing moves yet, and its last moving_count[1] cylinder slots are left empty for
-    `motion.add_movers`."""
+    With moving obstacles (`cfg.moving_count`, walkers, or a layout's `motion`s) it has a
+    `motion` in which nothing moves yet, and its last moving_count[1] cylinder slots are left
+    empty for `motion.add_movers`, the walkers' slots (`walker_config`) before them for
+    `crowd.add_walkers`."""
     k_pick, k_room, k_layout, k_spawn, k_rand, k_phys = jax.random.split(key, 6)
     nb, nc = bank.rooms.box_pos.shape[1], bank.rooms.cyl_pos.shape[1]
-    reserved = cfg.moving_count[1]
+    walkers = walker_config(cfg).slots
+    reserved = cfg.moving_count[1] + walkers
+    g = occupancy.size(bank.rooms.grid)  # the bank has a grid wherever a sampled room may
     # Room: a sampled room with probability sampled_room_prob, otherwise a uniform pick of the layouts.
     if cfg.families:
-        sampled = sample_weighted(k_room, cfg, nb, nc - reserved, radius)
+        sampled = sample_weighted(k_room, cfg, nb, nc - reserved, radius, grid=g)
     else:
-        sampled = sample_room(k_room, cfg, nb, nc - reserved, radius)
+        sampled = occupancy.with_grid(sample_room(k_room, cfg, nb, nc - reserved, radius), g)
     idx = jax.random.randint(k_layout, (), 0, bank.size)
     layout = jax.tree_util.tree_map(lambda x: x[idx], bank.rooms).replace(layout_id=idx)
     if reserved or layout.motion is not None:
@@ -43,8 +59,13 @@ def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float
             sampled = motion.reserve(sampled, reserved)
         points = 0 if layout.motion is None else layout.motion.path.shape[-2]
         still = jax.tree_util.tree_map(jnp.asarray, motion.still(nb + nc, points))
+        kept = still if layout.motion is None else layout.motion
+        if walkers or kept.walkers is not None:  # one structure for every room
+            idle = jax.tree_util.tree_map(jnp.asarray, crowd.idle(nc))
+            still = still.replace(walkers=idle)
+            kept = kept.replace(walkers=idle if kept.walkers is None else kept.walkers)
         sampled = sampled.replace(motion=still)
-        layout = layout.replace(motion=still if layout.motion is None else layout.motion)
+        layout = layout.replace(motion=kept)
     # Spawn in a layout: its own pose, or with probability random_spawn_prob (always if it has none)
     # a uniform free pose.
     use_random = ~bank.has_spawn[idx] | jax.random.bernoulli(k_rand, cfg.random_spawn_prob)

@@ -5,7 +5,9 @@ furniture, low obstacles and overhangs) into `nb` box and `nc` cylinder slots. A
 data: `sample_family(key, index, ...)` picks a family by a traced index, so mixing families never
 recompiles. Interior walls are boxes. Every room leaves the robot's spawn free by `SPAWN_CLEARANCE`
 (obstacles that would come nearer are deactivated), keeps every obstacle inside the walls and leaves
-doorways and corridors at least `MIN_DOOR` / `MIN_CORRIDOR` wide.
+doorways and corridors at least `MIN_DOOR` / `MIN_CORRIDOR` wide. `GRID_FAMILIES` (dense_field,
+BARN-like clutter) put their obstacles on an occupancy grid (`jaxnav.core.grid`) instead of slots;
+`sample_weighted` draws them by name, with an empty grid in every other room of the batch.
 
 The free-space tools at the end (`free_cells`, `reachable`, `coverage`) work on `RoomLayout`s in
 numpy: a 0.1 m occupancy grid inflated by the robot radius, flood-filled from the spawn.
@@ -18,7 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxnav.core import grid as occupancy
 from jaxnav.core import layout as lay
+from jaxnav.core.crowd import CROWD_ROOM
 from jaxnav.core.geometry import box_distance
 from jaxnav.core.randomize import (
     RANDOM,
@@ -37,6 +41,9 @@ FAMILY_CYLINDERS = 4  # cylinder slots the families use at most
 CELL = 0.1  # m, occupancy grid cell of `free_cells`
 _BLOCK = 4096  # grid points per clearance call in `free_cells`
 COVER_REACH = 1.0  # m, the robot "covers" free space within this distance of its path
+FIELD_CELLS = 40  # G, the grid side of `dense_field` in cells (rooms up to 40 x 0.2 = 8 m)
+FIELD_MARGIN = 0.2  # m, least gap between the robot's edge and a cell along `dense_field`'s path
+FIELD_WAYPOINTS = 4  # points of `dense_field`'s path, south wall to north wall
 
 
 @struct.dataclass
@@ -148,6 +155,19 @@ def open_room(key, nb: int, nc: int, radius: float) -> SceneParams:
         num_cylinders=(0, min(1, nc)),
     )
     return sample_room(key, cfg, nb, nc, radius)
+
+
+def crowd_room(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A 5-10 m room with 1-3 boxes and 0-2 cylinders, for people to cross: its walkers are
+    added at the reset (`crowd.add_walkers`, `crowd.WalkerConfig.crowd_count`), which knows the
+    room by its `layout_id` (`crowd.CROWD_ROOM`)."""
+    cfg = RandomizeConfig(
+        room_size_min=(5.0, 5.0),
+        room_size_max=(10.0, 10.0),
+        num_boxes=(min(1, nb), min(3, nb)),
+        num_cylinders=(0, min(2, nc)),
+    )
+    return sample_room(key, cfg, nb, nc, radius).replace(layout_id=jnp.int32(CROWD_ROOM))
 
 
 def clutter(key, nb: int, nc: int, radius: float) -> SceneParams:
@@ -330,6 +350,31 @@ def furniture(key, nb: int, nc: int, radius: float) -> SceneParams:
     return _assemble(jax.random.fold_in(key, 2), half, spawn, boxes, nb, nc, radius)
 
 
+def long_hall(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A hall 8-30 m long and 1.2-4 m wide (one in four: an open floor 6-12 m wide), with up to
+    4 cabinets along one side wall, so the far end often lies beyond the camera's 8 m."""
+    ks = jax.random.split(key, 10)
+    # Length uniform 8-30 m; width uniform 1.2-4 m, or (probability 1/4) 6-12 m.
+    length = _uniform(ks[0], 8.0, 30.0)
+    wide = jax.random.bernoulli(ks[1], 0.25)
+    width = jnp.where(wide, _uniform(ks[2], 6.0, 12.0), _uniform(ks[2], MIN_CORRIDOR, 4.0))
+    half = 0.5 * jnp.stack([length, width])
+    n = min(4, nb)
+    # Cabinets: 0-n (count uniform), along x uniform, 0.3-1.0 m long; all against one side wall
+    # (side uniform), each 0.2-0.6 m deep but leaving MIN_DOOR beside it; top uniform 0.4-1.0 m.
+    count = jax.random.randint(ks[3], (), 0, n + 1)
+    long_half = 0.5 * _uniform(ks[4], 0.3, 1.0, (n,))
+    depth = jnp.minimum(_uniform(ks[5], 0.2, 0.6, (n,)), jnp.maximum(width - MIN_DOOR, 0.1))
+    side = jnp.where(jax.random.bernoulli(ks[6]), 1.0, -1.0)
+    x = _uniform(ks[7], -1.0, 1.0, (n,)) * (half[0] - long_half)
+    pos = jnp.stack([x, side * (half[1] - 0.5 * depth)], -1)  # [n, 2]
+    boxes = _walls(pos, jnp.stack([long_half, 0.5 * depth], -1), ks[8], jnp.arange(n) < count)
+    # Spawn: uniform along the hall, on its centre line.
+    spawn = jnp.stack([_uniform(ks[9], -1.0, 1.0) * (half[0] - radius - SPAWN_CLEARANCE), 0.0])
+    room = _assemble(jax.random.fold_in(key, 2), half, spawn, boxes, nb, nc, radius)
+    return _mirror(jax.random.fold_in(key, 1), room)
+
+
 FAMILIES = {
     "open": open_room,
     "clutter": clutter,
@@ -339,9 +384,99 @@ FAMILIES = {
     "joined": joined_rooms,
     "furniture": furniture,
     "low_overhang": low_and_overhang,
+    "crowd": crowd_room,
+    "long_hall": long_hall,
 }
 """Name -> sampler `(key, nb, nc, radius) -> SceneParams`; `sample_family` indexes them in order.
 The names are `randomize.FAMILY_NAMES` after 'random' (tests/test_families.py checks)."""
+
+
+# ------------------------------------------------------------------------------
+# Families on an occupancy grid (`jaxnav.core.grid`): not in `FAMILIES`, whose rooms have none
+
+
+def _neighbours(cells: jax.Array) -> jax.Array:
+    """[H, W] int32 count of the 8 neighbours of each cell that are occupied (none beyond)."""
+    h, w = cells.shape
+    padded = jnp.pad(cells.astype(jnp.int32), 1)
+    shifts = [(i, j) for i in range(3) for j in range(3) if (i, j) != (1, 1)]
+    return sum(padded[i : i + h, j : j + w] for i, j in shifts)
+
+
+def _automaton(key, inside: jax.Array, fill, rounds) -> jax.Array:
+    """[G, G] bool: a cellular-automaton field on the `inside` cells [G, G]: each occupied with
+    probability `fill`, then `rounds` (traced, at most 4) rounds in which a free cell becomes
+    occupied with at least 5 occupied neighbours and an occupied one stays with at least 2: lone
+    cells vanish and clusters grow into blobs, as in BARN's generator."""
+    cells = jax.random.bernoulli(key, fill, inside.shape) & inside
+
+    def round_(i, cells):
+        n = _neighbours(cells)
+        grown = jnp.where(cells, n >= 2, n >= 5) & inside
+        return jnp.where(i < rounds, grown, cells)
+
+    return jax.lax.fori_loop(0, 4, round_, cells)
+
+
+def _polyline_distance(p: jax.Array, path: jax.Array) -> jax.Array:
+    """[...] distance from points p [..., 2] to the polyline through `path` [K, 2], m."""
+    a, b = path[:-1], path[1:]  # [K - 1, 2] each
+    ab = b - a
+    ap = p[..., None, :] - a  # [..., K - 1, 2]
+    t = jnp.clip((ap * ab).sum(-1) / jnp.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+    return jnp.linalg.norm(ap - t[..., None] * ab, axis=-1).min(-1)
+
+
+def dense_field(key, nb: int, nc: int, radius: float) -> SceneParams:
+    """A field of square cells like BARN's worlds (`jaxnav.core.grid`), 3-8 m a side, with a path
+    for the robot from the spawn by the south wall to the north wall; no obstacle slots used."""
+    ks = jax.random.split(key, 8)
+    g = FIELD_CELLS
+    # Cell side uniform 0.1-0.2 m; field uniform 30-40 cells per axis (the room is the field).
+    cell = _uniform(ks[0], 0.1, 0.2)
+    n = jax.random.randint(ks[1], (2,), 30, g + 1)  # [2] cells along x, y
+    half = 0.5 * n * cell
+    # Initial fill uniform 0.15-0.35; smoothing rounds uniform in {2, 3, 4} (BARN's ranges).
+    fill = _uniform(ks[2], 0.15, 0.35)
+    rounds = jax.random.randint(ks[3], (), 2, 5)
+    idx = jnp.arange(g)
+    inside = (idx[:, None] < n[1]) & (idx[None, :] < n[0])  # [G, G] rows along y, columns x
+    cells = _automaton(ks[4], inside, fill, rounds)
+    # Path: FIELD_WAYPOINTS points evenly spaced from the south to the north wall, x uniform,
+    # each keeping the robot and its spawn clearance from the walls; the spawn is its first.
+    keep = radius + SPAWN_CLEARANCE
+    ys = jnp.linspace(-1.0, 1.0, FIELD_WAYPOINTS) * (half[1] - keep)
+    xs = _uniform(ks[5], -1.0, 1.0, (FIELD_WAYPOINTS,)) * (half[0] - keep)
+    path = jnp.stack([xs, ys], -1)  # [K, 2]
+    # Cleared: every cell whose box comes within the robot and FIELD_MARGIN of the path (its
+    # centre within that and half its diagonal), or within the spawn clearance of the spawn.
+    centres = -half + (jnp.stack(jnp.meshgrid(idx, idx), -1) + 0.5) * cell  # [G, G, 2]
+    diagonal = cell * np.sqrt(0.5)
+    near_path = _polyline_distance(centres, path) < radius + FIELD_MARGIN + diagonal
+    near_spawn = jnp.linalg.norm(centres - path[0], axis=-1) < keep + diagonal
+    cells = cells & ~near_path & ~near_spawn
+    field = occupancy.OccupancyGrid(
+        # Height of the cells uniform 0.5-1.0 m (BARN's are 1 m).
+        cells=cells,
+        origin=-half,
+        cell=cell,
+        height=_uniform(ks[6], 0.5, 1.0),
+    )
+    spawn = jnp.append(path[0], _uniform(ks[7], -jnp.pi, jnp.pi))  # heading uniform
+    return _blank(jax.random.fold_in(key, 1), nb, nc, radius).replace(
+        room_half=half, spawn=spawn, grid=field
+    )
+
+
+GRID_FAMILIES = {"dense_field": dense_field}
+"""Name -> sampler of the families whose rooms have an occupancy grid of `FIELD_CELLS` a side;
+`RandomizeConfig.families` draws them by name (not in 'all'), `sample_weighted` gives every other
+room of the batch an empty grid."""
+
+
+def grid_size(weights) -> int:
+    """G of the rooms that the families of `weights` (names) draw: 0 if none has a grid."""
+    return FIELD_CELLS if set(weights) & set(GRID_FAMILIES) else 0
 
 
 def sample_family(key, index, nb: int, nc: int, radius: float) -> SceneParams:
@@ -350,19 +485,34 @@ def sample_family(key, index, nb: int, nc: int, radius: float) -> SceneParams:
     return jax.lax.switch(index, branches, key)
 
 
-def sample_weighted(key, cfg: RandomizeConfig, nb: int, nc: int, radius: float) -> SceneParams:
+def sample_weighted(
+    key, cfg: RandomizeConfig, nb: int, nc: int, radius: float, grid: int = 0
+) -> SceneParams:
     """A room of a family drawn with the weights of `cfg.families` ('random': `sample_room(cfg)`).
 
     Only families of positive weight are traced; under vmap each of them is computed for every
-    env and one kept, so the cost grows with their number (see benchmarks/env_rollout.py)."""
+    env and one kept, so the cost grows with their number (see benchmarks/env_rollout.py). With
+    a grid family among them, or `grid` > 0, every room has an occupancy grid of
+    max(`grid`, its `grid_size`) cells a side (empty where the family has none)."""
     weights = family_weights(cfg.families)
+    g = max(grid, grid_size(weights))
     samplers = {RANDOM: lambda k: sample_room(k, cfg, nb, nc, radius)}
     samplers.update({n: lambda k, f=f: f(k, nb, nc, radius) for n, f in FAMILIES.items()})
-    branches = [samplers[n] for n in weights]
+    samplers.update({n: lambda k, f=f: f(k, nb, nc, radius) for n, f in GRID_FAMILIES.items()})
+    branches = [lambda k, f=samplers[n]: _grown(f(k), g) for n in weights]
     k_pick, k_room = jax.random.split(key)
     # Family: drawn with the given weights.
     index = jax.random.choice(k_pick, len(branches), p=jnp.asarray(list(weights.values())))
     return jax.lax.switch(index, branches, k_room) if len(branches) > 1 else branches[0](k_room)
+
+
+def _grown(room: SceneParams, g: int) -> SceneParams:
+    """`room` with a [g, g] occupancy grid: its own, padded, or an empty one (g = 0: as it is)."""
+    if g == 0:
+        return room
+    if room.grid is None:
+        return occupancy.with_grid(room, g)
+    return room.replace(grid=occupancy.pad(room.grid, g))
 
 
 def mixture(key, nb: int, nc: int, radius: float) -> SceneParams:
@@ -404,13 +554,29 @@ def to_layout(room: SceneParams, name: str) -> lay.RoomLayout:
         )
         for i in np.flatnonzero(np.asarray(room.cyl_active))
     ]
+    obstacles += _grid_obstacle(room.grid)
+    # A grid's cells may reach 1 mm beyond the interior rounded up (its origin rounds up too).
+    extra = 0.002 if obstacles and isinstance(obstacles[-1], lay.Grid) else 0.0
     return lay.RoomLayout(
         name=name,
-        size=mm(np.ceil(2000 * r.room_half) / 1000),
+        size=mm(np.ceil(2000 * r.room_half) / 1000 + extra),
         robot_pos=mm(r.spawn[:2]),
         robot_yaw=round(float(r.spawn[2]), 4),
         obstacles=tuple(obstacles),
     )
+
+
+def _grid_obstacle(grid) -> list:
+    """[] or [the `lay.Grid` of an occupancy grid with occupied cells]: origin rounded up to the
+    millimetre, cell down to the micrometre (its cells stay inside the room)."""
+    if grid is None or not np.asarray(grid.cells).any():
+        return []
+    cells = np.asarray(grid.cells)
+    used = np.flatnonzero(cells.any(0)).max() + 1, np.flatnonzero(cells.any(1)).max() + 1
+    rows = ["".join("#" if c else "." for c in row[: used[0]]) for row in cells[: used[1]][::-1]]
+    origin = [float(np.ceil(float(v) * 1000) / 1000) for v in np.asarray(grid.origin)]
+    cell = float(np.floor(float(grid.cell) * 1e6) / 1e6)
+    return [lay.Grid(origin=origin, cell=cell, rows=rows, height=round(float(grid.height), 3))]
 
 
 def free_cells(room: lay.RoomLayout, radius: float = lay.ROBOT_RADIUS, cell: float = CELL):

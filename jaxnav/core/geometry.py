@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from jaxnav.core import grid as occupancy
+
 
 def planar_distance(a, b, xp=jnp):
     """[...] floor-plane distance between points a [..., 2] and b [..., 2] (broadcast), per
@@ -64,9 +66,13 @@ def signed_distance(room, p, z=None):
     plane; with z = (low, high) heights [...], the distance is 3-D, from the vertical segment at p
     between those heights (low == high: a point; widen by a radius for a capsule or sphere): boxes
     span [box_bottom, box_height] and cylinders are upright segments of [cyl_bottom, cyl_height]
-    widened by their radius (the capsules the scene collides).
+    widened by their radius (the capsules the scene collides). A room with an occupancy grid
+    (`room.grid`) adds its cells' boxes within `grid.REACH` cells of p (`grid.distance`).
     """
-    return nearest(room, *shape_distances(room, p, z))
+    out = nearest(room, *shape_distances(room, p, z))
+    if getattr(room, "grid", None) is None:
+        return out
+    return jnp.minimum(out, occupancy.distance(p, room.grid, z))
 
 
 def shape_distances(room, p, z=None):
@@ -100,7 +106,8 @@ def ray_cast(room, origin, dirs):
     The shapes are the ones the MJX scene has (cross-checked against `mjx.ray` in the tests): wall
     planes at +-room_half, boxes spanning [box_bottom, box_height], cylinders as upright capsules
     (the segment [cyl_bottom, cyl_height] widened by the radius). A ray starting inside a shape
-    does not see it. The floor is not a shape here: the sensor tests it itself.
+    does not see it. The floor is not a shape here: the sensor tests it itself. A room with an
+    occupancy grid (`room.grid`) adds its cells (`grid.ray_cast`; slot -1, as a wall).
     """
     o, d = jnp.asarray(origin, jnp.float32), jnp.asarray(dirs, jnp.float32)
     walls = _ray_walls(o, d, room.room_half)  # [...]
@@ -109,7 +116,11 @@ def ray_cast(room, origin, dirs):
     hits = jnp.concatenate([walls[..., None], box, cyl], -1)  # [..., 1 + Sb + Sc]
     first = jnp.argmin(hits, -1)
     dist = jnp.take_along_axis(hits, first[..., None], -1)[..., 0]
-    return dist, jnp.where(jnp.isfinite(dist), first - 1, -1).astype(jnp.int32)
+    slot = jnp.where(jnp.isfinite(dist), first - 1, -1).astype(jnp.int32)
+    if getattr(room, "grid", None) is None:
+        return dist, slot
+    cells = occupancy.ray_cast(o, d, room.grid)  # [...]
+    return jnp.minimum(dist, cells), jnp.where(cells < dist, -1, slot)
 
 
 def _safe(x):

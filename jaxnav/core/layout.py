@@ -32,10 +32,12 @@ MAX_HEIGHT = 10.0  # m, tallest wall or obstacle
 MIN_OBSTACLE = 0.01  # m, thinnest box side or cylinder radius
 MAX_WAYPOINTS = 8  # waypoints of a path motion (after the obstacle's own `pos`)
 MAX_OBSTACLE_SPEED = 1.0  # m/s: 0.1 m per control step, so a moving obstacle cannot skip the robot
+MAX_WALKER_SPEED = 1.5  # m/s of a walker (a cylinder walking to a goal): people walk at ~1.3 m/s
 SPAWN_GRID = 0.05  # m between points of the free-spawn search (sides over 20 m: 400 steps a side)
 # Every room of a batch simulates as many obstacle slots as its fullest one, every step.
 MAX_OBSTACLES = 256  # per room; shipped rooms hold at most 18, sampled ones 20 (+16 movers)
 MAX_ROOMS = 1024  # in a file, and in all the files of one batch (the benchmark suite has 32)
+MAX_GRID = 64  # cells per side of a grid obstacle (every room of a batch casts rays on as many)
 
 # m; a spawn the search finds clears by this much more, so that float32 round-off (a few ulp of
 # 50 m coordinates) in its own evaluation cannot make it touch as `is_free` evaluates it.
@@ -184,30 +186,55 @@ def _angle(value, field: str) -> float:
 # The dataclasses
 
 
-_MOTION_KEYS = ("velocity", "path", "speed")
+_MOTION_KEYS = ("velocity", "path", "speed", "goal", "reactive", "repeat")
 
 
-def _speed(value, field: str, what: str = "must be") -> float:
-    """A speed above 0 and at most MAX_OBSTACLE_SPEED, m/s."""
+def _speed(value, field: str, what: str = "must be", top: float = MAX_OBSTACLE_SPEED) -> float:
+    """A speed above 0 and at most `top` (MAX_OBSTACLE_SPEED), m/s."""
     out = _number(value, field)
-    if not 0 < out <= MAX_OBSTACLE_SPEED:
-        detail = f"{what} > 0 and <= {MAX_OBSTACLE_SPEED:g} m/s, got {out:.4g}"
+    if not 0 < out <= top:
+        detail = f"{what} > 0 and <= {top:g} m/s, got {out:.4g}"
         raise LayoutError(field, detail)
     return out
 
 
+def _flag(value, field: str) -> bool:
+    """A JSON boolean."""
+    if not isinstance(value, bool):
+        raise LayoutError(field, f"must be true or false, got {_show(value)}")
+    return value
+
+
 @dataclass(frozen=True)
 class Motion:
-    """How an obstacle moves: either `velocity` (it bounces off the walls and the other obstacles)
-    or back and forth along `path` at `speed` (its own `pos`, then the waypoints, and back)."""
+    """How an obstacle moves: `velocity` (it bounces off the walls and the other obstacles), back
+    and forth along `path` at `speed` (its own `pos`, then the waypoints, and back), or, a
+    cylinder only, walking to `goal` at `speed` as a person (`jaxnav.core.crowd`)."""
 
     velocity: tuple[float, float] | None = None  # [vx, vy] m/s at the start
     path: tuple[tuple[float, float], ...] | None = None  # 1 to MAX_WAYPOINTS waypoints [x, y], m
-    speed: float | None = None  # m/s along the path; only with `path`
+    speed: float | None = None  # m/s along the path, or a walker's preferred speed
+    goal: tuple[float, float] | None = None  # [x, y] m a walker walks to
+    reactive: bool = True  # a walker gives way to the robot (else only to the other people)
+    repeat: bool = True  # a walker walks back to its `pos` on arrival, and so on (else it stays)
 
     def __post_init__(self):
-        if (self.velocity is None) == (self.path is None):
-            raise LayoutError(None, 'must have either "velocity" or "path" (with "speed")')
+        if sum(x is not None for x in (self.velocity, self.path, self.goal)) != 1:
+            raise LayoutError(
+                None, 'must have either "velocity", "path" (with "speed") or "goal" (with "speed")'
+            )
+        if self.goal is None and (self.reactive is not True or self.repeat is not True):
+            raise LayoutError(
+                "reactive" if self.reactive is not True else "repeat", 'only with "goal"'
+            )
+        if self.goal is not None:
+            object.__setattr__(self, "goal", _pair(self.goal, "goal"))
+            if self.speed is None:
+                raise LayoutError("speed", "missing required field (a walker's speed, m/s)")
+            object.__setattr__(self, "speed", _speed(self.speed, "speed", top=MAX_WALKER_SPEED))
+            object.__setattr__(self, "reactive", _flag(self.reactive, "reactive"))
+            object.__setattr__(self, "repeat", _flag(self.repeat, "repeat"))
+            return
         if self.velocity is not None:
             vx, vy = _pair(self.velocity, "velocity")
             _speed(math.hypot(vx, vy), "velocity", "its speed (length) must be")
@@ -233,7 +260,9 @@ class Motion:
             return value
         if not isinstance(value, dict):
             raise LayoutError(
-                None, f'must be an object with "velocity" or "path" and "speed", got {_kind(value)}'
+                None,
+                f'must be an object with "velocity", "path" and "speed" or "goal" and "speed", '
+                f"got {_kind(value)}",
             )
         _check_keys(value, _MOTION_KEYS, "")
         return cls(**value)
@@ -242,6 +271,9 @@ class Motion:
         """The JSON object of this motion."""
         if self.velocity is not None:
             return {"velocity": list(self.velocity)}
+        if self.goal is not None:
+            walk = {"goal": list(self.goal), "speed": self.speed}
+            return walk | {"reactive": self.reactive, "repeat": self.repeat}
         return {"path": [list(p) for p in self.path], "speed": self.speed}
 
 
@@ -281,6 +313,8 @@ class Box:
         object.__setattr__(self, "yaw", _angle(self.yaw, "yaw"))
         _set_span(self)
         _set_motion(self)
+        if self.motion is not None and self.motion.goal is not None:
+            raise LayoutError("motion.goal", "only a cylinder walks to a goal (a person)")
 
 
 @dataclass(frozen=True)
@@ -303,8 +337,54 @@ class Cylinder:
         _set_motion(self)
 
 
-Obstacle = Box | Cylinder
-_OBSTACLE_TYPES = {cls.kind: cls for cls in (Box, Cylinder)}
+@dataclass(frozen=True)
+class Grid:
+    """Square cells standing on the floor, on an axis-aligned occupancy grid (`jaxnav.core.grid`):
+    dense clutter that costs the simulator one grid pass, not one obstacle slot per cell."""
+
+    kind: ClassVar[str] = "grid"  # the obstacle's "type" in JSON
+    bottom: ClassVar[float] = 0.0  # every cell stands on the floor
+    motion: ClassVar[None] = None  # a grid stands still
+
+    origin: tuple[float, float]  # [x, y] of the grid's south-west corner, m
+    cell: float  # m, the side of a cell
+    rows: tuple[str, ...]  # north to south, each west to east: "#" occupied, "." free
+    height: float = 0.5  # m, of the cells' top above the floor
+
+    def __post_init__(self):
+        object.__setattr__(self, "origin", _pair(self.origin, "origin"))
+        cell = _number(self.cell, "cell", positive=True, bounds=(MIN_OBSTACLE, ROOM_SIZE[1]))
+        object.__setattr__(self, "cell", cell)
+        object.__setattr__(self, "height", _height(self.height, "height"))
+        rows = self.rows
+        ok = isinstance(rows, (list, tuple)) and 1 <= len(rows) <= MAX_GRID
+        if not ok or not all(isinstance(r, str) for r in rows):
+            detail = f'must be a list of 1 to {MAX_GRID} strings of "#" and ".", got {_show(rows)}'
+            raise LayoutError("rows", detail)
+        for i, row in enumerate(rows):
+            if len(row) != len(rows[0]) or not 1 <= len(row) <= MAX_GRID or set(row) - {"#", "."}:
+                detail = (
+                    f'must be {len(rows[0])} characters "#" or "." (1 to {MAX_GRID}, as '
+                    f"rows[0]), got {_show(row)}"
+                )
+                raise LayoutError(f"rows[{i}]", detail)
+        object.__setattr__(self, "rows", tuple(rows))
+
+    @property
+    def pos(self) -> tuple[float, float]:
+        """The south-west corner (where `_check_inside` measures from)."""
+        return self.origin
+
+    def cell_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """([N, 2] centres, [N, 2] full sizes), m, of the occupied cells."""
+        occupied = np.array([[ch == "#" for ch in row] for row in self.rows[::-1]], bool)
+        rows, cols = np.nonzero(occupied.reshape(len(self.rows), -1))
+        centres = np.asarray(self.origin) + (np.stack([cols, rows], -1) + 0.5) * self.cell
+        return centres.reshape(-1, 2), np.full((len(rows), 2), self.cell)
+
+
+Obstacle = Box | Cylinder | Grid
+_OBSTACLE_TYPES = {cls.kind: cls for cls in (Box, Cylinder, Grid)}
 
 
 def _check_count(obstacles: Sequence) -> None:
@@ -356,8 +436,11 @@ class RoomLayout:
             raise LayoutError("obstacles", f"must be a sequence, got {_kind(self.obstacles)}")
         _check_count(self.obstacles)
         for i, ob in enumerate(self.obstacles):
-            if not isinstance(ob, (Box, Cylinder)):
-                raise LayoutError(f"obstacles[{i}]", f"must be a Box or Cylinder, got {ob!r}")
+            if not isinstance(ob, (Box, Cylinder, Grid)):
+                raise LayoutError(f"obstacles[{i}]", f"must be a Box, Cylinder or Grid, got {ob!r}")
+        grids = [i for i, ob in enumerate(self.obstacles) if isinstance(ob, Grid)]
+        if len(grids) > 1:
+            raise LayoutError(f"obstacles[{grids[1]}]", "at most one grid per room")
         set_("obstacles", tuple(self.obstacles))
 
     @property
@@ -369,6 +452,11 @@ class RoomLayout:
     def cylinders(self) -> tuple[Cylinder, ...]:
         """The cylinder obstacles, in file order."""
         return tuple(ob for ob in self.obstacles if isinstance(ob, Cylinder))
+
+    @property
+    def grid(self) -> Grid | None:
+        """The room's grid obstacle, None if it has none."""
+        return next((ob for ob in self.obstacles if isinstance(ob, Grid)), None)
 
 
 # ------------------------------------------------------------------------------
@@ -389,7 +477,12 @@ def _distances(layout: RoomLayout, p: np.ndarray) -> np.ndarray:
     cols = [geometry.wall_distance(p, 0.5 * np.asarray(layout.size, np.float32), np)]
     for ob in layout.obstacles:
         pos = np.asarray([ob.pos], np.float32)
-        if isinstance(ob, Cylinder):
+        if isinstance(ob, Grid):
+            centres, sizes = (np.asarray(a, np.float32) for a in ob.cell_boxes())
+            yaw = np.zeros(len(centres), np.float32)
+            d = geometry.box_distance(p, centres, yaw, 0.5 * sizes, np)  # [..., N]
+            cols.append(np.min(d, axis=-1, initial=np.inf)[..., None])
+        elif isinstance(ob, Cylinder):
             cols.append(geometry.disc_distance(p, pos, np.float32(ob.radius), np))
         else:
             half = 0.5 * np.asarray([ob.size], np.float32)
@@ -427,6 +520,11 @@ def _footprint_bounds(ob: Obstacle) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper [x, y] corners of the obstacle's axis-aligned footprint bounding box."""
     if isinstance(ob, Cylinder):
         return np.asarray(ob.pos) - ob.radius, np.asarray(ob.pos) + ob.radius
+    if isinstance(ob, Grid):  # its occupied cells' (free cells may lie beyond the walls)
+        centres, sizes = ob.cell_boxes()
+        if not len(centres):
+            return np.asarray(ob.origin), np.asarray(ob.origin)
+        return (centres - 0.5 * sizes).min(0), (centres + 0.5 * sizes).max(0)
     corners = box_corners(ob)
     return corners.min(axis=0), corners.max(axis=0)
 
@@ -440,6 +538,8 @@ def _check_inside(layout: RoomLayout) -> None:
         path = ob.motion.path if ob.motion is not None and ob.motion.path else ()
         stops = [(f"obstacles[{i}]", ob.pos)]
         stops += [(f"obstacles[{i}].motion.path[{j}]", p) for j, p in enumerate(path)]
+        if ob.motion is not None and ob.motion.goal is not None:
+            stops.append((f"obstacles[{i}].motion.goal", ob.motion.goal))
         for field, at in stops:
             shift = np.asarray(at) - np.asarray(ob.pos)
             a, b = lo + shift, hi + shift
@@ -486,7 +586,7 @@ def _touched(layout: RoomLayout, grid: np.ndarray, radius: float) -> np.ndarray:
     Each obstacle is measured only near its footprint: thousands of small ones take a second."""
     touched = np.zeros(grid.shape[:2], bool)
     reach = radius + 1e-3  # beyond this from the footprint's box nothing touches (round-off too)
-    for ob in layout.obstacles:
+    for ob in expand_grids(layout.obstacles):
         lo, hi = _footprint_bounds(ob)
         rows = _window(lo[1] - reach, hi[1] + reach, grid[:, 0, 1])
         cols = _window(lo[0] - reach, hi[0] + reach, grid[0, :, 0])
@@ -498,6 +598,17 @@ def _touched(layout: RoomLayout, grid: np.ndarray, radius: float) -> np.ndarray:
             np.asarray(_near_distance(ob.kind, grid[rows, cols], *args)) <= radius
         )
     return touched
+
+
+def expand_grids(obstacles):
+    """The obstacles, each grid replaced by its occupied cells as standing boxes (in order)."""
+    for ob in obstacles:
+        if isinstance(ob, Grid):
+            centres, sizes = ob.cell_boxes()
+            boxes = zip(centres, sizes, strict=True)
+            yield from (Box(pos=p, size=s, height=ob.height) for p, s in boxes)
+        else:
+            yield ob
 
 
 def free_spawn(layout: RoomLayout, radius: float = ROBOT_RADIUS) -> tuple[float, float] | None:

@@ -1,29 +1,36 @@
 """Moving obstacles: their state, their motion over one control step, and the ones the sampler adds.
 
-An obstacle slot moves in one of two ways, both traced data in `SceneParams.motion` (a
+An obstacle slot moves in one of three ways, all traced data in `SceneParams.motion` (a
 `MotionState`; None where nothing in the env can move, which costs nothing and changes nothing):
 
 - bouncing: a constant velocity, reflected off the walls (the footprint's extent along x and y
   mirrored at the interior's edge) and off the other active obstacles (the footprint's bounding
   circle against their exact shapes: the velocity is mirrored about the normal of the nearest
-  one and the obstacle waits that step where it was).
+  one and the obstacle waits that step where it was);
 - along a path: back and forth at a constant speed along a polyline (a layout's `pos`, then its
-  waypoints), ignoring everything else (the layout's author drew it).
+  waypoints), ignoring everything else (the layout's author drew it);
+- walking: a person walking to a goal (`jaxnav.core.crowd`, in `MotionState.walkers`), some of
+  them giving way to the robot.
 
-Obstacles do not react to the robot: a mover that drives into it is the robot's collision (it is
-the robot's job to keep out of the way). `advance` moves every slot once per control step, before
-the physics, so the MJX geoms, the depth rays and the collision test all see the new positions.
+Bouncing and path obstacles do not react to the robot: a mover that drives into it is the robot's
+collision (it is the robot's job to keep out of the way). `advance` moves every slot once per
+control step, before the physics, so the MJX geoms, the depth rays and the collision test all see
+the new positions.
 `add_movers` puts the sampler's bouncing cylinders (`RandomizeConfig.moving_*`) into the last
-cylinder slots, which `make_env` reserves for them.
+cylinder slots, which `make_env` reserves for them (the sampler's walkers, `crowd.add_walkers`,
+take the slots before those).
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxnav.core import crowd
 from jaxnav.core.geometry import box_distance, disc_distance, signed_distance
 
 TRIES = 16  # uniform candidates per added mover; a mover whose candidates all fail is left out
@@ -40,6 +47,7 @@ class MotionState:
     # point (K: the most points of any path in the env; 0 when there is none)
     speed: jax.Array  # [S] m/s along the path; 0: no path
     travelled: jax.Array  # [S] m along the path's there-and-back cycle, in [0, 2 x its length)
+    walkers: Any = None  # `crowd.Walkers` of the cylinder slots; None: nobody walks
 
 
 def still(slots: int, points: int = 0) -> MotionState:
@@ -130,8 +138,9 @@ def path_point(path: jax.Array, travelled: jax.Array) -> jax.Array:
     return take(path) + t[:, None] * take(seg)
 
 
-def advance(room, dt: float):
-    """`room` (SceneParams with a `motion`) after `dt` s: bouncing and path slots moved."""
+def advance(room, dt: float, robot=None):
+    """`room` (SceneParams with a `motion`) after `dt` s: bouncing and path slots moved, then the
+    walkers (`crowd.walk`, giving way to `robot`: (xy [2], velocity [2], radius), or None)."""
     motion = room.motion
     pos, vel = _bounce(room, motion, dt)
     travelled = motion.travelled
@@ -142,11 +151,12 @@ def advance(room, dt: float):
         on_path = (motion.speed > 0) & active
         pos = jnp.where(on_path[:, None], path_point(motion.path, travelled), pos)
     nb = room.box_pos.shape[0]
-    return room.replace(
+    room = room.replace(
         box_pos=pos[:nb],
         cyl_pos=pos[nb:],
         motion=motion.replace(velocity=vel, travelled=travelled),
     )
+    return room if motion.walkers is None else crowd.walk(room, dt, robot)
 
 
 def add_movers(key, room, cfg, robot_radius: float, goal=None):

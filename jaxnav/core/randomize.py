@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxnav.core import motion
+from jaxnav.core import crowd, motion
+from jaxnav.core import grid as occupancy
 from jaxnav.core.checks import require_finite
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.layout import MAX_OBSTACLE_SPEED, RoomLayout
@@ -51,6 +52,7 @@ class SceneParams:
     latency: jax.Array  # [] int32 control steps between a command and the motors
     wheel_gain: jax.Array  # [2] actual / commanded speed of the left and right wheels
     motion: Any = None  # `motion.MotionState` of the moving obstacles; None: nothing moves
+    grid: Any = None  # `grid.OccupancyGrid` [G, G] of cell obstacles; None: the room has none
 
 
 MAX_MOVERS = 16  # most moving obstacles added per room (each is placed by its own draw)
@@ -58,19 +60,33 @@ RANDOM = "random"  # the family of `RandomizeConfig.families` that is `sample_ro
 FAMILY_NAMES = (
     RANDOM,
     *("open", "clutter", "pillars", "corridor", "ltu", "joined", "furniture", "low_overhang"),
+    "crowd",
+    "long_hall",
+    "dense_field",
 )
 """Names of `RandomizeConfig.families`: 'random' and the room families of `jaxnav.core.families`."""
+LARGE_FAMILIES = ("long_hall",)
+"""Families of rooms over 10 m that 'all' leaves out (by name only): the goal task's traced grid
+covers 10.5 m (`goals.GRID_HALF`), and 'all' stays the benchmark suite's families."""
+GRID_FAMILIES = ("dense_field",)
+"""Families on an occupancy grid (`jaxnav.core.families.GRID_FAMILIES`) that 'all' leaves out
+(by name only): a grid layer costs every room of the batch, and 'all' stays the suite's families."""
+WALKER_FAMILIES = ("crowd",)
+"""Families with people walking (`jaxnav.core.crowd`) that 'all' leaves out (by name only):
+walkers cost every room of the batch, and 'all' stays the suite's families."""
 
 
 def family_weights(spec: str) -> dict[str, float]:
     """{name: probability} of a `RandomizeConfig.families` spec ('name:weight,...', 'name' alone
-    weighs 1, 'all' is every family and 'random' equally). Errors name the field and the part."""
+    weighs 1, 'all' is every family but `LARGE_FAMILIES` and 'random' equally). Errors name the
+    field and the part."""
     names, where = FAMILY_NAMES, "RandomizeConfig.families"
     weights: dict[str, float] = {}
     for part in spec.split(","):
         name, _, value = part.strip().partition(":")
         if name == "all" and not value:
-            weights.update(dict.fromkeys(names, 1.0))
+            left_out = (*LARGE_FAMILIES, *GRID_FAMILIES, *WALKER_FAMILIES)
+            weights.update(dict.fromkeys([n for n in names if n not in left_out], 1.0))
             continue
         if name not in names:
             raise ValueError(f"{where}: unknown family {name!r}; valid: all, {', '.join(names)}")
@@ -118,8 +134,10 @@ class RandomizeConfig:
     families: str = ""
     """Kinds of room the sampled rooms are, as 'name:weight,...': names of
     `jaxnav.core.families.FAMILIES` (open, clutter, pillars, corridor, ltu, joined, furniture,
-    low_overhang) and 'random' (the sampler configured by the fields below); 'all' is every one,
-    equally weighted. Empty: 'random' only."""
+    low_overhang, crowd: people crossing, see `walkers`, long_hall), `GRID_FAMILIES` (dense_field:
+    a BARN-like field of cells on an occupancy grid) and 'random' (the sampler configured by the
+    fields below); 'all' is every one but those of `LARGE_FAMILIES`, `GRID_FAMILIES` and
+    `WALKER_FAMILIES`, equally weighted. Empty: 'random' only."""
     moving_count: tuple[int, int] = (0, 0)
     """Moving obstacles added to every room, sampled or layout, count uniform over the range:
     cylinders bouncing off the walls and the other obstacles at a constant speed, in cylinder
@@ -133,6 +151,11 @@ class RandomizeConfig:
     moving_clearance: float = 1.0
     """Least gap between an added moving obstacle and the robot's edge at the reset, m, so that
     the first steps are fair."""
+    walkers: str = ""
+    """People walking across the rooms (`jaxnav.core.crowd`): fields of `crowd.WalkerConfig` as
+    'name=value,...', ranges as low:high, e.g. 'count=2:6,reactive=0.5' (count: in every room;
+    speed, radius, reactive share, height, clearance). Empty: its defaults, which add walkers to
+    the rooms of the `crowd` family only."""
     obstacle_height: tuple[float, float] = (0.4, 1.0)
     """Height of a sampled obstacle, m; the TurtleBot 2i's camera sits at 0.30 m."""
     low_prob: float = 0.0
@@ -238,6 +261,7 @@ class RandomizeConfig:
 
         if self.families:
             family_weights(self.families)
+        crowd.WalkerConfig.parse(self.walkers)
 
     def check_robot(self, radius: float) -> None:
         """Sampled rooms must fit a robot of `radius` with its spawn clearance."""
@@ -289,19 +313,32 @@ class LayoutBank:
         return int(self.has_spawn.shape[0])
 
 
-def make_bank(layouts: Sequence[RoomLayout], num_boxes: int, num_cylinders: int) -> LayoutBank:
+def make_bank(
+    layouts: Sequence[RoomLayout], num_boxes: int, num_cylinders: int, grid: int = 0
+) -> LayoutBank:
     """Stacks layouts into a bank with `num_boxes`/`num_cylinders` slots (inactive beyond their own).
 
     Where an obstacle of some layout moves, every room gets a `motion.MotionState` (its paths
-    padded to the longest); otherwise `rooms.motion` is None."""
+    padded to the longest); otherwise `rooms.motion` is None. With `grid` > 0 (at least the
+    largest layout grid's side, `layout_grid_size`), every room gets a [grid, grid] occupancy
+    grid: its layout's own, or an empty one; otherwise `rooms.grid` is None."""
     points = None
     if any(ob.motion is not None for lay in layouts for ob in lay.obstacles):
         paths = [ob.motion.path for lay in layouts for ob in lay.obstacles if ob.motion]
         points = max([1 + len(p) for p in paths if p] or [0])
-    rooms = [_layout_params(lay, num_boxes, num_cylinders, points) for lay in layouts]
+    need = layout_grid_size(layouts)
+    if grid and grid < need:
+        raise ValueError(
+            f"make_bank: grid must be >= {need} cells (the largest layout's), got {grid}"
+        )
+    grid = grid or need
+    rooms = [_layout_params(lay, num_boxes, num_cylinders, points, grid) for lay in layouts]
     if not rooms:  # an empty bank keeps shapes static: one dummy room, never drawn
-        rooms = [_layout_params(RoomLayout(name="none", size=(4.0, 4.0)), num_boxes, num_cylinders)]
+        none = RoomLayout(name="none", size=(4.0, 4.0))
+        rooms = [_layout_params(none, num_boxes, num_cylinders, None, grid)]
     stacked = jax.tree_util.tree_map(lambda *x: np.stack(x), *rooms)
+    if (walkers := crowd.from_layouts(layouts, num_cylinders)) is not None:
+        stacked = stacked.replace(motion=stacked.motion.replace(walkers=walkers))
     has_spawn = np.array([lay.robot_pos is not None for lay in layouts] or [False])
     return LayoutBank(
         rooms=jax.tree_util.tree_map(jnp.asarray, stacked), has_spawn=jnp.asarray(has_spawn)
@@ -320,14 +357,37 @@ def _layout_motion(layout: RoomLayout, nb: int, nc: int, points: int) -> motion.
             continue
         if move.velocity is not None:
             state.velocity[slot] = move.velocity
-        else:
+        elif move.path is not None:  # a walker's goal: `crowd.from_layouts`
             line = [ob.pos, *move.path]
             state.path[slot] = line + [line[-1]] * (points - len(line))
             state.speed[slot] = move.speed
     return state
 
 
-def _layout_params(layout: RoomLayout, nb: int, nc: int, points: int | None = None) -> SceneParams:
+def layout_grid_size(layouts: Sequence[RoomLayout]) -> int:
+    """G, the side in cells of the largest occupancy grid of `layouts` (0: none has one)."""
+    sides = [max(len(lay.grid.rows), len(lay.grid.rows[0])) for lay in layouts if lay.grid]
+    return max(sides, default=0)
+
+
+def _layout_grid(layout: RoomLayout, g: int) -> occupancy.OccupancyGrid | None:
+    """The layout's grid as a [g, g] `OccupancyGrid` (numpy; empty where it has none), or None
+    for g = 0. Its rows run north to south in the file, south to north here."""
+    if g == 0:
+        return None
+    out = occupancy.empty(g)
+    ob = layout.grid
+    if ob is None:
+        return out
+    rows = np.array([[ch == "#" for ch in row] for row in ob.rows[::-1]], bool)
+    out.cells[: rows.shape[0], : rows.shape[1]] = rows
+    f32 = np.float32
+    return out.replace(origin=np.asarray(ob.origin, f32), cell=f32(ob.cell), height=f32(ob.height))
+
+
+def _layout_params(
+    layout: RoomLayout, nb: int, nc: int, points: int | None = None, grid: int = 0
+) -> SceneParams:
     boxes, cyls = layout.boxes, layout.cylinders
     if len(boxes) > nb or len(cyls) > nc:
         raise ValueError(
@@ -362,6 +422,7 @@ def _layout_params(layout: RoomLayout, nb: int, nc: int, points: int | None = No
         dropout=f32(0),
         **_episode_placeholders(nb, nc),
         motion=None if points is None else _layout_motion(layout, nb, nc, points),
+        grid=_layout_grid(layout, grid),
     )
 
 

@@ -16,6 +16,9 @@ Then rays that see the floor are told apart from obstacle hits by the robot side
 `jaxnav.robot_side.observation.floor_mask` (the same code): a reading whose point lies within
 `floor_margin + floor_margin_slope * depth` of the floor plane, or an invalid one whose ray meets
 the floor outside the camera's range. Floor is not an obstacle; it is left out of the sector.
+With `far_reads_max`, an invalid ray at or above the horizon whose column's farthest-reaching
+floor ray returned is no return from beyond range and reads range_max (the robot side's
+`far_mask`: the same code).
 The simulator classifies with the episode's true camera mount: the robot side must be given the
 robot's calibrated one.
 
@@ -44,6 +47,7 @@ from jaxnav.robot_side.observation import (
     FLOOR_MARGIN,
     FLOOR_MARGIN_SLOPE,
     READINGS_PER_STRAY,
+    far_mask,
     floor_mask,
     sector_nearest,
 )
@@ -84,6 +88,10 @@ class SensorConfig:
     far_invalid: bool = False
     """Surfaces beyond range_max (and rays meeting nothing) are invalid, as the Astra reports them
     (0); False (default): they read range_max, as a LaserScan's inf does."""
+    far_reads_max: bool = False
+    """An invalid ray at or above the horizon whose column's farthest-reaching floor ray returned
+    is no return from beyond range and reads range_max (`far_mask`, shared with the robot side,
+    which reads the flag from the policy file); False (default): it stays invalid."""
     floor_margin: float = FLOOR_MARGIN
     """A reading within floor_margin + floor_margin_slope * depth (m) of the floor plane, or
     below it, is floor, not an obstacle (`floor_mask`, shared with the robot side)."""
@@ -237,9 +245,18 @@ def reduce_sectors(reading, valid, floor, cfg: SensorConfig, xp=jnp):
     return xp.clip(out, cfg.range_min, cfg.range_max)
 
 
-def observe(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> jax.Array:
-    """[num_sectors] float32 observation of a robot at qpos = (x, y, yaw) with the episode's
-    noise, dropout, dark obstacles and camera mount error (`params`: its `SceneParams`)."""
+class Readings(NamedTuple):
+    """What the camera returns for each ray [rows, C] (`camera_readings`)."""
+
+    rays: Rays  # the noiseless rays
+    reading: jax.Array  # [rows, C] camera depth with noise, m
+    valid: jax.Array  # [rows, C] bool: the camera returned it (else it reads 0)
+    floor: jax.Array  # [rows, C] bool: it is the floor (`floor_mask`)
+
+
+def camera_readings(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> Readings:
+    """The `Readings` of a robot at qpos = (x, y, yaw) with the episode's noise, dropout, dark
+    obstacles and camera mount error (`params`: its `SceneParams`), before `far_mask`."""
     rays = ray_readings(params, qpos, cfg, robot)
     k_noise, k_drop = jax.random.split(key)
     reading = rays.reading
@@ -249,5 +266,20 @@ def observe(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> jax.Array
     dark = (rays.slot >= 0) & params.dark[jnp.maximum(rays.slot, 0)]  # no return
     in_range = (reading <= cfg.range_max) | (not cfg.far_invalid)
     valid = (reading >= cfg.range_min) & in_range & ~dropped & ~dark
-    floor = _floor(rays, reading, valid, cfg)
+    return Readings(rays, reading, valid, _floor(rays, reading, valid, cfg))
+
+
+def sectors(readings: Readings, cfg: SensorConfig) -> jax.Array:
+    """[num_sectors] float32 observation of the camera's `readings`: with `far_reads_max`, no
+    return from beyond range reads range_max (`far_mask`), then `reduce_sectors`."""
+    rays, reading, valid, floor = readings
+    if cfg.far_reads_max:
+        far = far_mask(valid, rays.rise, rays.height, cfg, xp=jnp)  # [rows, C]
+        reading, valid = jnp.where(far, jnp.inf, reading), valid | far
     return reduce_sectors(reading, valid, floor, cfg).astype(jnp.float32)
+
+
+def observe(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> jax.Array:
+    """[num_sectors] float32 observation of a robot at qpos = (x, y, yaw) with the episode's
+    noise, dropout, dark obstacles and camera mount error (`params`: its `SceneParams`)."""
+    return sectors(camera_readings(params, qpos, key, cfg, robot), cfg)

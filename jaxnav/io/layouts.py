@@ -20,8 +20,12 @@ required. `"goal": {"pos": [x, y]}` fixes the target of goal-reaching tasks (`ja
 other tasks ignore it); without it a reachable goal is sampled every episode.
 `box.size` is the full extent along the box's own axes. An obstacle may move (`motion`, see
 `Motion`): `{"velocity": [vx, vy]}` bounces off the walls and the other obstacles, and
-`{"path": [[x, y], ...], "speed": s}` goes back and forth from its `pos` through the waypoints.
-Every mistake raises
+`{"path": [[x, y], ...], "speed": s}` goes back and forth from its `pos` through the waypoints;
+a cylinder with `{"goal": [x, y], "speed": s}` (optional `"reactive"`, `"repeat"`, both true by
+default) is a person walking to the goal (`jaxnav.core.crowd`).
+A `{"type": "grid", "origin": [x, y], "cell": c, "rows": ["#..", ...], "height": h}` obstacle
+is dense clutter on an occupancy grid (`Grid`; rows north to south, each west to east, "#"
+occupied), at most one per room and `MAX_GRID` cells a side. Every mistake raises
 `LayoutError`, whose one-line message names the file, the room and the field in JSON path style
 (`obstacles[2].size`).
 
@@ -29,16 +33,18 @@ Bounds (what the float32 simulator handles exactly enough; anything else is refu
 
 - `room.size`: each side 0.5 m to 100 m (`ROOM_SIZE`); `wall_height` and obstacle `height` up to
   10 m (`MAX_HEIGHT`).
-- Obstacles: each `size` side and `radius` at least 0.01 m (`MIN_OBSTACLE`), the whole footprint
-  inside the room (so positions are within it too); at most `MAX_OBSTACLES` per room.
+- Obstacles: each `size` side, `radius` and grid `cell` at least 0.01 m (`MIN_OBSTACLE`), the
+  whole footprint inside the room (so positions are within it too; a grid's occupied cells); at
+  most `MAX_OBSTACLES` per room.
 - Rooms: at most `MAX_ROOMS` in a file, and in all the files read together (`load_layouts`).
 - Angles (`yaw`) are any finite number, reduced modulo 2 pi to [-pi, pi] when read.
 - A room with `robot` must have the robot's disc (`ROBOT_RADIUS`) clear of every wall and obstacle
   at `robot.pos`; a room without it must have some free spawn, found at load time by a grid search
   over the interior (`SPAWN_GRID`, centred on the room: its centre lines are searched), else it is
   refused: every episode would start in a collision.
-- `motion`: a velocity or a speed above 0 and at most `MAX_OBSTACLE_SPEED`; a path of 1 to
-  `MAX_WAYPOINTS` waypoints, at each of which the footprint lies inside the room.
+- `motion`: a velocity or a speed above 0 and at most `MAX_OBSTACLE_SPEED` (a walker's:
+  `MAX_WALKER_SPEED`); a path of 1 to `MAX_WAYPOINTS` waypoints, at each of which, and at a
+  walker's goal, the footprint lies inside the room; only a cylinder walks.
 - A `goal.pos` must have the robot's disc clear of every wall and obstacle too (a goal inside an
   obstacle could never be reached). That it is reachable from the spawn (not in a closed-off part)
   is checked where the goal task builds its rooms (`jaxnav.core.goals`), on the occupancy grid;
@@ -63,10 +69,12 @@ from collections.abc import Sequence
 
 from jaxnav.core.layout import (  # noqa: F401 (the model's names are this module's API too)
     _OBSTACLE_TYPES,
+    MAX_GRID,
     MAX_HEIGHT,
     MAX_OBSTACLE_SPEED,
     MAX_OBSTACLES,
     MAX_ROOMS,
+    MAX_WALKER_SPEED,
     MAX_WAYPOINTS,
     MIN_OBSTACLE,
     ROBOT_RADIUS,
@@ -74,6 +82,7 @@ from jaxnav.core.layout import (  # noqa: F401 (the model's names are this modul
     SPAWN_GRID,
     Box,
     Cylinder,
+    Grid,
     LayoutError,
     Motion,
     Obstacle,

@@ -54,6 +54,10 @@ class Trainer(NamedTuple):
     init: callable  # key -> TrainState
     run_chunk: callable  # TrainState -> (TrainState, metrics [updates_per_chunk])
     train: callable  # key -> (TrainState, metrics [num_updates // updates_per_chunk * chunk])
+    # The pieces of one update, not jitted (benchmarks/compile_time.py times each): "rollout":
+    # ts -> (env_state, key, traj); "learn": (ts, env_state, key, traj) -> (ts, metrics); "update":
+    # ts -> (ts, metrics), the two in turn.
+    parts: dict | None = None
 
 
 def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
@@ -230,8 +234,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         )
         return (params, opt_state, batch, key), metrics
 
-    def _update(ts: TrainState) -> tuple[TrainState, dict]:
-        env_state, key, traj = _rollout(ts)
+    def _learn(ts: TrainState, env_state, key, traj: Transition) -> tuple[TrainState, dict]:
         last_obs = norm(ts.obs_stats, env_state.obs)
         last_value = network.apply(ts.params, last_obs, critic_in(env_state))[1]  # [N]
         adv, targets = compute_gae(
@@ -277,6 +280,9 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         }
         return ts, metrics
 
+    def _update(ts: TrainState) -> tuple[TrainState, dict]:
+        return _learn(ts, *_rollout(ts))
+
     def _update_or_skip(ts: TrainState, _):
         # Chunks have a fixed length so they compile once; updates past the budget are no-ops.
         live = ts.update < cfg.num_updates
@@ -290,4 +296,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     def train(key: jax.Array):
         return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
 
-    return Trainer(network, jax.jit(init), jax.jit(run_chunk, donate_argnums=0), jax.jit(train))
+    parts = {"rollout": _rollout, "learn": _learn, "update": _update}
+    return Trainer(
+        network, jax.jit(init), jax.jit(run_chunk, donate_argnums=0), jax.jit(train), parts
+    )

@@ -70,6 +70,9 @@ class Sensor:
     it, is floor (`floor_mask`)."""
     floor_margin_slope: float = FLOOR_MARGIN_SLOPE
     """Growth of the floor margin per metre of depth, m/m (see `floor_mask`)."""
+    far_reads_max: bool = False
+    """An unknown pixel at or above the horizon, in a column whose farthest-reaching floor pixel
+    returned, is no return from beyond range and reads range_max (`far_mask`); False: unknown."""
 
     def __post_init__(self):
         if not 0 < self.fov < 2 * math.pi:
@@ -217,7 +220,8 @@ def reduce_sectors(
 
     The simulator (`jaxnav.core.sensors`) applies the same rule to its rays, with the camera's
     unknowns: rays nearer than range_min, rays at dark obstacles, dropped rays and (with
-    `far_invalid`) rays beyond range_max; rays that meet the floor are left out on both sides
+    `far_invalid`) rays beyond range_max, of which `far_mask` turns those from beyond range
+    into +inf where `far_reads_max` is set; rays that meet the floor are left out on both sides
     (`tests/test_fidelity.py` checks the two agree). blind_fraction must be in (0, 1]; 1 means only
     a sector whose readings are all unknown reads near.
     """
@@ -270,6 +274,34 @@ def floor_mask(reading, known, rise, camera_height, sensor, xp=np):
     meets = camera_height / xp.where(down, -rise, 1.0)  # reading at which the ray meets the floor
     unreadable = down & ((meets < sensor.range_min) | (meets > sensor.range_max))
     return xp.where(known, seen, unreadable)
+
+
+def far_mask(known, rise, camera_height, sensor, xp=np):
+    """[R, K] bool: the unknown readings that are no return from beyond range, not a surface in
+    the blind zone; they read range_max (+inf to `reduce_sectors`) where `far_reads_max` is set.
+
+    The one far rule, applied by the simulator to its rays (`jaxnav.core.sensors.observe`, `xp` =
+    jax.numpy) and here to depth-image pixels. known [R, K] bool marks the readings the camera
+    returned, rise [R, K] the height each ray gains per metre of reading, for R rows (bottom to
+    top or any order) in each of K columns; camera_height and `sensor` (range_min, range_max) as
+    for `floor_mask`.
+
+    An unknown reading is far when its ray points at or above the horizon (it meets no floor)
+    and its column's witness returned: of the column's rays that meet the floor within
+    [range_min, range_max], the one that meets it farthest out. Anything standing in front of
+    the camera nearer than that floor point blocks it, so a surface in the blind zone (which
+    blocks every ray of its columns) still reads near, as does a dark obstacle; one dropped pixel
+    elsewhere in the column does not matter. A column without witnesses (a one-row sensor at the
+    horizon) keeps every unknown unknown. What one frame cannot tell apart: an overhang nearer
+    than range_min that the witness passes under reads far (docs/simulation.md).
+    """
+    down = rise < 0
+    meets = camera_height / xp.where(down, -rise, 1.0)  # reading at which the ray meets the floor
+    witness = down & (meets >= sensor.range_min) & (meets <= sensor.range_max)  # [R, K]
+    reach = xp.where(witness, meets, -1.0)
+    farthest = witness & (reach == reach.max(-2, keepdims=True))  # [R, K] one per column
+    clear = (farthest & known).any(-2)  # [K] the column's witness returned
+    return ~known & ~down & clear[..., None, :]
 
 
 def _angle_sectors(angles, sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
@@ -414,9 +446,28 @@ class Intrinsics(NamedTuple):
                 f"the image is {width}x{height}"
             )
 
+    def across(self, cols=None) -> np.ndarray:
+        """[C] how far left of the optical axis each column's ray runs per metre of depth (the
+        tangent of its angle; `cols` default: every column)."""
+        cols = np.arange(self.width) if cols is None else np.asarray(cols)
+        return (self.cx - cols) / self.fx
+
+    def up(self, rows=None) -> np.ndarray:
+        """[R] how far above the optical axis each row's ray runs per metre of depth."""
+        rows = np.arange(self.height) if rows is None else np.asarray(rows)
+        return (self.cy - rows) / self.fy
+
+    def back_project(self, depth, rows, cols) -> np.ndarray:
+        """[N, 3] the points (forward, left, up; m, the camera's frame: forward along the optical
+        axis) that pixels (rows [N], cols [N]) of depth [N] (camera depth, m) see."""
+        depth = np.asarray(depth, np.float64)
+        return depth[:, None] * np.stack(
+            [np.ones_like(depth), self.across(cols), self.up(rows)], axis=-1
+        )
+
     def column_angles(self) -> np.ndarray:
         """[width] angle (rad, positive = left) of each column's centre from the optical axis."""
-        return np.arctan((self.cx - np.arange(self.width)) / self.fx)
+        return np.arctan(self.across())
 
     def horizon_rows(self, half_width_deg: float = 2.0, tilt: float = 0.0) -> np.ndarray:
         """Row indices within +-half_width_deg of the horizontal through the camera, tilted
@@ -458,7 +509,7 @@ def ray_pixels(
         raise ValueError("ray_pixels: give the camera's vfov or its Intrinsics, one of them")
     camera = camera or Intrinsics.from_vfov(width, height, vfov)
     camera.fits(height, width)
-    across = (camera.cx - np.arange(width)) / camera.fx  # tan of each column's angle
+    across = camera.across()  # tan of each column's angle
     angles = np.arctan(across)
     if azimuths is None:
         keep, sector = _angle_sectors(angles, sensor)
@@ -475,7 +526,7 @@ def ray_pixels(
     # atan(y / sqrt(1 + t^2)): y = tan(e) * sqrt(1 + t^2) puts it at elevation e.
     up = np.tan(np.asarray(sensor.elevations))[:, None] * np.hypot(1.0, across[cols])[None, :]
     rows = np.clip(np.rint(camera.cy - camera.fy * up), 0, height - 1).astype(np.int64)
-    y = (camera.cy - rows) / camera.fy  # the chosen pixels' own rays
+    y = camera.up(rows)  # the chosen pixels' own rays
     pitch = sensor.camera_pitch
     return RayPixels(rows, cols, sector, math.cos(pitch) * y - math.sin(pitch))
 
@@ -491,7 +542,8 @@ def rays_to_sectors(
 ):
     """[num_sectors] float32 observation from a depth image [H, W] (m) read at `pixels`
     (`ray_pixels`): 0, NaN and negative pixels are unknown, floor pixels are left out
-    (`floor_mask`; none without `sensor.camera_height`), the rest go to `reduce_sectors`; with
+    (`floor_mask`; none without `sensor.camera_height`), with `sensor.far_reads_max` unknown
+    pixels from beyond range read range_max (`far_mask`), the rest go to `reduce_sectors`; with
     `max_unknown`, all of them, floor included, to `check_frame` first."""
     reading = np.asarray(depth, np.float64)[pixels.rows, pixels.cols[None, :]]  # [R, K]
     with np.errstate(invalid="ignore"):
@@ -502,6 +554,9 @@ def rays_to_sectors(
         with np.errstate(invalid="ignore"):
             floor = floor_mask(reading, known, pixels.rise, sensor.camera_height, sensor)
     readings = np.where(known, reading, np.nan)
+    if sensor.far_reads_max and sensor.camera_height is not None:
+        far = far_mask(known, pixels.rise, sensor.camera_height, sensor)
+        readings = np.where(far, np.inf, readings)  # no return within range: range_max
     check_frame(
         readings, max_unknown
     )  # floor included: a pixel that sees it shows the camera works

@@ -15,8 +15,8 @@ sensor's fov (rad), range_min and range_max (m) and num_sectors (= D), and forma
 Optional (older files lack them; readers that do not know them ignore them): control_period (s per
 action in training; the ROS node's timer runs at its inverse); the sensor's ray rows and floor rule,
 `Sensor`'s fields of the same names: elevations [R] (rad; absent: one horizontal row),
-camera_height (m; absent: no pixel is floor), camera_pitch (rad, down +), floor_margin (m) and
-floor_margin_slope (m/m).
+camera_height (m; absent: no pixel is floor), camera_pitch (rad, down +), floor_margin (m),
+floor_margin_slope (m/m) and far_reads_max (0/1; absent: 0).
 
 Format 3 (FORMAT_VERSION; written only for policies a format-2 reader would misuse) may add:
 action_low, action_high float32 [2] (continuous actions: the actor's A = 2 outputs are means in
@@ -174,6 +174,8 @@ class _Entries:
         for name in ("camera_height", "camera_pitch", "floor_margin", "floor_margin_slope"):
             if name in self.arrays:
                 optional[name] = self.number(name)
+        if "far_reads_max" in self.arrays:
+            optional["far_reads_max"] = bool(self.whole("far_reads_max"))
         fields = {k: self.number(k) for k in ("fov", "range_min", "range_max")}
         fields["num_sectors"] = self.whole("num_sectors")
         try:

@@ -9,8 +9,9 @@ On the robot, in the folder `python -m jaxnav.export RUN --bundle DIR` wrote (nu
 (`python -m jaxnav.robot_side.ros_node` works too where jaxnav is installed.) The flags set the
 defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, stamped,
 camera_info_topic, enable_topic, goal_topic, odom_topic, goal_status_topic, header_stamps,
-rate_hz, max_age, speed_calibration, blind_fraction, readings_per_stray, max_unknown, vfov_deg,
-band_deg, tilt_deg, camera_height), which `--ros-args -p` overrides.
+goal_point, rate_hz, max_age, speed_calibration, blind_fraction, readings_per_stray, max_unknown,
+vfov_deg, band_deg, tilt_deg, camera_height, calibration, calibration_frames, pitch_tolerance_deg,
+height_tolerance, roll_tolerance_deg), which `--ros-args -p` overrides.
 
 What it does (the logic is `ControlLoop` below, which has no ROS in it and is tested alone;
 `python -m jaxnav.replay` drives the same loop from a recorded bag):
@@ -23,6 +24,13 @@ What it does (the logic is `ControlLoop` below, which has no ROS in it and is te
   is almost all unknown (over `max_unknown`, default 90 %: a covered lens or sunlight), when a
   message cannot be converted or the policy fails (logged; it carries on), and while `false` was
   last published on `enable_topic` (std_msgs/Bool, default `~/enable`) until `true` comes.
+- Policies trained with several rows (a floor rule) first estimate the camera's mount from the
+  floor in their first `calibration_frames` depth frames (`calibrate.StartupCalibration`),
+  sending zero velocity meanwhile; with `calibration` check (default) a pitch or height off
+  tilt_deg/camera_height by more than `pitch_tolerance_deg`/`height_tolerance`, or a roll beyond
+  `roll_tolerance_deg`, keeps it at zero velocity for good, said in one log line; with use it
+  reads depth at the estimated mount; off skips it. Its state goes to `/diagnostics`
+  (diagnostic_msgs: OK driving, WARN waiting, ERROR a fault) at each change and every second.
 - A policy file that fails its checks (`policy.NumpyPolicy.from_npz`: unreadable, not a regular
   file, NaN weights, absurd commands, wrong sizes) ends the node with one `error: ...` line and
   exit status 2 before any command is sent; so does a bad parameter.
@@ -43,7 +51,8 @@ but the bumper is the last resort.
 
 Goal policies (exported from the `goal` task) also need the goal and the robot's pose, in one
 frame: a geometry_msgs/PoseStamped on `goal_topic` (default `goal_pose`, what RViz's "2D Goal
-Pose" tool publishes) and nav_msgs/Odometry on `odom_topic` (default `odom`, the Kobuki driver's).
+Pose" tool publishes; with `goal_point`, a PointStamped, e.g. RViz's "Publish Point" on
+/clicked_point) and nav_msgs/Odometry on `odom_topic` (default `odom`, the Kobuki driver's).
 The goal must be given in the odometry's frame (`odom`; a goal in another frame, e.g. `map`, is
 refused with zero velocity until one in the right frame comes: transform it first, e.g. with tf2).
 The node sends zero velocity before the first goal, when the odometry is older than `max_age`,
@@ -78,6 +87,14 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .calibrate import (
+    HEIGHT_TOLERANCE,
+    MODES,
+    PITCH_TOLERANCE_DEG,
+    ROLL_TOLERANCE_DEG,
+    StartupCalibration,
+    Tolerance,
+)
 from .observation import (
     BLIND_FRACTION,
     MAX_UNKNOWN,
@@ -100,6 +117,13 @@ ASTRA_VFOV_DEG = 49.5  # Orbbec Astra vertical field of view (the simulator has 
 MAX_AHEAD = 0.05
 OTHER_CLOCK = " (by header.stamp: another clock? header_stamps:=false ages by arrival)"
 CMD_FRAME = "base_link"  # the frame of TwistStamped commands (Nav2's robot_base_frame)
+# Loop states of a fault (`ControlLoop.diagnosis`: ERROR), as opposed to waiting (WARN).
+FAULTS = ("camera mount refused", "sensor blind", "error:", "no sensor message for",
+          "sensor messages over", "sensor stamps over")  # fmt: skip
+DIAGNOSTICS_PERIOD = 1.0  # s between diagnostic_msgs reports, besides one at each change of state
+# s at least between the frames given to the start-up calibration (every third of a 30 Hz camera):
+# one costs 10-40 ms, and a camera facing no floor would take most of a core while the robot waits.
+CALIBRATION_PERIOD = 0.08
 # Odometry steps the robot can make (`odometry_jump`): the Kobuki's top speeds, twice over, for the
 # time between two messages (at most ODOM_GAP) plus ODOM_JITTER of stamp or delivery jitter.
 TOP_SPEED, TOP_YAW_RATE = 0.7, math.pi  # m/s, rad/s
@@ -290,8 +314,9 @@ class GoalInput:
         self.pose_received = stamp if received is None else received
 
     def on_goal_msg(self, msg) -> None:
-        """A geometry_msgs/PoseStamped goal (its position; the orientation is not used)."""
-        p = msg.pose.position
+        """A geometry_msgs/PoseStamped goal (its position; the orientation is not used) or
+        PointStamped (RViz's "Publish Point", `--goal-point`)."""
+        p = msg.point if hasattr(msg, "point") else msg.pose.position
         self.on_goal(p.x, p.y, msg.header.frame_id)
 
     def on_odom_msg(self, msg, stamp: float, received: float | None = None) -> None:
@@ -359,12 +384,15 @@ class ControlLoop:
         log: Callable[[str], None] = _stderr,
         goal: GoalInput | None = None,
         header_stamps: bool = False,
+        calibration: StartupCalibration | None = None,
     ):
         if not max_age > 0:
             raise ValueError(f"max_age: must be > 0 s, got {max_age}")
         self.controller, self.reader, self.max_age, self.log = controller, reader, max_age, log
         self.goal = goal  # the goal task's inputs; None for policies without them
         self.header_stamps = header_stamps
+        self.calibration = calibration  # the start-up mount check of depth images; None: none
+        self._calibrated_at = -math.inf  # when the last frame went to the calibration
         self.camera: Intrinsics | None = None  # the depth camera's calibration, once known
         self.enabled = True
         self._last = np.zeros(2, np.float32)  # the last command sent, in the policy's units
@@ -386,6 +414,30 @@ class ControlLoop:
         """Keeps `msg`, received at `stamp` (s), as the newest reading, replacing the previous one."""
         self._msg, self._received, self._result = msg, stamp, None
         self._stamp = self.taken_at(msg, stamp)
+        due = stamp - self._calibrated_at >= CALIBRATION_PERIOD
+        if self.calibration is not None and not self.calibration.done and due:
+            self._calibrated_at = stamp
+            self._calibrate(msg)
+
+    def _calibrate(self, msg) -> None:
+        """Gives a depth image to the start-up calibration; once it has decided, logs the
+        estimate and, where it is to be used, reads later images with it."""
+        try:
+            depth = image_msg_to_array(
+                msg.encoding, msg.height, msg.width, msg.data, msg.step, bool(msg.is_bigendian)
+            )
+            sensor = self.reader.mount(self.controller.policy.sensor)
+            camera = self.reader.camera(self.camera, *depth.shape, sensor)
+            cal = self.calibration
+            cal.add(depth, camera, sensor.camera_pitch, sensor.camera_height)
+        except Exception:  # noqa: BLE001 - the tick that reads this message reports it
+            return
+        if not cal.done:
+            return
+        self.log(f"camera mount: {cal.mount.describe()}")
+        if cal.mode == "use" and cal.problem is None:
+            pitch, height = math.degrees(cal.mount.pitch), cal.mount.height
+            self.reader = dataclasses.replace(self.reader, tilt_deg=pitch, camera_height=height)
 
     def on_odometry(self, msg, received: float) -> None:
         """A nav_msgs/Odometry message received at `received` (s), for the goal inputs."""
@@ -424,6 +476,23 @@ class ControlLoop:
         self.obs, self.state = obs, state
         return twist
 
+    def diagnosis(self) -> tuple[int, str, dict[str, str]]:
+        """(level, message, values) of the loop after the last tick, for diagnostic_msgs: level 0
+        (OK) while the policy drives, 2 (ERROR) while a fault keeps the robot stopped (FAULTS:
+        a refused camera mount, a blind, stale or unreadable sensor), else 1 (WARN: waiting for
+        data, calibrating, paused, a goal's state); the message is `state`; the values give the
+        camera mount the depth is read with and the start-up estimate."""
+        level = 0 if self.state == "policy" else 2 if self.state.startswith(FAULTS) else 1
+        values = {}
+        if not self.reader.scan:
+            sensor = self.reader.mount(self.controller.policy.sensor)
+            values["tilt_deg"] = f"{math.degrees(sensor.camera_pitch):.2f}"
+            values["camera_height"] = f"{sensor.camera_height}"
+        cal = self.calibration
+        if cal is not None and cal.mount is not None:
+            values["calibration"] = f"{cal.mode}: {cal.mount.describe()}"
+        return level, self.state, values
+
     def goal_status(self) -> str:
         """The goal's status after the last tick: "no goal", "driving", "reached", "odometry
         jump", or "stopped: " and the loop's state."""
@@ -451,6 +520,9 @@ class ControlLoop:
         stale = self._staleness(now)
         if stale:
             return None, STOP, stale
+        mount = self._mount_state()
+        if mount:
+            return None, STOP, mount
         if self.goal is not None:  # the pose moves between frames: act at every tick
             radius = self.controller.policy.success_radius
             why = self.goal.problem(now, self.max_age, radius)
@@ -458,6 +530,16 @@ class ControlLoop:
         if self._result is None:
             self._result = self._act(self._msg)
         return self._result
+
+    def _mount_state(self) -> str | None:
+        """Why the camera mount keeps the robot stopped (calibrating, or refused); None: it
+        does not."""
+        cal = self.calibration
+        if cal is None or cal.mode == "off":
+            return None
+        if not cal.done:
+            return cal.waiting()
+        return cal.refusal() if cal.problem else None
 
     def _staleness(self, now: float) -> str | None:
         """Why the newest sensor message is too old (or too new) to act on at `now`; None: fresh."""
@@ -540,6 +622,30 @@ def add_loop_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--band-deg", type=float, default=2.0, help="rows within +-this of horizon")
     p.add_argument("--tilt-deg", type=float, default=nan, help=f"camera pitch, + down ({file})")
     p.add_argument("--camera-height", type=float, default=nan, help=f"camera, m ({file})")
+    add_calibration_flags(p)
+
+
+def add_calibration_flags(p: argparse.ArgumentParser) -> None:
+    """The start-up calibration of the camera mount (`calibrate.StartupCalibration`)."""
+    p.add_argument(
+        "--calibration",
+        choices=MODES,
+        default="check",
+        help="several-row policies: estimate the camera mount from the first frames; check: "
+        "refuse to drive where it is off tilt_deg/camera_height; use: drive with it; off",
+    )
+    p.add_argument(
+        "--calibration-frames", type=int, default=5, help="frames with floor to estimate from"
+    )
+    p.add_argument(
+        "--pitch-tolerance-deg", type=float, default=PITCH_TOLERANCE_DEG, help="check: pitch"
+    )
+    p.add_argument(
+        "--height-tolerance", type=float, default=HEIGHT_TOLERANCE, help="check: height, m"
+    )
+    p.add_argument(
+        "--roll-tolerance-deg", type=float, default=ROLL_TOLERANCE_DEG, help="check, use: roll"
+    )
 
 
 def add_goal_flags(p: argparse.ArgumentParser) -> None:
@@ -548,6 +654,11 @@ def add_goal_flags(p: argparse.ArgumentParser) -> None:
         "--goal-topic", default="goal_pose", help="goal policies: geometry_msgs/PoseStamped goal"
     )
     p.add_argument("--odom-topic", default="odom", help="goal policies: nav_msgs/Odometry")
+    p.add_argument(
+        "--goal-point",
+        action="store_true",
+        help="the goal topic carries geometry_msgs/PointStamped (RViz's Publish Point)",
+    )
 
 
 def _add_node_flags(p: argparse.ArgumentParser) -> None:
@@ -611,8 +722,36 @@ def make_loop(get: dict, log) -> tuple[ControlLoop, float]:
     )
     goal = GoalInput() if policy.extra_observations else None
     stamps = get.get("header_stamps", False)
-    loop = ControlLoop(controller, reader, get["max_age"], log, goal, header_stamps=stamps)
+    loop = ControlLoop(
+        controller, reader, get["max_age"], log, goal, stamps, startup_calibration(get, policy)
+    )
     return loop, control_rate(policy, get["rate_hz"])
+
+
+def startup_calibration(get: dict, policy) -> StartupCalibration | None:
+    """The node's start-up calibration (parameters calibration, calibration_frames and the
+    tolerances; absent: the flags' defaults), for depth images read by a floor rule (policies
+    trained with several rows, whose file gives the camera's height); None otherwise: a scan has
+    no floor, and a one-row policy reads a band around the horizon, which 2 deg of pitch error
+    moves onto floor 4 m out at the nearest."""
+    sensor = policy.sensor
+    if get["scan"] or len(sensor.elevations) < 2 or sensor.camera_height is None:
+        return None
+    defaults = vars(_calibration_defaults())
+    get = {**defaults, **{k: v for k, v in get.items() if k in defaults}}
+    tolerance = Tolerance(
+        math.radians(get["pitch_tolerance_deg"]),
+        get["height_tolerance"],
+        math.radians(get["roll_tolerance_deg"]),
+    )
+    return StartupCalibration(get["calibration"], get["calibration_frames"], tolerance)
+
+
+def _calibration_defaults() -> argparse.Namespace:
+    """The calibration flags' defaults."""
+    p = argparse.ArgumentParser()
+    add_calibration_flags(p)
+    return p.parse_args([])
 
 
 def _declare_parameters(node, args) -> dict:
@@ -638,15 +777,32 @@ def _subscribe(node, get: dict) -> None:
         node.create_subscription(CameraInfo, info, node.loop.on_camera_info, sensor_qos)
     node.create_subscription(Bool, get["enable_topic"], node.on_enable, 10)
     if node.loop.goal is not None:
-        from geometry_msgs.msg import PoseStamped
+        from geometry_msgs.msg import PointStamped, PoseStamped
         from nav_msgs.msg import Odometry
 
-        node.create_subscription(PoseStamped, get["goal_topic"], node.on_goal, 10)
+        goal_type = PointStamped if get.get("goal_point") else PoseStamped
+        node.create_subscription(goal_type, get["goal_topic"], node.on_goal, 10)
         node.create_subscription(Odometry, get["odom_topic"], node.on_odom, sensor_qos)
+
+
+def diagnostic_array(diagnosis, stamp, name: str):
+    """A diagnostic_msgs/DiagnosticArray of one status, `ControlLoop.diagnosis`'s (level,
+    message, values), stamped `stamp`, named after the node."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    level, message, values = diagnosis
+    status = DiagnosticStatus()
+    status.level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[level]
+    status.name, status.message, status.hardware_id = f"{name}: control loop", message, ""
+    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+    array = DiagnosticArray()
+    array.header.stamp, array.status = stamp, [status]
+    return array
 
 
 def _make_node(args):
     """The rclpy node, its parameters declared with the flags' values as defaults."""
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import Twist as TwistMsg
     from geometry_msgs.msg import TwistStamped
     from rclpy.node import Node
@@ -666,6 +822,8 @@ def _make_node(args):
             self.status_pub = None
             if self.loop.goal is not None:
                 self.status_pub = self.create_publisher(String, get["goal_status_topic"], 10)
+            self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.diag_sent = (None, -math.inf)  # the last report's state and time
             self.timer = self.create_timer(1.0 / rate, self.on_timer)
             logger.info(f"{get['policy']}: {get['topic']} -> {get['cmd_vel']} at {rate:g} Hz")
 
@@ -692,6 +850,19 @@ def _make_node(args):
                 status = String()
                 status.data = self.loop.goal_status()
                 self.status_pub.publish(status)
+            self.diagnose()
+
+        def diagnose(self):
+            """A diagnostic_msgs report at each change of the loop's state, and every
+            DIAGNOSTICS_PERIOD s."""
+            now, (state, sent) = self.now(), self.diag_sent
+            if state == self.loop.state and now - sent < DIAGNOSTICS_PERIOD:
+                return
+            self.diag_sent = (self.loop.state, now)
+            msg = diagnostic_array(
+                self.loop.diagnosis(), self.get_clock().now().to_msg(), self.get_name()
+            )
+            self.diag_pub.publish(msg)
 
         def send(self, twist: Twist) -> None:
             if self.stamped:

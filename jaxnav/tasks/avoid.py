@@ -94,13 +94,13 @@ class AvoidEnv(NavTask):
             reward=f0,
             done=b0,
             truncated=b0,
-            metrics={"collision": f0},
+            metrics={"collision": f0, **self.walker_hit(params, data, b0)},
             info={"params": params, "steps": jnp.int32(0), "key": key, "actuator": Actuator.zero()},
         )
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; reward per Table I; end on collision or time."""
-        params = self.move(state.info["params"])
+        params = self.move(state.info["params"], state.data)
         target = self.command(action)
         command, actuator = self.actuate(params, state.info["actuator"], target)
         data, hit = self.drive(params, state.data, command)
@@ -113,7 +113,7 @@ class AvoidEnv(NavTask):
             reward=self._reward(state.obs, action, target, hit),
             done=hit | truncated,
             truncated=truncated,
-            metrics={"collision": hit.astype(jnp.float32)},
+            metrics={"collision": hit.astype(jnp.float32), **self.walker_hit(params, data, hit)},
             info={"params": params, "steps": steps, "key": key, "actuator": actuator},
         )
 

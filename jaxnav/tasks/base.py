@@ -16,12 +16,16 @@ benchmarks/wheeled_model.py) are not seen by it.
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
-from jaxnav.core import mjx, motion
-from jaxnav.core.episode import sample
+from jaxnav.core import crowd, mjx, motion
+from jaxnav.core.episode import sample, walker_config
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
@@ -64,6 +68,54 @@ def check_velocity_config(cfg, robot: RobotSpec) -> None:
             )
 
 
+@dataclasses.dataclass(frozen=True)
+class EvalMetric:
+    """A number evaluation (`jaxnav.evaluation`) reports for a task that declares it
+    (`NavTask.eval_metrics`): per room, per family of a suite and overall, in the results, their
+    JSON and, with a `column`, the table.
+
+    It is computed from a room's episode record (`jaxnav.evaluation.evaluate_rooms`: numpy arrays
+    over the room's N episodes, "collided", "steps", "control_period", "distance", "start", "goal",
+    "metrics" (the task's metrics summed per episode), and "layout", "robot_radius", "task" (the
+    task's config)), then pooled over the episodes of the rooms reported together.
+    """
+
+    name: str
+    """Its key in the results and in their JSON."""
+    value: Callable[[dict], np.ndarray]
+    """[N] float: its value in each episode of a room record."""
+    over: Callable[[dict], np.ndarray] | None = None
+    """[N] bool: the episodes whose values are averaged (where there are none, the largest value
+    of all is reported); None: every episode."""
+    column: str = ""
+    """Its column head in the table; "" keeps it out of the table."""
+    width: int = 5
+    """Characters of its column."""
+    scale: float = 1.0
+    """The table shows the value times this (100: a rate as a percentage)."""
+    digits: int = 2
+    """Decimals of its value in the table."""
+    title: str = ""
+    """How a room's picture's title shows the value, a format string ("SPL {:.2f}"); a task
+    whose metrics have none is titled with its collision-free rate and coverage."""
+
+
+def _caused(room: dict) -> np.ndarray:
+    """[N] 1.0 where the episode collided and not by a walker running into the standing robot."""
+    walker = np.asarray(room["metrics"]["walker_hit"]) > 0
+    return (np.asarray(room["collided"], bool) & ~walker).astype(np.float64)
+
+
+WALKER_EVAL_METRICS = (
+    EvalMetric(
+        "robot_collision_rate", value=_caused, column="caused %", width=8, scale=100.0, digits=1
+    ),
+)
+"""Evaluation's metric where people walk: the share of episodes that ended in a collision the
+robot caused (`collision_free_rate` counts every collision; the task metric `walker_hit` the
+episodes in which a non-reactive walker ran into the robot while it stood, `crowd.hit_by_walker`)."""
+
+
 @struct.dataclass
 class Actuator:
     """The drive's command pipeline between the policy and the motors."""
@@ -78,7 +130,16 @@ class Actuator:
 
 class NavTask:
     """Batched-MJX robot in randomised rooms. Subclasses define `reset`, `step`, `action_spec`,
-    `metric_names` and `observation_size` (the env contract, `jaxnav.core.types`)."""
+    `metric_names` and `observation_size` (the env contract, `jaxnav.core.types`), and may declare
+    what evaluation reports besides its own metrics (`eval_metrics`)."""
+
+    eval_metrics: tuple[EvalMetric, ...] = ()
+    """What evaluation reports for this task besides the metrics every task gets."""
+    success_metric: str | None = None
+    """The metric (of `metric_names`) whose episode sum > 0 says an episode reached its goal, for
+    scores that need it (BARN's); None: the task has no goals."""
+    uses_goals = False
+    """Episodes have goals (`state.info["goal"]`): `make_env` adds goal data to the bank."""
 
     def __init__(
         self,
@@ -96,6 +157,13 @@ class NavTask:
         self._data0 = mjx.make_data(self.scene.model, device=jax.local_devices()[0])
         # Static: obstacles move in this env (added movers, or a layout's motions).
         self.moving = randomize.moving_count[1] > 0 or bank.rooms.motion is not None
+        self.walkers = walker_config(randomize)  # the people the randomisation adds
+        layout_walkers = bank.rooms.motion is not None and bank.rooms.motion.walkers is not None
+        self.walking = self.walkers.slots > 0 or layout_walkers  # static: people walk here
+        self.moving |= self.walking
+        if self.walking:
+            self.metric_names = (*self.metric_names, "walker_hit")
+            self.eval_metrics = (*self.eval_metrics, *WALKER_EVAL_METRICS)
 
     @property
     def control_period(self) -> float:
@@ -118,16 +186,34 @@ class NavTask:
         """`params` with the randomisation's moving obstacles added (`motion.add_movers`), clear
         of the spawn and of the robot's disc at `goal` [2] if given; `key` is the one `sample`
         drew `params` with (a key of its own is folded from it, so that an env without movers
-        draws exactly what it drew before they existed)."""
+        draws exactly what it drew before they existed). The walkers (`crowd.add_walkers`) come
+        first, in the slots before the movers'."""
+        if self.walkers.slots:
+            first = params.cyl_pos.shape[0] - self.randomize.moving_count[1] - self.walkers.slots
+            k_walk = jax.random.fold_in(key, 2)
+            params = crowd.add_walkers(k_walk, params, self.walkers, first, self.robot.radius, goal)
         if not self.randomize.moving_count[1]:
             return params
         k_move = jax.random.fold_in(key, 1)
         return motion.add_movers(k_move, params, self.randomize, self.robot.radius, goal)
 
-    def move(self, params: SceneParams) -> SceneParams:
-        """`params` after the obstacles' motion over one control period (`motion.advance`);
-        unchanged in an env where nothing moves."""
-        return motion.advance(params, self.control_period) if self.moving else params
+    def move(self, params: SceneParams, data: mjx.Data) -> SceneParams:
+        """`params` after the obstacles' motion over one control period (`motion.advance`; the
+        reactive walkers give way to the robot as `data` has it); unchanged in an env where
+        nothing moves."""
+        if not self.moving:
+            return params
+        robot = (data.qpos[:2], data.qvel[:2], self.robot.radius)
+        return motion.advance(params, self.control_period, robot)
+
+    def walker_hit(self, params: SceneParams, data: mjx.Data, hit) -> dict:
+        """{"walker_hit": [] float32, 1 where this step's collision `hit` is a non-reactive walker
+        running into the robot while it stood (`crowd.hit_by_walker`)}; {} where nobody walks."""
+        if not self.walking:
+            return {}
+        z = tuple(jnp.float32(v) for v in self.scene.bumper_z)
+        by = crowd.hit_by_walker(params, data.qpos[:2], data.qvel[:2], self.scene.bumper_radius, z)
+        return {"walker_hit": (by & hit).astype(jnp.float32)}
 
     def place(self, params: SceneParams) -> mjx.Data:
         """The physics state of the robot at `params.spawn` in the room of `params`."""

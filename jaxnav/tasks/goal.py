@@ -30,13 +30,21 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxnav.core.checks import require_finite
 from jaxnav.core.episode import sample
-from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal
+from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal, shortest_paths
+from jaxnav.core.randomize import LARGE_FAMILIES, family_weights
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
-from jaxnav.tasks.base import Actuator, NavTask, check_velocity_config, velocity_actions
+from jaxnav.tasks.base import (
+    Actuator,
+    EvalMetric,
+    NavTask,
+    check_velocity_config,
+    velocity_actions,
+)
 
 GOAL_FEATURES = 3  # distance, sin and cos of the bearing
 COMMAND_FEATURES = 2  # the last command, scaled by forward_speed and turn_rate
@@ -128,11 +136,64 @@ def goal_features(qpos: jax.Array, goal: jax.Array) -> jax.Array:
     return jnp.stack([jnp.linalg.norm(delta), jnp.sin(bearing), jnp.cos(bearing)])
 
 
+def spl_values(layout, room: dict, radius: float, success_radius: float) -> np.ndarray:
+    """[N] success weighted by path length per episode (Anderson et al., 2018): S l / max(p, l),
+    with p the path the robot drove and l the shortest path that reaches the goal: the shortest
+    path from the start to the goal on the room's occupancy grid (`goals.shortest_paths`: 0.1 m
+    cells, obstacles inflated by the robot radius, 8-connected) less the success radius (stricter
+    than taking the path to the goal's centre, which lets every successful path be that much
+    shorter than l). `room`: its episodes' "start", "goal" [N, 2], "distance" [N] and "metrics"."""
+    shortest = shortest_paths(layout, room["start"], room["goal"], radius)
+    return spl_from(shortest - success_radius, room)
+
+
+def spl_from(reach: np.ndarray, room: dict) -> np.ndarray:
+    """[N] S l / max(p, l) for shortest paths l = `reach` [N] (m) and the episodes' successes and
+    driven distances p of `room` (0 where l is not finite)."""
+    success = reached(room)
+    driven = np.asarray(room["distance"], np.float64)
+    reach = np.maximum(reach, 0.0)
+    ratio = np.where(success, reach / np.maximum(np.maximum(driven, reach), 1e-9), 0.0)
+    return np.where(np.isfinite(ratio), ratio, 0.0)
+
+
+def reached(room: dict) -> np.ndarray:
+    """[N] bool: the episodes of an evaluated room (`EvalMetric`) that reached their goal."""
+    return np.asarray(room["metrics"]["success"]) > 0
+
+
+def _spl(room: dict) -> np.ndarray:
+    return spl_values(room["layout"], room, room["robot_radius"], room["task"].success_radius)
+
+
+EVAL_METRICS = (
+    EvalMetric(
+        "success_rate",
+        value=lambda room: reached(room).astype(np.float64),
+        column="success %",
+        width=9,
+        scale=100.0,
+        digits=1,
+        title="{:.0%} success",
+    ),
+    EvalMetric("spl", value=_spl, column="SPL", title="SPL {:.2f}"),
+    EvalMetric(  # the longest episode's time where none reached its goal
+        "time_to_goal",
+        value=lambda room: np.asarray(room["steps"], np.float64) * room["control_period"],
+        over=reached,
+    ),
+)
+"""Evaluation's goal metrics: the share of episodes that reached the goal, SPL (`spl_values`),
+and the mean time (s) of those that reached it."""
+
+
 class GoalEnv(NavTask):
     """Point-goal navigation. `reset`/`step` are pure; vmap them for a batch. Its `LayoutBank`
     needs goal data (`make_env("goal", ...)` builds it: `uses_goals`)."""
 
     metric_names = ("collision", "success", "path_length")
+    eval_metrics = EVAL_METRICS
+    success_metric = "success"
     uses_goals = True  # make_env adds `jaxnav.core.goals.GoalCells` to the bank
 
     def __init__(self, bank, task: GoalConfig = GoalConfig(), **specs):
@@ -145,6 +206,12 @@ class GoalEnv(NavTask):
         self.observation_size = self._frame * (1 + task.history)
         self._command_scale = jnp.array([task.forward_speed, task.turn_rate])
         # The traced goal grid covers the largest room (the families fit in GRID_HALF).
+        mix = family_weights(self.randomize.families) if self.randomize.families else {}
+        if large := set(LARGE_FAMILIES) & set(mix):
+            raise ValueError(
+                f"RandomizeConfig.families: {', '.join(sorted(large))} rooms are larger than "
+                f"the goal task's grid ({2 * GRID_HALF:g} m)"
+            )
         largest = [0.5 * max(self.randomize.room_size_max), float(bank.rooms.room_half.max())]
         self._grid_half = max(GRID_HALF, *largest)
 
@@ -180,14 +247,19 @@ class GoalEnv(NavTask):
             reward=f0,
             done=b0,
             truncated=b0,
-            metrics={"collision": f0, "success": f0, "path_length": f0},
+            metrics={
+                "collision": f0,
+                "success": f0,
+                "path_length": f0,
+                **self.walker_hit(params, data, b0),
+            },
             info={**info, "actuator": Actuator.zero(), "command": command},
         )
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; end on success, collision or time."""
         t, info = self.task, state.info
-        params, goal = self.move(info["params"]), info["goal"]
+        params, goal = self.move(info["params"], state.data), info["goal"]
         target = self.command(action)
         command, actuator = self.actuate(params, info["actuator"], target)
         data, hit = self.drive(params, state.data, command)
@@ -208,7 +280,12 @@ class GoalEnv(NavTask):
             reward=f32(reward),
             done=hit | success | truncated,
             truncated=truncated,
-            metrics={"collision": f32(hit), "success": f32(success), "path_length": f32(moved)},
+            metrics={
+                "collision": f32(hit),
+                "success": f32(success),
+                "path_length": f32(moved),
+                **self.walker_hit(params, data, hit),
+            },
             info={
                 **info,
                 "params": params,

@@ -11,8 +11,16 @@ import dataclasses
 from collections.abc import Sequence
 from typing import NamedTuple
 
+from jaxnav.core.episode import walker_config
+from jaxnav.core.families import grid_size
 from jaxnav.core.goals import make_goal_cells
-from jaxnav.core.randomize import TRAINING, RandomizeConfig, make_bank
+from jaxnav.core.randomize import (
+    TRAINING,
+    RandomizeConfig,
+    family_weights,
+    layout_grid_size,
+    make_bank,
+)
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import SCENES_DIR, SceneConfig
 from jaxnav.core.sensors import SensorConfig
@@ -102,6 +110,24 @@ def critic_size(task, privileged: bool) -> int:
     return size if privileged else 0
 
 
+def grid_cells(layouts: Sequence[RoomLayout], randomize: RandomizeConfig) -> int:
+    """G, the occupancy-grid side of a batch's rooms (`jaxnav.core.grid`): the largest of the
+    layouts' grids and of the grid families in `randomize.families`; 0: no room has one."""
+    sampled = grid_size(family_weights(randomize.families)) if randomize.families else 0
+    return max(layout_grid_size(layouts), sampled)
+
+
+def check_grid_physics(grid: int, scene: SceneConfig) -> None:
+    """Grid cells are not MJX geoms: only the fast physics without MJX contacts, which collides
+    analytically, simulates them."""
+    if grid and (scene.fast_contacts or scene.physics != "fast"):
+        flag = "--scene.fast-contacts" if scene.fast_contacts else "--physics wheeled"
+        raise ValueError(
+            f"{flag}: rooms with grid obstacles (dense_field, layout grids) run only on the fast "
+            "physics without MJX contacts; leave it off or drop the grid rooms"
+        )
+
+
 def default_layouts(name: str = "avoid") -> list[RoomLayout]:
     """The task's default training rooms (for `avoid`: the paper's training room, Fig. 4)."""
     return [lay for f in task_entry(name).default_layouts for lay in load_layout(SCENES_DIR / f)]
@@ -127,7 +153,8 @@ def make_env(
     in; a preset's own settings are the CLI's).
     `layouts=[]`: sampled rooms only. `overrides` are fields of the task config
     (e.g. `near_threshold=0.8`). Slot counts grow to fit the largest layout and the sampler, and
-    by `randomize.moving_count[1]` cylinder slots for the moving obstacles it adds.
+    by `randomize.moving_count[1]` cylinder slots for the moving obstacles it adds and as many
+    as its walkers take.
     """
     entry = task_entry(name)
     fields = [f.name for f in dataclasses.fields(entry.config_cls)]
@@ -149,8 +176,11 @@ def make_env(
         [scene.num_cylinders, randomize.num_cylinders[1]] + [len(lay.cylinders) for lay in layouts]
     )
     nc += randomize.moving_count[1]  # the last slots: `motion.add_movers`
+    nc += walker_config(randomize).slots  # the slots before them: `crowd.add_walkers`
     scene = dataclasses.replace(scene, num_boxes=nb, num_cylinders=nc)
-    bank = make_bank(layouts, nb, nc)
+    grid = grid_cells(layouts, randomize)
+    check_grid_physics(grid, scene)
+    bank = make_bank(layouts, nb, nc, grid)
     if getattr(entry.env_cls, "uses_goals", False):  # goal tasks: goals and free cells per layout
         bank = bank.replace(goals=make_goal_cells(layouts, robot.radius))
     return entry.env_cls(

@@ -129,7 +129,7 @@ def draw_robot(ax: Axes, xy, yaw: float, color="tab:blue", radius: float = ROBOT
 def draw_movers(ax: Axes, params: SceneParams) -> bool:
     """The moving obstacles of one env's `params` at their positions there (dashed orange
     outlines): a bouncing one with an arrow to where it heads in `ARROW_SECONDS`, one on a path
-    with its path. Returns whether there was any."""
+    with its path, a walker with its line to its goal. Returns whether there was any."""
     p = jax.device_get(params)
     if p.motion is None:
         return False
@@ -138,6 +138,10 @@ def draw_movers(ax: Axes, params: SceneParams) -> bool:
     active = np.concatenate([p.box_active, p.cyl_active])
     bouncing = active & (np.abs(p.motion.velocity) > 0).any(-1)
     on_path = active & (p.motion.speed > 0)
+    if p.motion.walkers is not None:  # people walking to their goals (cylinder slots)
+        walking = np.concatenate([np.zeros(nb, bool), p.motion.walkers.speed > 0]) & active
+        goal = np.concatenate([np.zeros((nb, 2)), p.motion.walkers.goal])
+        on_path = on_path | walking
     for i in np.flatnonzero(bouncing | on_path):
         if i < nb:
             corners = box_corners(Box(pos[i], 2 * p.box_half[i], p.box_yaw[i]))
@@ -148,7 +152,7 @@ def draw_movers(ax: Axes, params: SceneParams) -> bool:
             dx, dy = ARROW_SECONDS * p.motion.velocity[i]
             ax.arrow(*pos[i], dx, dy, color="tab:orange", width=0.02, zorder=4)
         else:
-            line = p.motion.path[i]
+            line = p.motion.path[i] if p.motion.speed[i] > 0 else np.stack([pos[i], goal[i]])
             ax.plot(line[:, 0], line[:, 1], color="tab:orange", linestyle=":", zorder=4)
     return bool((bouncing | on_path).any())
 

@@ -138,7 +138,7 @@ def render_episode(
     # Shadows cost 4x the frame time in software GL, and from straight above they hide under the
     # obstacles anyway.
     renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-    rooms = _moving_rooms(params, len(qpos), env.scene.cfg.control_period)
+    rooms = _moving_rooms(params, qpos, env.scene.cfg.control_period, env.robot.radius)
     frames = []
     with renderer:
         for i in range(len(qpos)):
@@ -159,13 +159,16 @@ def render_episode(
     return _write_gif(frames, Path(path), fps, title, period)
 
 
-def _moving_rooms(params, frames: int, period: float):
-    """[frames] SceneParams: the room at each control step from the reset (None where nothing
-    moves)."""
+def _moving_rooms(params, qpos, period: float, radius: float):
+    """[T] SceneParams: the room at each control step from the reset (None where nothing moves),
+    its walkers giving way to a robot of `radius` at the poses `qpos` [T, 3] (its velocity from
+    one pose to the next)."""
     if params.motion is None:
         return None
-    step = lambda p, _: (motion.advance(p, period), p)  # noqa: E731
-    return jax.device_get(jax.lax.scan(step, params, None, frames)[1])
+    xy = np.asarray(qpos[:, :2], np.float32)  # [T, 2]
+    velocity = np.diff(xy, axis=0, prepend=xy[:1]) / np.float32(period)  # [T, 2]
+    step = lambda p, r: (motion.advance(p, period, (*r, radius)), p)  # noqa: E731
+    return jax.device_get(jax.lax.scan(step, params, (xy, velocity))[1])
 
 
 def episode_model(scene, params, width: int, height: int) -> mujoco.MjModel:

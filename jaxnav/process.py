@@ -1,56 +1,26 @@
-"""What the command-line modules share: one-line user errors, Ctrl-C handling, and modules that are
-also functions.
-
-`jaxnav.train` and `jaxnav.evaluate` are both modules (`python -m ...`) and functions.
+"""What a long-running jaxnav process shares: Ctrl-C handling, interruptible waits, the
+compilation cache.
 
 Ctrl-C (SIGINT) and SIGTERM are honoured from the first instant of `python -m jaxnav.<command>`
-(`jaxnav/__init__.py` installs `Interrupts` before jax is imported): until a command defers them,
-the process cleans up what it started (`Interrupts.at_once`) and ends at once with one line and exit
-status 130, even while XLA compiles (long calls run in a worker thread: `interruptible`). Training
-defers them once it has something to save: the chunk under way finishes and is checkpointed.
+(`jaxnav/__init__.py` calls `early_interrupts`, which installs `Interrupts` before jax is imported
+and only under those commands): until a command defers them, the process cleans up what it started
+(`Interrupts.at_once`) and ends at once with one line and exit status 130, even while XLA compiles
+(long calls run in a worker thread: `interruptible`). Training defers them once it has something to
+save: the chunk under way finishes and is checkpointed.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import sys
 import threading
 import time
-import types
 from collections.abc import Callable
 from pathlib import Path
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a Ctrl-C
 COMMANDS = ("jaxnav.train", "jaxnav.evaluate", "jaxnav.export")
-
-
-def make_callable(module_name: str, fn: Callable) -> None:
-    """Makes module `module_name` callable as `fn`, so that `jaxnav.train(...)` works whether
-    `jaxnav.train` names the module (once imported as a submodule) or the function."""
-
-    class _CallableModule(types.ModuleType):
-        def __call__(self, *args, **kwargs):
-            return fn(*args, **kwargs)
-
-    sys.modules[module_name].__class__ = _CallableModule
-
-
-class UsageError(ValueError):
-    """A user mistake (flag, file, field); printed as one `error: ...` line, exit status 2."""
-
-
-class Parser(argparse.ArgumentParser):
-    """argparse that raises `UsageError` instead of printing usage and exiting."""
-
-    def error(self, message):
-        raise UsageError(message)
-
-
-def print_error(err: BaseException) -> None:
-    """`error: <message>` on stderr, folded onto one line whatever the message held."""
-    print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
 
 
 class Interrupts:
@@ -216,36 +186,3 @@ def early_interrupts() -> None:
     if "-m" in argv[:-1] and argv[argv.index("-m") + 1] in COMMANDS:
         Interrupts().install()
         quiet_xla_logs()
-
-
-class GroupHelp(argparse.Action):
-    """`-h/--help [GROUP]`: the command's own flags and a list of the config groups; with GROUP,
-    that group's flags (`all`: every flag)."""
-
-    def __init__(self, option_strings, dest, **kwargs):
-        super().__init__(option_strings, dest, nargs="?", const="", metavar="GROUP", **kwargs)
-
-    def __call__(self, parser, namespace, value, option_string=None):
-        groups = {g.title.split()[0].lower().rstrip(":"): g for g in parser._action_groups[2:]}
-        if value and value != "all" and value not in groups:
-            raise UsageError(f"--help: unknown group '{value}'; valid: all, {', '.join(groups)}")
-        chosen = parser._action_groups[:2] if not value else []
-        chosen += list(groups.values()) if value == "all" else [groups[value]] if value else []
-        formatter = parser._get_formatter()
-        formatter.add_usage(parser.usage, parser._actions, [])
-        if not value:
-            formatter.add_text(parser.description)
-        for group in chosen:
-            formatter.start_section(group.title)
-            formatter.add_text(group.description)
-            formatter.add_arguments(group._group_actions)
-            formatter.end_section()
-        if not value:
-            listed = "\n".join(f"  {name:10} {g.description or ''}" for name, g in groups.items())
-            formatter.add_text(
-                "flag groups (--help GROUP shows one, --help all every flag; the defaults shown "
-                "are those of the --env and --preset given, the cpu preset's if none):"
-            )
-            formatter.add_text(listed)
-        parser._print_message(formatter.format_help(), sys.stdout)
-        parser.exit()

@@ -1,0 +1,112 @@
+"""A goal policy in CrowdNav's circle crossing, with people who give way and people who do not.
+
+    python benchmarks/crowdnav.py --checkpoint runs/goal-gpu --episodes 50 \\
+        --json benchmarks/results/crowdnav_goal.json
+    python benchmarks/crowdnav.py --policy forward --episodes 10   # a baseline: straight ahead
+
+Runs `python -m jaxnav.evaluate --checkpoint RUN --layouts scenes/crowdnav/circle_crossing_K.json
+--steps 250` for K = reactive and nonreactive (the rooms of `benchmarks/make_crowdnav.py`: 5
+people on a 4 m circle walking to the opposite point, the robot from (0, -4) to (0, 4)) and
+reports what CrowdNav reports (Chen et al. 2019, "Crowd-Robot Interaction", Table I): the shares
+of episodes that reached the goal (success), collided (collision) and ran out of CrowdNav's 25 s
+(timeout; 250 control steps), and the mean time of the successful ones (time to goal, s; their
+"navigation time"). Beside them: the collisions the robot caused, and the episodes in which a
+non-reactive person ran into the robot while it stood (`walker_hit`). Success is the goal task's
+(its centre within `success_radius`, 0.3 m by default: CrowdNav's robot radius). Prints a table
+and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from report import run_info, write_json
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = ROOT / "scenes" / "crowdnav"
+KINDS = ("reactive", "nonreactive")
+STEPS = 250  # CrowdNav's time limit, 25 s, in control steps of 0.1 s
+DEFAULT_JSON = Path(__file__).parent / "results" / "crowdnav.json"
+
+
+def crowdnav_metrics(overall: dict) -> dict:
+    """CrowdNav's figures from an evaluation's `overall` metrics (a goal task's)."""
+    if "success_rate" not in overall:
+        raise SystemExit("crowdnav: the checkpoint is not a goal policy (no success_rate)")
+    success = overall["success_rate"]
+    collision = 1.0 - overall["collision_free_rate"]
+    return {
+        "success": success,
+        "collision": collision,
+        "timeout": max(0.0, 1.0 - success - collision),
+        "time_to_goal": overall["time_to_goal"],
+        "robot_collision": overall.get("robot_collision_rate", collision),
+        "walker_hit": overall.get("walker_hit", 0.0),
+        "episodes": overall["episodes"],
+    }
+
+
+def evaluate(policy: list[str], kind: str, episodes: int, seed: int) -> dict:
+    """`crowdnav_metrics` of `python -m jaxnav.evaluate` with the flags `policy` (a checkpoint or
+    a baseline) on the circle crossing of `kind`."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "eval.json"
+        command = [
+            *(sys.executable, "-m", "jaxnav.evaluate", *policy),
+            *("--layouts", str(SCENES / f"circle_crossing_{kind}.json")),
+            *("--episodes", str(episodes), "--steps", str(STEPS), "--seed", str(seed)),
+            *("--json", str(out), "--plots", tmp),
+        ]
+        done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+        if done.returncode:
+            raise SystemExit(f"crowdnav: {' '.join(command)} failed:\n{done.stderr.strip()}")
+        return crowdnav_metrics(json.loads(out.read_text())["overall"])
+
+
+def format_table(results: dict) -> str:
+    """One row per kind of people: CrowdNav's figures, then the attribution of collisions."""
+    head = f"{'people':<12}{'success':>9}{'collision':>11}{'timeout':>9}{'time (s)':>10}"
+    head += f"{'robot caused':>14}{'walker hit':>12}"
+    lines = [head, "-" * len(head)]
+    for kind, m in results.items():
+        lines.append(
+            f"{kind:<12}{m['success']:>9.0%}{m['collision']:>11.0%}{m['timeout']:>9.0%}"
+            f"{m['time_to_goal']:>10.2f}{m['robot_collision']:>14.0%}{m['walker_hit']:>12.0%}"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--checkpoint", help="a goal run folder or a checkpoint in it")
+    which.add_argument("--policy", choices=("forward", "random"), help="a baseline instead")
+    parser.add_argument("--episodes", type=int, default=50, help="episodes per room (10 rooms)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", default=str(DEFAULT_JSON), help="write the results here")
+    args = parser.parse_args()
+    if args.checkpoint:
+        policy = ["--checkpoint", args.checkpoint]
+    else:
+        policy = ["--policy", args.policy, "--env", "goal"]
+    results = {k: evaluate(policy, k, args.episodes, args.seed) for k in KINDS}
+    print(format_table(results))
+    result = {
+        **run_info("device", "python", "jax"),
+        "policy": args.checkpoint or args.policy,
+        "episodes_per_room": args.episodes,
+        "steps": STEPS,
+        "seed": args.seed,
+        "people": results,
+    }
+    write_json(args.json, result)
+    print(f"results: {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,311 @@
+"""People who walk: reactive walkers give way and non-reactive ones do not, walkers reach their
+goals at their speeds, the sampler's walkers start clear, collisions are attributed, the
+circle-crossing layouts cross, and nothing recompiles between episodes."""
+
+import dataclasses
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import EXACT, traced_once
+
+import jaxnav
+from jaxnav.core import crowd, motion
+from jaxnav.core.geometry import signed_distance
+from jaxnav.core.randomize import make_bank
+from jaxnav.core.scene import SCENES_DIR
+from jaxnav.core.sensors import SensorConfig
+from jaxnav.io.layouts import (
+    Cylinder,
+    LayoutError,
+    Motion,
+    RoomLayout,
+    layout_to_dict,
+    load_layout,
+    parse_layouts,
+)
+
+DT = 0.1  # s, the control period
+ROBOT = 0.177  # m, the TurtleBot's radius
+CROWDNAV = SCENES_DIR / "crowdnav"
+
+
+def _walker(pos, goal, reactive=True, radius=0.25, speed=1.0, repeat=False) -> Cylinder:
+    walk = Motion(goal=goal, speed=speed, reactive=reactive, repeat=repeat)
+    return Cylinder(pos=pos, radius=radius, height=1.7, motion=walk)
+
+
+def _room(*walkers, size=(8.0, 3.0), name="w") -> RoomLayout:
+    return RoomLayout(name=name, size=size, robot_pos=(0.0, 0.0), obstacles=walkers)
+
+
+def _params(layouts):
+    """[K] the layouts' SceneParams as `sample` starts them."""
+    return make_bank(layouts, 1, max(len(lay.cylinders) for lay in layouts)).rooms
+
+
+@jax.jit
+def _walk(params, robot):
+    """[T, K, C, 2] positions and velocities of the walkers of params [K] over 25 s next to a
+    robot standing at `robot` [2] (None: no robot)."""
+
+    def body(p, _):
+        stood = None if robot is None else (robot, jnp.zeros(2), ROBOT)
+        p = jax.vmap(lambda q: motion.advance(q, DT, stood))(p)
+        return p, (p.cyl_pos, p.motion.walkers.velocity)
+
+    return jax.lax.scan(body, params, None, 250)[1]
+
+
+def test_reactive_walkers_give_way_and_non_reactive_ones_do_not():
+    # A person walking at 1 m/s straight at a robot standing in its way (x axis), in a room
+    # wide enough to pass and in a corridor too narrow to: the reactive one sidesteps or stops
+    # short, the non-reactive one walks through the robot's position.
+    walk = ((2.5, 0.0), (-2.5, 0.0))
+    rooms = [
+        _room(_walker(*walk, reactive=True)),
+        _room(_walker(*walk, reactive=False)),
+        _room(_walker(*walk, reactive=True), size=(8.0, 1.0)),
+    ]
+    pos, vel = (np.asarray(x)[:, :, 0] for x in _walk(_params(rooms), jnp.zeros(2)))  # [T, 3, 2]
+    gap = np.linalg.norm(pos, axis=-1) - 0.25 - ROBOT  # [T, 3] edge to edge
+    assert gap[:, 0].min() > 0.05 and np.abs(pos[:, 0, 1]).max() > 0.3  # sidestepped
+    assert pos[-1, 0, 0] == pytest.approx(-2.5, abs=0.06)  # and went on to its goal
+    assert gap[:, 1].min() < -0.3 and np.abs(pos[:, 1, 1]).max() == 0.0  # straight through
+    assert gap[:, 2].min() > 0.05 and pos[-1, 2, 0] > 0.4  # stopped short, waits
+    assert np.linalg.norm(vel[-1, 2]) < 1e-6
+
+
+def test_walkers_reach_their_goals_at_their_speeds():
+    # Four people crossing an empty room, two of them through each other's lines; one goes back
+    # and forth (repeat): after reaching its goal it heads back to where it started.
+    people = (
+        _walker((-3.0, 0.0), (3.0, 0.0), speed=1.4),
+        _walker((3.0, 0.3), (-3.0, 0.3), speed=0.6, reactive=False),
+        _walker((0.0, -3.0), (0.0, 3.0), speed=0.3, radius=0.2),
+        _walker((-3.0, -2.0), (1.0, -2.0), speed=1.0, repeat=True),
+    )
+    room = _room(*people, size=(8.0, 8.0))
+    pos, vel = (np.asarray(x)[:, 0] for x in _walk(_params([room]), None))  # [T, 4, 2]
+    goals = np.array([p.motion.goal for p in people])
+    speed = np.linalg.norm(vel, axis=-1)  # [T, 4]
+    assert (speed <= np.array([1.4, 0.6, 0.3, 1.0]) + 1e-5).all()
+    np.testing.assert_allclose(pos[-1, :3], goals[:3], atol=crowd.ARRIVE + 1e-3)
+    there = int(np.argmax(np.linalg.norm(pos[:, 3] - goals[3], axis=-1) < crowd.ARRIVE))
+    assert 35 < there < 60  # 4 m at 1 m/s
+    home = np.linalg.norm(pos[there:, 3] - people[3].pos, axis=-1) < crowd.ARRIVE
+    assert 40 <= np.argmax(home) < 60  # back where it started (giving way to the slow one)
+    assert (speed[:40, 0] > 1.0).mean() > 0.7  # mostly at its own pace on its way (6 m)
+
+
+def test_circle_crossing_layouts_load_and_the_people_cross():
+    rooms = {
+        k: load_layout(CROWDNAV / f"circle_crossing_{k}.json") for k in ("reactive", "nonreactive")
+    }
+    for kind, layouts in rooms.items():
+        assert len(layouts) == 10
+        for lay in layouts:
+            assert (lay.robot_pos, lay.goal_pos) == ((0.0, -4.0), (0.0, 4.0))
+            assert len(lay.cylinders) == 5
+            for c in lay.cylinders:
+                assert c.radius == 0.3 and c.motion.speed == 1.0 and not c.motion.repeat
+                assert c.motion.reactive == (kind == "reactive")
+                assert np.linalg.norm(c.pos) == pytest.approx(4.0, abs=0.75)
+                np.testing.assert_allclose(c.motion.goal, -np.asarray(c.pos))
+    # Without the robot (it neither stops nor turns them), every person reaches the opposite
+    # point within CrowdNav's 25 s, giving way to the others on the way.
+    layouts = rooms["reactive"]
+    pos, _ = _walk(_params(layouts), None)  # [T, K, 5, 2]
+    goals = np.array([[c.motion.goal for c in lay.cylinders] for lay in layouts])
+    left = np.linalg.norm(np.asarray(pos) - goals, axis=-1)  # [T, K, 5]
+    assert (left[-1] < 0.1).all(), left[-1]
+    apart = np.asarray(pos)[:, :, :, None] - np.asarray(pos)[:, :, None]  # [T, K, 5, 5, 2]
+    dist = np.linalg.norm(apart, axis=-1) + 10 * np.eye(5)
+    assert dist.min() > 0.6 - 0.05  # they barely touch one another
+
+
+def test_walker_motion_parsing_round_trip_and_errors():
+    room = {
+        "room": {"size": [6, 4]},
+        "obstacles": [
+            {"type": "cylinder", "pos": [-2, 1], "radius": 0.3, "motion": {"goal": [2, 1], "speed": 1.2}},
+            {"type": "cylinder", "pos": [2, -1], "radius": 0.3, "motion": {"velocity": [0.3, 0]}},
+        ],
+    }  # fmt: skip
+    layout = parse_layouts(room)[0]
+    assert layout.obstacles[0].motion == Motion(goal=(2.0, 1.0), speed=1.2)
+    assert layout.obstacles[0].motion.reactive and layout.obstacles[0].motion.repeat
+    assert parse_layouts(layout_to_dict(layout))[0] == layout
+    bad = {
+        "obstacles[0].motion.speed: must be > 0 and <= 1.5": {"goal": [2, 1], "speed": 2},
+        "obstacles[0].motion.speed: missing required field": {"goal": [2, 1]},
+        "obstacles[0].motion.reactive: must be true or false": {
+            "goal": [2, 1],
+            "speed": 1,
+            "reactive": "yes",
+        },
+        'obstacles[0].motion.repeat: only with "goal"': {"velocity": [1, 0], "repeat": False},
+        "obstacles[0].motion.goal: cylinder at [3.0, 1.0] reaches 0.300 m beyond the east": {
+            "goal": [3, 1],
+            "speed": 1,
+        },
+        "obstacles[0].motion: must have either": {"goal": [2, 1], "velocity": [1, 0]},
+    }
+    for message, value in bad.items():
+        room["obstacles"][0]["motion"] = value
+        with pytest.raises(LayoutError, match="^f.json: room #0: " + re.escape(message)):
+            parse_layouts(room, "f.json")
+    room["obstacles"][0] = {
+        "type": "box",
+        "pos": [0, 0],
+        "size": [1, 1],
+        "motion": {"goal": [1, 1], "speed": 1},
+    }
+    with pytest.raises(LayoutError, match=re.escape("obstacles[0].motion.goal: only a cylinder")):
+        parse_layouts(room, "f.json")
+
+
+def test_walker_config_spec_and_errors():
+    cfg = crowd.WalkerConfig.parse("count=2:6, speed=0.5:1.2,reactive=1")
+    assert (cfg.count, cfg.speed, cfg.reactive, cfg.slots) == ((2, 6), (0.5, 1.2), 1.0, 6)
+    assert crowd.WalkerConfig.parse("") == crowd.WalkerConfig()
+    for spec, message in {
+        "cout=2": "unknown field 'cout'",
+        "count=a": "count must be numbers",
+        "speed=0.5:2": "WalkerConfig.speed: need 0 < low <= high <= 1.5",
+        "reactive=2": "WalkerConfig.reactive: must be in [0, 1]",
+        "count=1:40": "at most 16",
+    }.items():
+        with pytest.raises(ValueError, match="^RandomizeConfig.walkers: .*" + re.escape(message)):
+            crowd.WalkerConfig.parse(spec)
+
+
+# ------------------------------------------------------------------------------
+# In the env: the sampler's walkers, the attribution of collisions, no recompiling
+
+STAND = (_walker((2.5, 0.0), (-2.5, 0.0), reactive=False), _walker((2.5, 0.0), (-2.5, 0.0)))
+ROOMS = [
+    _room(STAND[0], name="non-reactive comes"),  # 0: runs into the standing robot
+    _room(STAND[1], name="reactive comes"),  # 1: gives way
+    _room(_walker((1.2, 0.0), (1.2, 0.0), reactive=False), name="robot drives"),  # 2: waits
+]
+
+
+@pytest.fixture(scope="module")
+def crowd_run():
+    """`avoid` (continuous actions, exact physics) in ROOMS and, half the episodes, sampled rooms
+    of the `crowd` family: 64 episodes reset twice (other keys) and stepped 40 times, the robot
+    standing except in 'robot drives' (forward at 0.5 m/s). Returns the env, the first batch's
+    reset params and, per step, collision, walker_hit and done [40, 64] and the sampled walkers'
+    speeds [40, 64, C]."""
+    cfg = dataclasses.replace(EXACT, sampled_room_prob=0.5, families="crowd")
+    env = jaxnav.make_env(
+        "avoid", layouts=ROOMS, randomize=cfg, actions="continuous", sensor=SensorConfig(rows=1)
+    )
+    reset, step = traced_once(env)
+    reset_b, step_b = jax.jit(jax.vmap(reset)), jax.jit(jax.vmap(step))
+    for seed in (1, 0):  # new rooms and walkers: nothing is traced again
+        states = reset_b(jax.random.split(jax.random.PRNGKey(seed), 64))
+    start = jax.device_get(states.info["params"])
+    drives = np.asarray(start.layout_id) == 2
+    actions = jnp.where(jnp.asarray(drives)[:, None], jnp.array([0.5, 0.0]), 0.0)
+    out = []
+    for _ in range(40):
+        states = step_b(states, actions)
+        m, w = states.metrics, states.info["params"].motion.walkers
+        out.append(
+            (m["collision"], m["walker_hit"], states.done, jnp.linalg.norm(w.velocity, axis=-1))
+        )
+    return env, start, [np.asarray(x) for x in zip(*out, strict=True)]
+
+
+def test_env_declares_the_walker_metrics(crowd_run):
+    env, _, _ = crowd_run
+    assert env.metric_names == ("collision", "walker_hit")
+    assert [m.name for m in env.eval_metrics][-1] == "robot_collision_rate"
+    assert env.walkers.slots == env.walkers.crowd_count[1] == 6
+
+
+def test_sampled_walkers_start_clear_at_their_speeds(crowd_run):
+    env, p, (_, _, _, speed) = crowd_run
+    crowd_rooms = np.asarray(p.layout_id) == crowd.CROWD_ROOM  # [E]
+    assert 20 < crowd_rooms.sum() < 44
+    w = p.motion.walkers
+    walks = np.asarray(w.speed > 0) & np.asarray(p.cyl_active)  # [E, C]
+    count = walks.sum(-1)
+    assert (
+        count[~crowd_rooms] == [len(ROOMS[i].cylinders) for i in p.layout_id[~crowd_rooms]]
+    ).all()
+    assert count[crowd_rooms].max() <= 6 and np.mean(count[crowd_rooms]) > 3
+    sampled = walks & crowd_rooms[:, None]
+    r, v = np.asarray(p.cyl_radius)[sampled], np.asarray(w.speed)[sampled]
+    assert r.min() >= 0.2 - 1e-6 and r.max() <= 0.3 + 1e-6
+    assert v.min() >= 0.3 - 1e-6 and v.max() <= 1.4 + 1e-6
+    assert 0.25 < np.asarray(w.reactive)[sampled].mean() < 0.75
+    # Clear of the still obstacles and walls, and of the robot by the clearance.
+    still = p.replace(cyl_active=p.cyl_active & ~walks)
+    clear = np.asarray(jax.vmap(signed_distance)(still, p.cyl_pos))  # [E, C]
+    assert (clear[sampled] > np.asarray(p.cyl_radius)[sampled]).all()
+    gap = np.linalg.norm(np.asarray(p.cyl_pos) - np.asarray(p.spawn)[:, None, :2], axis=-1)
+    gap -= np.asarray(p.cyl_radius) + env.robot.radius
+    assert gap[sampled].min() >= crowd.WalkerConfig().clearance
+    # Their goals across the room; walking no faster than their own pace.
+    goal, start = np.asarray(w.goal)[sampled], np.asarray(p.cyl_pos)[sampled]
+    assert np.linalg.norm(goal - start, axis=-1).min() > 0.6 * 5.0 - 1.0
+    pace = np.broadcast_to(np.asarray(w.speed), speed.shape)
+    assert (speed <= pace + 1e-5).all() and (speed[:, sampled] > 0).mean() > 0.8
+
+
+def test_collisions_are_attributed(crowd_run):
+    _, p, (collision, walker_hit, done, _) = crowd_run
+    ids = np.asarray(p.layout_id)
+    first = np.argmax(done, axis=0)  # [E] the step each episode ended (0: still running)
+    ended = done.any(0)
+    at_end = lambda x: x[first, np.arange(x.shape[1])]  # noqa: E731
+    hit, by_walker = at_end(collision), at_end(walker_hit)
+    comes, yields, drives = (ids == 0), (ids == 1), (ids == 2)
+    assert comes.any() and yields.any() and drives.any()
+    assert (ended & (hit == 1) & (by_walker == 1))[comes].all()  # the walker's doing
+    assert not ended[yields].any()  # it gave way: no contact in 4 s
+    assert (ended & (hit == 1) & (by_walker == 0))[drives].all()  # the robot's doing
+    assert (walker_hit <= collision).all()
+
+
+def test_pictures_draw_the_walkers_and_replays_give_way():
+    from matplotlib.figure import Figure
+
+    from jaxnav.viz.plots import draw_movers
+    from jaxnav.viz.render import _moving_rooms
+
+    params = jax.tree_util.tree_map(lambda x: x[0], _params([ROOMS[1]]))  # a reactive walker
+    ax = Figure().add_subplot()
+    assert draw_movers(ax, params)
+    assert len(ax.patches) == 1 and len(ax.lines) == 1  # its outline and its line to its goal
+    # A video's replay has the walker give way to the robot where the episode had it.
+    rooms = _moving_rooms(params, np.zeros((60, 3)), DT, ROBOT)
+    gap = np.linalg.norm(np.asarray(rooms.cyl_pos)[:, 0], axis=-1) - 0.25 - ROBOT
+    assert gap.min() > 0.05 and np.asarray(rooms.cyl_pos)[-1, 0, 0] < 0.0
+
+
+@pytest.mark.slow
+def test_goal_task_among_people():
+    """The goal task in `crowd` rooms with walkers in every room too: they start off the goal's
+    disc, the metrics name `walker_hit`, and new people never recompile. Slow: it compiles a
+    goal env of its own (over a minute on 2 cores)."""
+    cfg = dataclasses.replace(EXACT, families="crowd", walkers="count=1:2")
+    env = jaxnav.make_env("goal", layouts=[], randomize=cfg, sensor=SensorConfig(rows=1))
+    assert env.metric_names == ("collision", "success", "path_length", "walker_hit")
+    reset, step = traced_once(env)
+    reset_b, step_b = jax.jit(jax.vmap(reset)), jax.jit(jax.vmap(step))
+    for seed in (0, 1):
+        states = reset_b(jax.random.split(jax.random.PRNGKey(seed), 32))
+        p = jax.device_get(states.info["params"])
+        walks = np.asarray(p.motion.walkers.speed > 0) & np.asarray(p.cyl_active)
+        goal = np.asarray(states.info["goal"])[:, None]
+        off = np.linalg.norm(np.asarray(p.cyl_pos) - goal, axis=-1) - np.asarray(p.cyl_radius)
+        assert walks.sum(-1).min() >= 1 and off[walks].min() > env.robot.radius
+        for _ in range(2):
+            states = step_b(states, jnp.zeros(32, jnp.int32))
+    assert set(states.metrics) == set(env.metric_names)
