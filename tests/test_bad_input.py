@@ -233,10 +233,13 @@ def processes(files, runs, tmp_path_factory):
             proc.communicate()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name", ["train_layout", "train_flag", "evaluate_layout", "export_corrupt"]
 )
 def test_in_a_process(processes, name):
+    """Exit status 2 and one line from the command lines themselves. Slow: four processes, each
+    importing jax (the process boundary is what is tested)."""
     proc, names = processes[name]
     _, stderr = proc.communicate(timeout=180)
     assert_one_error_line(proc.returncode, stderr, *names)

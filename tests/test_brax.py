@@ -1,4 +1,7 @@
-"""brax interop: `jaxnav.make_brax_env` under brax's own training wrappers and trainer."""
+"""brax interop: `jaxnav.make_brax_env` under brax's own training wrappers and trainer.
+
+Slow, all of it: brax's wrappers and trainer compile programs of their own (brax is optional).
+"""
 
 import functools
 import subprocess
@@ -15,6 +18,8 @@ from jaxnav.brax_env import to_command
 from jaxnav.core.randomize import RandomizeConfig
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.io.layouts import Box, RoomLayout
+
+pytestmark = pytest.mark.slow
 
 # No robot pose: every episode draws its spawn (and speed gain), which shows a fresh draw.
 ROOM = RoomLayout(name="brax", size=(4.0, 4.0), obstacles=(Box(pos=(1.0, 0.5), size=(0.4, 0.4)),))

@@ -160,7 +160,10 @@ def test_a_mover_driving_into_the_robot_ends_the_episode(approach):
     assert np.abs(xy[: hit - 1]).max() < 1e-6  # the robot stood still until the contact
 
 
+@pytest.mark.slow
 def test_goal_task_movers_keep_clear_and_change_without_recompiling():
+    """Goal-task movers start clear of the spawn and goal and change per episode without
+    recompiling. Slow: the goal env with movers compiles for this test alone."""
     cfg = RandomizeConfig(sampled_room_prob=1.0, moving_count=(1, 3), **FIDELITY)
     env = jaxnav.make_env("goal", layouts=[], randomize=cfg)
     reset, step = traced_once(env)

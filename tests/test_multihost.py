@@ -104,9 +104,10 @@ def test_two_processes_match_one_process_of_two_devices(tmp_path):
     assert not np.isnan(returns).all()  # episodes ended, so returns were compared
 
 
+@pytest.mark.slow
 def test_a_failing_process_stops_the_other(tmp_path):
     """Process 1 refuses its flags before training; process 0 stops too instead of waiting for it,
-    and takes back the run folder it had started."""
+    and takes back the run folder it had started. Slow: two `jax.distributed` processes."""
     bad = ["--out", "run", *FLAGS, "--num-envs", "15", "--minibatch-size", "80"]
     zero, one = finish(*two_processes(tmp_path, ["--out", "run", *FLAGS], bad))
     assert one.returncode == 2
@@ -118,7 +119,10 @@ def test_a_failing_process_stops_the_other(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_unreachable_coordinator_times_out_in_one_line(tmp_path):
+    """An unreachable coordinator ends the process in one line. Slow: a process that waits for
+    its `--init-timeout`."""
     cluster = ["--coordinator", f"localhost:{free_port()}", "--num-processes", "2"]
     (proc,) = finish(
         start(tmp_path, 1, "--out", "run", *cluster, "--process-id", "1", "--init-timeout", "2")

@@ -82,7 +82,10 @@ def test_install_holds_every_module_and_scene_file(installed):
     assert scenes and scenes == files_under(installed / "jaxnav" / "scenes", "*")
 
 
+@pytest.mark.slow
 def test_installed_package_makes_an_env_from_another_folder(installed, tmp_path):
+    """The installed package makes an env from another folder. Slow: a Python process that
+    imports jax and compiles an env."""
     proc = run_installed(installed, ["-c", _MAKE_ENV], tmp_path)
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout.splitlines()[-1])

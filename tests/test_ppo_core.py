@@ -373,9 +373,11 @@ class _LineEnv:
         return self._state(x, steps, state.info["key"], -jnp.abs(x), done)
 
 
+@pytest.mark.slow
 def test_update_is_its_rollout_then_its_learner():
     """`Trainer.parts`, the pieces benchmarks/compile_time.py compiles on their own, compose to
-    the update `run_chunk` runs, bit for bit."""
+    the update `run_chunk` runs, bit for bit. Slow: the parts, the update and a chunk each
+    compile."""
     from jaxnav.ppo.config import PPOConfig
     from jaxnav.ppo.train import make_train
 

@@ -244,7 +244,10 @@ def test_an_interrupt_ends_the_children_a_library_started():
     assert proc.stdout.strip() == str(-signal.SIGKILL)
 
 
+@pytest.mark.slow
 def test_sigint_while_compiling_exits_at_once_and_removes_the_folder(tmp_path):
+    """SIGINT while the first chunk compiles: the process ends at once and its new folder goes.
+    Slow: a training process, signalled mid-compile (the process boundary is what is tested)."""
     out = tmp_path / "run"
     proc = _launch(out)
     for line in proc.stdout:
@@ -523,7 +526,10 @@ def small_tmpfs(tmp_path):
     subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
+@pytest.mark.slow
 def test_a_real_read_only_and_full_filesystem(fake, small_tmpfs, capsys):
+    """A run on a real full, then read-only, filesystem fails in one line and keeps what it had.
+    Slow: it mounts a small tmpfs and fills it."""
     assert fake("--out", small_tmpfs / "run", *TINY_FLAGS) == 0
     with contextlib.suppress(OSError), open(small_tmpfs / "fill", "wb") as fh:
         while True:  # fill what is left

@@ -63,7 +63,10 @@ def test_signal_checkpoints_then_resume_matches_uninterrupted(tiny_run, tmp_path
     assert [int(r.split(",")[0]) for r in rows] == [1, 2, 3, 4, 5, 6]
 
 
+@pytest.mark.slow
 def test_resume_refuses_other_flags(tiny_run):
+    """A resume with a changed flag is refused in one line. Slow: the tiny CLI run, then a CLI
+    process."""
     out, _ = tiny_run
     proc = run_cli("--resume", str(out), "--num-envs", "32")
     assert proc.returncode == 2 and "drop --num-envs" in proc.stderr

@@ -62,7 +62,9 @@ def test_config_refuses_impossible_combinations():
     assert paper.critic_output == "tanh" and paper.hidden == (64, 64)
 
 
+@pytest.mark.slow
 def test_cli_writes_csv_png_checkpoints(tiny_run):
+    """The CLI writes its metrics, curve and checkpoints. Slow: a training process (the tiny run)."""
     out, proc = tiny_run
     assert f"Results in {out}" in proc.stdout
     with open(out / "metrics.csv") as fh:
@@ -76,7 +78,9 @@ def test_cli_writes_csv_png_checkpoints(tiny_run):
     assert config["task"]["near_threshold"] == 0.8 and config["seed"] == 3
 
 
+@pytest.mark.slow
 def test_load_policy_acts(tiny_run):
+    """A run folder loads as a policy that acts. Slow: it needs the tiny CLI run."""
     out, _ = tiny_run
     policy = jaxnav.load_policy(out)
     assert policy.env_kwargs["task"].near_threshold == 0.8
