@@ -15,7 +15,7 @@ from jaxnav.core import families
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.sensors import SensorConfig, camera_readings, ray_readings, sectors
-from jaxnav.io.layouts import Box, Cylinder
+from jaxnav.io.layouts import Box, Cylinder, RoomLayout
 from jaxnav.robot_side.observation import (
     RayPixels,
     Sensor,
@@ -170,3 +170,21 @@ def test_beyond_range_reads_alike_in_the_simulator_and_on_the_robot():
         far += int((obs == cfg.range_max).sum())
         near += int((obs == cfg.range_min).sum())
     assert far >= 32 and near < far  # beyond-range sectors were met, and read far
+
+
+@pytest.mark.slow
+def test_floor_rule_with_a_calibration_error_reads_the_floor_as_the_robot_would():
+    """The floor rule uses the true mount off by the episode's calibration error: a floor rule
+    2 deg or more less pitched down than the camera (what an uncalibrated, tilted Astra gives the
+    robot) reads the open floor as obstacles within 1.5 m, as the robot side does (2 deg: 0.93 m
+    in `tests/test_calibrate.py`'s frames); within 0.5 deg the hall reads its walls. Slow: an env of its own (the error range is compiled in)."""
+    hall = RoomLayout(name="hall", size=(8.0, 4.0), robot_pos=(-2.0, 0.0), robot_yaw=0.0)
+    cfg = dataclasses.replace(EXACT, calibration_pitch_error=np.deg2rad(3.0))
+    env = jaxnav.make_env("avoid", layouts=[hall], randomize=cfg, sensor=CAMERA)
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 64))
+    error = np.rad2deg(np.asarray(states.info["params"].camera[:, 4]))  # [64] deg, down +
+    nearest = np.asarray(states.obs).min(-1)  # [64] m
+    assert error.min() < -2.0 and np.abs(error).min() < 0.5  # both kinds were drawn
+    assert (nearest[error < -2.0] < 1.5).all()
+    assert (nearest[np.abs(error) < 0.5] > 2.5).all()
+    np.testing.assert_array_equal(np.asarray(states.info["params"].camera[:, :3]), 0.0)

@@ -121,7 +121,7 @@ def _simulated(env, cfg, params, data, qpos):
     [N, 3], with the camera turned by each of `SHIFTS` (pitch, yaw rad; the first: none)."""
 
     def one(p, d, q, shift):  # the rays need only the room and the pose
-        p = p.replace(camera=p.camera.at[1:].add(shift))
+        p = p.replace(camera=p.camera.at[1:3].add(shift))
         return observe(p, q, jax.random.PRNGKey(0), cfg, env.robot)
 
     n, k = len(qpos), len(SHIFTS)

@@ -78,6 +78,18 @@ def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float
     return _physics_and_sensing(k_phys, cfg, room)
 
 
+def _symmetric(key, bounds: jax.Array) -> jax.Array:
+    """[n] uniform in +-bounds [n]."""
+    return jax.random.uniform(key, bounds.shape, minval=-1.0, maxval=1.0) * bounds
+
+
+def _calibration(key, cfg: RandomizeConfig) -> jax.Array:
+    """[2] the floor rule's height (m) and pitch (rad) error about the true mount; from a key of
+    its own, so the other draws stay as they were."""
+    bounds = jnp.array([cfg.calibration_height_error, cfg.calibration_pitch_error])
+    return _symmetric(jax.random.fold_in(key, 1), bounds)
+
+
 def _physics_and_sensing(key, cfg: RandomizeConfig, room: SceneParams) -> SceneParams:
     """The episode's drive and sensor parameters, each uniform in its configured range."""
     ks = jax.random.split(key, 10)
@@ -92,7 +104,7 @@ def _physics_and_sensing(key, cfg: RandomizeConfig, room: SceneParams) -> SceneP
         dropout=_in(ks[3], cfg.sensor_dropout),
         noise_quad=_in(ks[4], cfg.sensor_noise_quadratic),
         dark=jax.random.bernoulli(ks[5], cfg.dark_prob, (n,)),
-        camera=jax.random.uniform(ks[6], (3,), minval=-1.0, maxval=1.0) * errors,
+        camera=jnp.concatenate([_symmetric(ks[6], errors), _calibration(ks[6], cfg)]),
         accel=jnp.stack(
             [
                 _in(jax.random.fold_in(ks[7], 0), cfg.accel_limit),

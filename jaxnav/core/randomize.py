@@ -47,7 +47,8 @@ class SceneParams:
     dropout: jax.Array  # [] probability that a ray returns nothing
     noise_quad: jax.Array  # [] m per m^2: depth noise std grows with distance^2
     dark: jax.Array  # [Sb + Sc] bool: the obstacle returns no depth (black, glossy, glass)
-    camera: jax.Array  # [3] camera mount error: height m, pitch rad (down +), yaw rad (left +)
+    camera: jax.Array  # [5] mount error: height m, pitch rad (down +), yaw rad (left +); then the
+    # floor rule's error about the true mount (its calibration): height m, pitch rad
     accel: jax.Array  # [2] acceleration limits of the velocity smoother: m/s^2, rad/s^2
     latency: jax.Array  # [] int32 control steps between a command and the motors
     wheel_gain: jax.Array  # [2] actual / commanded speed of the left and right wheels
@@ -185,6 +186,13 @@ class RandomizeConfig:
     """Camera pitch error, rad: uniform in +-this (3 deg)."""
     camera_yaw_error: float = 0.0
     """Camera yaw error, rad: uniform in +-this (2 deg)."""
+    calibration_height_error: float = 0.0
+    """Error of the camera height the floor rule uses, m: uniform in +-this about the true
+    (mount-error included) height. On the robot the rule uses the calibrated mount
+    (`jaxnav.robot_side.calibrate`: within 0.01 m on synthetic frames); 0: the true one."""
+    calibration_pitch_error: float = 0.0
+    """Error of the camera pitch the floor rule uses, rad: uniform in +-this about the true pitch
+    (the calibration: within 0.2 deg, 0.0035 rad, on synthetic frames); 0: the true one."""
     accel_limit: tuple[float, float] = (0.0, 0.0)
     """Linear acceleration limit of the velocity smoother, m/s^2 (kobuki_velocity_smoother: 0.3;
     0: no smoother, commanded speeds within one step)."""
@@ -234,7 +242,13 @@ class RandomizeConfig:
                     raise ValueError(
                         f"RandomizeConfig.{f.name}: need 0 <= low <= high, got {value}"
                     )
-        for name in ("camera_height_error", "camera_pitch_error", "camera_yaw_error"):
+        for name in (
+            "camera_height_error",
+            "camera_pitch_error",
+            "camera_yaw_error",
+            "calibration_height_error",
+            "calibration_pitch_error",
+        ):
             if getattr(self, name) < 0:
                 raise ValueError(f"RandomizeConfig.{name}: must be >= 0, got {getattr(self, name)}")
         if self.low_prob + self.overhang_prob > 1:
@@ -432,7 +446,7 @@ def _episode_placeholders(nb: int, nc: int) -> dict:
     return dict(
         noise_quad=f32(0),
         dark=np.zeros(nb + nc, bool),
-        camera=np.zeros(3, f32),
+        camera=np.zeros(5, f32),
         accel=np.zeros(2, f32),
         latency=np.int32(0),
         wheel_gain=np.ones(2, f32),

@@ -19,8 +19,9 @@ the floor outside the camera's range. Floor is not an obstacle; it is left out o
 With `far_reads_max`, an invalid ray at or above the horizon whose column's farthest-reaching
 floor ray returned is no return from beyond range and reads range_max (the robot side's
 `far_mask`: the same code).
-The simulator classifies with the episode's true camera mount: the robot side must be given the
-robot's calibrated one.
+The simulator classifies with the episode's true camera mount off by a calibration error
+(`RandomizeConfig.calibration_height_error`, `calibration_pitch_error`; 0 by default): the robot
+side classifies with its calibrated mount (`jaxnav.robot_side.calibrate`).
 
 One reduction per sector, the same rule as on the robot (`jaxnav.robot_side.observation`): if at
 least `blind_fraction` of its non-floor rays are invalid (a sector of floor only included), the
@@ -189,6 +190,8 @@ class Rays(NamedTuple):
     slot: jax.Array  # [rows, C] int32 obstacle hit first (boxes, then cylinders); -1: wall, floor
     rise: jax.Array  # [rows, C] height the ray gains per metre of reading, m/m (< 0: downwards)
     height: jax.Array  # [] the camera's height above the floor, m (with the mount error)
+    # rise and height are those the floor rule uses: the true mount's off by the episode's
+    # calibration error (`RandomizeConfig.calibration_*_error`; 0: the true mount's).
 
 
 def ray_readings(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec) -> Rays:
@@ -205,7 +208,10 @@ def ray_readings(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec) -
     dist = jnp.where(floor, floor_dist, dist)
     scale = cosine if cfg.model == "camera" else jnp.ones_like(cosine)
     slot = jnp.where(floor, -1, slot)
-    return Rays(dist * scale, slot, dirs[..., 2] / scale, pos[2])
+    # The floor rule's mount: the true one off by the episode's calibration error (the robot's
+    # rule uses its calibrated mount).
+    believed, _ = _directions(cfg, yaw, pitch + params.camera[4])
+    return Rays(dist * scale, slot, believed[..., 2] / scale, pos[2] + params.camera[3])
 
 
 def _floor(rays: Rays, reading, valid, cfg: SensorConfig):
