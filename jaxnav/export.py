@@ -18,18 +18,17 @@ float32 [N, D] to `logits` float32 [N, A] and `action` int64 [N] (greedy), or fo
 `onnx.helper` (opset 17, IR 8, loadable by onnxruntime >= 1.10), which needs only the `onnx` package.
 Before the file gets its name, it is written beside it under a temporary name, run on random
 observations and compared with the JAX network; only a file that passes is renamed into place (a
-failing one is removed: nothing is left that does not match). The check is printed.
+failing one is removed: nothing is left that does not match). The command line (`jaxnav.cli.export`)
+prints the check.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import inspect
 import json
 import os
 import shutil
-import sys
 import tempfile
 import warnings
 from pathlib import Path
@@ -37,7 +36,6 @@ from pathlib import Path
 import numpy as np
 
 from jaxnav.bundle import FILES, FOLDERS, KEPT, ROBOT_PACKAGE, Deployment, write_deployment
-from jaxnav.cli import Parser, UsageError, print_error
 from jaxnav.core.types import ContinuousActions
 from jaxnav.io.checkpoint import CheckpointError, resolve
 from jaxnav.ppo.networks import LEAKY_SLOPE, normalize
@@ -53,7 +51,7 @@ CHECK_OBS = 1000
 ONNX_OPSET, ONNX_IR = 17, 8
 
 
-class ExportError(UsageError):
+class ExportError(ValueError):
     """A user mistake (format, file, missing package); the message names the flag or file."""
 
 
@@ -297,13 +295,13 @@ def export(path, fmt: str, out=None, check: bool = True) -> Path:
     only checked when onnxruntime is installed).
     """
     saved = read_policy(resolve(path))
-    out, result = _export(saved, fmt, out, check)
+    out, result = export_saved(saved, fmt, out, check)
     if check and result is None:
         warnings.warn("onnxruntime is not installed: the ONNX model was not run", stacklevel=2)
     return out
 
 
-def _export(saved: SavedPolicy, fmt: str, out, check: bool = True):
+def export_saved(saved: SavedPolicy, fmt: str, out, check: bool = True):
     """(the file written, its check as `write_checked` returns it)."""
     if fmt not in FORMATS:
         raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
@@ -331,7 +329,7 @@ def bundle(path, folder, check: bool = True) -> Path:
     `jaxnav_robot/` (a copy of jaxnav.robot_side), `policy.npz`, README.txt and the deployment
     files of `jaxnav.bundle` (launch file, configuration, Dockerfile); returns it."""
     saved = read_policy(resolve(path))
-    return _bundle(saved, folder, check)[0]
+    return bundle_saved(saved, folder, check)[0]
 
 
 BUNDLE = ("policy.npz", ROBOT_PACKAGE, "README.txt", *FOLDERS, *FILES)  # all a bundle folder holds
@@ -363,7 +361,7 @@ def check_bundle(folder: Path) -> None:
         raise ExportError(f"--bundle {folder}: cannot write ({err.strerror or err})") from None
 
 
-def _bundle(saved: SavedPolicy, folder, check: bool = True):
+def bundle_saved(saved: SavedPolicy, folder, check: bool = True):
     """(the bundle folder, the check of its policy.npz)."""
     folder = Path(folder)
     check_bundle(folder)
@@ -417,23 +415,7 @@ def _put_in_place(tmp: Path, folder: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = Parser(prog="python -m jaxnav.export", description=__doc__.splitlines()[0])
-    parser.add_argument("dir", metavar="RUN", help="a training run folder or a checkpoint in it")
-    parser.add_argument(
-        "--bundle", type=Path, metavar="DIR", help="write the robot's folder (package, policy.npz)"
-    )
-    parser.add_argument("--format", help=f"one of {', '.join(FORMATS)} (default numpy)")
-    parser.add_argument("--out", type=Path, help="output file (default: RUN's checkpoint/policy.*)")
-    args = parser.parse_args(argv)
-    if args.bundle is not None:
-        for flag in ("format", "out"):
-            if getattr(args, flag) is not None:
-                raise ExportError(f"--{flag}: not with --bundle (it writes DIR/policy.npz)")
-    return args
-
-
-def _read(path) -> SavedPolicy:
+def read_saved(path) -> SavedPolicy:
     """The policy of run or checkpoint folder `path`; a folder without permission on the way is a
     CheckpointError naming it."""
     try:
@@ -443,43 +425,9 @@ def _read(path) -> SavedPolicy:
         raise CheckpointError(f"{where}: cannot read ({err.strerror or err})") from None
 
 
-def main(argv=None) -> int:
-    try:
-        args = parse_args(argv)
-        fmt = args.format or "numpy"
-        if fmt not in FORMATS:  # before reading the checkpoint: the flag is the first mistake
-            raise ExportError(f"--format: unknown format '{fmt}'; valid: {', '.join(FORMATS)}")
-        if args.bundle is not None:  # the outputs first: reading and checking take a while
-            check_bundle(args.bundle)
-        elif args.out is not None:
-            check_out(args.out)
-        saved = _read(args.dir)
-        if args.bundle is not None:
-            out, result = _bundle(saved, args.bundle)
-        else:
-            out, result = _export(saved, fmt, args.out)
-    except CheckFailed as err:
-        print_error(err)
-        return 1
-    except (UsageError, CheckpointError) as err:  # ExportError, and argparse's own
-        print_error(err)
-        return 2
-    except OSError as err:  # a write that failed after the checks (disk full)
-        where = err.filename or args.bundle or args.out or "output"
-        print_error(f"{where}: cannot write ({err.strerror or err})")
-        return 1
-    print(f"wrote {out} ({'bundle' if args.bundle else fmt}) from {saved.ckpt}")
-    if result is None:
-        print("warning: onnxruntime is not installed; the ONNX model was not run", file=sys.stderr)
-        return 0
-    print(
-        f"check: max |logit - JAX logit| = {result[0]:.2e} on {CHECK_OBS} random observations "
-        f"(ok, tolerance {TOLERANCE:.0e}); greedy actions agree on {result[1]}/{CHECK_OBS}"
-    )
-    if args.bundle is not None:
-        print(f"on the robot: see {args.bundle / 'README.txt'}")
-    return 0
+if __name__ == "__main__":  # `python -m jaxnav.export`: the command line
+    import sys
 
+    from jaxnav.cli.export import main
 
-if __name__ == "__main__":
     sys.exit(main())

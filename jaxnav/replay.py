@@ -25,30 +25,27 @@ A damaged bag stops the replay with one `error: ...` line naming it (exit status
 cannot be read (a corrupt SQLite or MCAP file), or a message that cannot be decoded (truncated
 CDR), named by its topic and its number on that topic. A bad message is not skipped: without it
 the loop would see other data at other times than the node saw, and the replay would show a run
-that never happened.
+that never happened. The command line is `jaxnav.cli.replay`.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
-import math
-import sys
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from jaxnav.cli import Parser, UsageError, print_error
 from jaxnav.robot_side.bag import IMAGE, SCAN, decoded, listing, open_bag
-from jaxnav.robot_side.ros_node import ControlLoop, add_goal_flags, add_loop_flags, make_loop
+from jaxnav.robot_side.ros_node import ControlLoop, make_loop
 
 POSE, POINT = "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PointStamped"
 ODOM = "nav_msgs/msg/Odometry"
 
 
-class ReplayError(UsageError):
+class ReplayError(ValueError):
     """A user mistake (bag, topic, policy file); one line naming it."""
 
 
@@ -283,49 +280,9 @@ def plot(result: Replay, path: Path, title: str) -> None:
     fig.savefig(path, dpi=110)
 
 
-def parse_args(argv=None):
-    p = Parser(prog="python -m jaxnav.replay", description=__doc__.splitlines()[0])
-    p.add_argument("bag", metavar="BAG", type=Path, help="rosbag2 folder")
-    p.add_argument("--policy", required=True, help="exported policy (.npz)")
-    p.add_argument("--topic", help="depth image or LaserScan topic (default: the one that fits)")
-    p.add_argument("--plot", type=Path, help="PNG to write (default: BAG.replay.png beside it)")
-    p.add_argument("--csv", type=Path, help="also write one row per tick here")
-    add_goal_flags(p)
-    add_loop_flags(p)
-    return p.parse_args(argv)
+if __name__ == "__main__":  # `python -m jaxnav.replay`: the command line
+    import sys
 
+    from jaxnav.cli.replay import main
 
-def _outputs(args) -> tuple[Path, Path | None]:
-    """(plot, csv or None) paths, checked before the replay runs."""
-    out = args.plot or args.bag.parent / f"{args.bag.resolve().name}.replay.png"
-    for flag, path in (("--plot", out), ("--csv", args.csv)):
-        if path is not None and not path.parent.is_dir():
-            raise ReplayError(f"{flag} {path}: no folder {path.parent}")
-    return out, args.csv
-
-
-def main(argv=None) -> int:
-    try:
-        args = parse_args(argv)
-        out, csv_path = _outputs(args)
-        result = replay(args.bag, vars(args), args.topic)
-    except ValueError as err:  # UsageError and ReplayError, a bad policy file or setting
-        print_error(err)
-        return 2
-    plot(result, out, f"{args.bag.name}: {args.policy}")
-    if csv_path is not None:
-        write_csv(result, csv_path)
-    driving = sum(s == "policy" for s in result.state)
-    span = result.time[-1] if len(result.time) else math.nan
-    inputs = ", ".join(f"{count} on {t}" for t, count in result.inputs)
-    inputs = f"; goal inputs: {inputs}" if inputs else ""
-    print(
-        f"{result.topic}: {result.messages} messages, {len(result.time)} ticks over {span:.2f} s; "
-        f"{driving} driving, {len(result.time) - driving} at zero velocity{inputs}; wrote {out}"
-        + (f" and {csv_path}" if csv_path is not None else "")
-    )
-    return 0
-
-
-if __name__ == "__main__":
     sys.exit(main())

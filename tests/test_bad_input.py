@@ -23,6 +23,7 @@ import pytest
 
 import jaxnav
 import jaxnav.cli.evaluate as evaluate_cli
+import jaxnav.cli.export as export_cli
 import jaxnav.cli.train as train_cli
 import jaxnav.export
 from jaxnav import evaluation
@@ -392,13 +393,13 @@ def test_evaluate_broken_checkpoint(runs, capsys, run):
 @pytest.mark.parametrize("run", sorted(BROKEN_RUNS))
 def test_export_broken_checkpoint(runs, tmp_path, capsys, run):
     argv = [runs / run, "--out", tmp_path / "policy.npz"]
-    code, err = _call(jaxnav.export.main, argv, capsys)
+    code, err = _call(export_cli.main, argv, capsys)
     assert_one_error_line(code, err, str(runs / run), BROKEN_RUNS[run][1])
 
 
 def test_export_writes_nothing_that_fails_its_check(runs, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(jaxnav.export, "verify", lambda *a, **k: (0.5, 0))
-    code, err = _call(jaxnav.export.main, [runs / "good", "--out", tmp_path / "p.npz"], capsys)
+    code, err = _call(export_cli.main, [runs / "good", "--out", tmp_path / "p.npz"], capsys)
     assert code == 1 and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert "p.npz: not written" in err
     assert list(tmp_path.iterdir()) == []  # neither the file nor its temporary
@@ -406,7 +407,7 @@ def test_export_writes_nothing_that_fails_its_check(runs, tmp_path, capsys, monk
 
 def test_export_unknown_format(runs, tmp_path, capsys):
     argv = [runs / "good", "--format", "tflite", "--out", tmp_path / "p.tflite"]
-    code, err = _call(jaxnav.export.main, argv, capsys)
+    code, err = _call(export_cli.main, argv, capsys)
     assert_one_error_line(code, err, "--format", "tflite")
     assert not (tmp_path / "p.tflite").exists()
 
@@ -414,7 +415,7 @@ def test_export_unknown_format(runs, tmp_path, capsys):
 def test_export_out_is_not_writable(runs, tmp_path, capsys):
     (tmp_path / "file").write_text("")
     argv = [runs / "good", "--out", tmp_path / "file" / "policy.npz"]
-    code, err = _call(jaxnav.export.main, argv, capsys)
+    code, err = _call(export_cli.main, argv, capsys)
     assert_one_error_line(code, err, "--out", "policy.npz")
 
 
@@ -573,7 +574,7 @@ def test_unreadable_checkpoint_folder(runs, tmp_path, monkeypatch, capsys):
     argv = ["--checkpoint", closed / "run"]
     code, err = _call(evaluate_cli.main, argv, capsys)
     assert_one_error_line(code, err, f"--checkpoint {closed / 'run'}: cannot access (Permission")
-    code, err = _call(jaxnav.export.main, [closed / "run"], capsys)
+    code, err = _call(export_cli.main, [closed / "run"], capsys)
     assert_one_error_line(code, err, f"{closed / 'run'}: cannot read (Permission denied)")
 
 
@@ -592,7 +593,7 @@ def test_unreadable_layout_file(tmp_path, monkeypatch, capsys):
 
 
 def test_export_unknown_flag(capsys):
-    code, err = _call(jaxnav.export.main, ["run", "--bogus"], capsys)
+    code, err = _call(export_cli.main, ["run", "--bogus"], capsys)
     assert_one_error_line(code, err, "--bogus")
 
 
@@ -602,15 +603,15 @@ def test_export_outputs_are_checked_before_the_checkpoint_is_read(
     """--out naming a folder raised IsADirectoryError after the export; a bundle folder whose
     jaxnav_robot is a file raised FileExistsError and left half a bundle."""
     monkeypatch.setattr(jaxnav.export, "read_policy", _never)
-    code, err = _call(jaxnav.export.main, [runs / "good", "--out", tmp_path], capsys)
+    code, err = _call(export_cli.main, [runs / "good", "--out", tmp_path], capsys)
     assert_one_error_line(code, err, f"--out {tmp_path}: is a folder; give a file name")
     bundle = tmp_path / "robot"
     bundle.mkdir()
     (bundle / "jaxnav_robot").write_text("not a package")
-    code, err = _call(jaxnav.export.main, [runs / "good", "--bundle", bundle], capsys)
+    code, err = _call(export_cli.main, [runs / "good", "--bundle", bundle], capsys)
     assert_one_error_line(code, err, f"--bundle {bundle}: its jaxnav_robot is not a folder")
     (bundle / "notes.txt").write_text("mine")
-    code, err = _call(jaxnav.export.main, [runs / "good", "--bundle", bundle], capsys)
+    code, err = _call(export_cli.main, [runs / "good", "--bundle", bundle], capsys)
     assert_one_error_line(code, err, f"--bundle {bundle}: holds notes.txt, not part of a bundle")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["robot"]
     assert sorted(p.name for p in bundle.iterdir()) == ["jaxnav_robot", "notes.txt"]

@@ -16,6 +16,7 @@ from test_robot_side import run_without_jax
 
 import jaxnav
 from jaxnav import export
+from jaxnav.cli import export as export_cli
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.io import checkpoint
 from jaxnav.ppo.config import preset
@@ -175,15 +176,15 @@ def test_bundle_runs_on_a_robot_without_jax(one_run, tmp_path):
 
 
 def test_cli_bundle(one_run, tmp_path, capsys):
-    assert export.main([str(one_run[0]), "--bundle", str(tmp_path / "robot")]) == 0
+    assert export_cli.main([str(one_run[0]), "--bundle", str(tmp_path / "robot")]) == 0
     stdout = capsys.readouterr().out
     assert "(bundle)" in stdout and "greedy actions agree on 1000/1000" in stdout
     assert (tmp_path / "robot" / "policy.npz").exists()
     argv = [str(one_run[0]), "--bundle", str(tmp_path / "b"), "--format", "onnx"]
-    assert export.main(argv) == 2
+    assert export_cli.main(argv) == 2
     assert_one_error_line(capsys.readouterr().err, "--format", "not with --bundle")
     (tmp_path / "file").write_text("")
-    assert export.main([str(one_run[0]), "--bundle", str(tmp_path / "file")]) == 2
+    assert export_cli.main([str(one_run[0]), "--bundle", str(tmp_path / "file")]) == 2
     assert_one_error_line(capsys.readouterr().err, "--bundle", "not a folder")
 
 
@@ -191,10 +192,10 @@ def test_bundle_is_complete_or_absent(one_run, tmp_path, capsys, monkeypatch):
     """A bundle is made beside its folder and renamed into place: a previous bundle is replaced
     whole but for the robot's own calibration, and a write that fails halfway leaves the previous one (or none) and nothing else."""
     folder = tmp_path / "robot"
-    assert export.main([str(one_run[0]), "--bundle", str(folder)]) == 0
+    assert export_cli.main([str(one_run[0]), "--bundle", str(folder)]) == 0
     (folder / "jaxnav_robot" / "stale.py").write_text("")  # gone once replaced
     (folder / "config" / "mount.yaml").write_text("calibrated on the robot\n")  # kept
-    assert export.main([str(one_run[0]), "--bundle", str(folder)]) == 0
+    assert export_cli.main([str(one_run[0]), "--bundle", str(folder)]) == 0
     assert sorted(p.name for p in folder.iterdir()) == sorted(export.BUNDLE)
     assert not (folder / "jaxnav_robot" / "stale.py").exists()
     assert (folder / "config" / "mount.yaml").read_text() == "calibrated on the robot\n"
@@ -206,7 +207,7 @@ def test_bundle_is_complete_or_absent(one_run, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(export.shutil, "copytree", disk_full)
     capsys.readouterr()
     for target in (folder, tmp_path / "new"):
-        assert export.main([str(one_run[0]), "--bundle", str(target)]) == 1
+        assert export_cli.main([str(one_run[0]), "--bundle", str(target)]) == 1
         err = capsys.readouterr().err
         assert_one_error_line(err, f"{target}: cannot write (No space left on device)")
     assert [p.name for p in tmp_path.iterdir()] == ["robot"]  # no half bundle, no temporaries
@@ -270,14 +271,15 @@ def test_cli_unreadable_checkpoint_and_missing_onnx(one_run, tmp_path, capsys, m
     broken = tmp_path / "broken"
     shutil.copytree(checkpoint.resolve(one_run[0]), broken)
     (broken / "policy.msgpack").write_bytes(b"not msgpack")
-    assert export.main([str(broken), "--out", str(tmp_path / "p.npz")]) == 2
+    assert export_cli.main([str(broken), "--out", str(tmp_path / "p.npz")]) == 2
     assert_one_error_line(capsys.readouterr().err, "policy.msgpack")
     monkeypatch.setitem(sys.modules, "onnx", None)  # as if not installed
     assert (
-        export.main([str(one_run[0]), "--format", "onnx", "--out", str(tmp_path / "p.onnx")]) == 2
+        export_cli.main([str(one_run[0]), "--format", "onnx", "--out", str(tmp_path / "p.onnx")])
+        == 2
     )
     assert_one_error_line(capsys.readouterr().err, "--format onnx", "pip install onnx")
-    assert export.main([str(one_run[0])]) == 0  # default: policy.npz inside the checkpoint
+    assert export_cli.main([str(one_run[0])]) == 0  # default: policy.npz inside the checkpoint
     assert (checkpoint.resolve(one_run[0]) / "policy.npz").exists()
 
 

@@ -4,8 +4,10 @@ other, directly or round a cycle. Read from the source (an AST walk): no module 
 
     robot_side  <  core  <  io, wrappers  <  ppo, tasks, viz  <  the top-level modules  <  cli
 
-The command lines (`jaxnav.cli`, the `python -m jaxnav.<command>` modules) are the top layer: no
-library module imports them.
+The command lines (`jaxnav.cli`, and `jaxnav.train`, `jaxnav.evaluate`: modules that only run one)
+are the top layer: no library module imports them. `jaxnav.export`, `replay` and `twin` are library
+modules that `python -m` also runs: the command line they import under `if __name__ == "__main__":`
+is no arrow, since that code runs only when the module is the program, never for an importer.
 """
 
 from __future__ import annotations
@@ -17,9 +19,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "jaxnav"
 RANK = {"robot_side": 0, "core": 1, "io": 2, "wrappers": 2, "ppo": 3, "tasks": 3, "viz": 3}
 TOP = 4  # jaxnav/*.py: the library's top (what composes a run, training, evaluation)
 CLI = 5  # jaxnav/cli/ and the modules `python -m jaxnav.<command>` runs
-# Modules that are command lines still beside their library code (`replay`, `twin`, `export`),
-# or only run one (`train`, `evaluate`: `python -m` entry points).
-COMMANDS = {"train", "evaluate", "export", "replay", "twin"}
+# Modules that only run a command line (`python -m` entry points).
+COMMANDS = {"train", "evaluate"}
 APART = {("ppo", "tasks"), ("tasks", "ppo")}
 
 
@@ -39,10 +40,25 @@ def rank(name: str) -> int:
     return CLI if name == "cli" else RANK.get(name, TOP)
 
 
+def is_main_block(node: ast.AST) -> bool:
+    """`if __name__ == "__main__":`, what runs only when the module is the program."""
+    test = getattr(node, "test", None)
+    return (
+        isinstance(node, ast.If)
+        and isinstance(test, ast.Compare)
+        and isinstance(test.left, ast.Name)
+        and test.left.id == "__name__"
+        and any(isinstance(c, ast.Constant) and c.value == "__main__" for c in test.comparators)
+    )
+
+
 def imports(path: Path) -> set[str]:
-    """The jaxnav modules `path` imports, anywhere in the file (inside functions too)."""
+    """The jaxnav modules `path` imports, anywhere in the file (inside functions too), but for
+    its `if __name__ == "__main__":` block."""
+    tree = ast.parse(path.read_text())
+    tree.body = [node for node in tree.body if not is_main_block(node)]
     found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found |= {a.name for a in node.names if a.name.startswith("jaxnav")}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:

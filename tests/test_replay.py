@@ -8,6 +8,7 @@ import pytest
 from test_robot_side import BAD_CONTENT, DAMAGE, bounded, damaged, write_policy_npz
 
 from jaxnav import replay
+from jaxnav.cli import replay as replay_cli
 from jaxnav.robot_side.observation import Controller
 from jaxnav.robot_side.policy import NumpyPolicy
 from jaxnav.robot_side.ros_node import ControlLoop, MessageReader
@@ -109,7 +110,7 @@ def read_csv(path):
 def test_replay_equals_the_node_loop(bag, tmp_path, capsys, topic, frames, scan_topic):
     npz = write_policy_npz(tmp_path / "policy.npz")
     args = [str(bag), "--policy", str(npz), "--topic", topic, "--csv", str(tmp_path / "r.csv")]
-    assert replay.main(args) == 0, capsys.readouterr().err
+    assert replay_cli.main(args) == 0, capsys.readouterr().err
     times, twists, states, obs = read_csv(tmp_path / "r.csv")
     want = direct(NumpyPolicy.from_npz(npz), frames(), MessageReader(scan=scan_topic))
     assert times == pytest.approx([w[0] for w in want], abs=1e-4)
@@ -132,7 +133,7 @@ def test_replay_options_reach_the_loop(bag, tmp_path):
     npz = write_policy_npz(tmp_path / "policy.npz", control_period=np.float64(0.2))
     args = [str(bag), "--policy", str(npz), "--topic", SCAN, "--plot", str(tmp_path / "p.png")]
     args += ["--csv", str(tmp_path / "r.csv"), "--speed-calibration", "2", "--max-age", "1"]
-    assert replay.main(args) == 0
+    assert replay_cli.main(args) == 0
     times, twists, states, _ = read_csv(tmp_path / "r.csv")
     policy = NumpyPolicy.from_npz(npz)
     loop = direct(policy, scan_frames(), MessageReader(scan=True), rate=5.0, max_age=1.0)
@@ -145,7 +146,7 @@ def test_replay_options_reach_the_loop(bag, tmp_path):
 def test_topic_is_found_when_one_fits(tmp_path, capsys):
     bag = write_bag(tmp_path / "only-depth", {DEPTH: depth_frames()[:3], RGB: depth_frames()[:1]})
     npz = write_policy_npz(tmp_path / "policy.npz")
-    assert replay.main([str(bag), "--policy", str(npz)]) == 0
+    assert replay_cli.main([str(bag), "--policy", str(npz)]) == 0
     assert f"\n{DEPTH}: 3 messages" in capsys.readouterr().out
     assert (tmp_path / "only-depth.replay.png").is_file()
 
@@ -172,7 +173,7 @@ def test_mistakes_are_one_line(bag, tmp_path, capsys, monkeypatch, args, message
         args = [str(bag), *args]
     if "--policy" not in args:
         args += ["--policy", "policy.npz"]
-    assert replay.main(args) == 2
+    assert replay_cli.main(args) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
 
@@ -182,7 +183,7 @@ def test_no_fitting_topic(tmp_path, capsys):
         tmp_path / "rgb", {RGB: [(0, image(T0, np.zeros((4, 8, 3), np.uint8), "rgb8"))]}
     )
     npz = write_policy_npz(tmp_path / "policy.npz")
-    assert replay.main([str(bag), "--policy", str(npz)]) == 2
+    assert replay_cli.main([str(bag), "--policy", str(npz)]) == 2
     err = capsys.readouterr().err
     assert "none fits; topics: /camera/rgb/image_raw (sensor_msgs/msg/Image); use --topic" in err
 
@@ -308,7 +309,7 @@ def test_goal_policy_replays_goal_and_odometry(goal_bag, tmp_path, capsys):
         "--csv",
         str(table),
     ]
-    assert replay.main(args) == 0
+    assert replay_cli.main(args) == 0
     with open(table) as fh:
         rows = list(csv.DictReader(fh))
     ticks = [k * 100_000_000 for k in range(len(rows))]
@@ -342,7 +343,7 @@ def test_goal_policy_replays_a_point_goal(goal_bag, tmp_path):
     point = TS.types["geometry_msgs/msg/PointStamped"](header=pose.header, point=pose.pose.position)
     frames["/clicked_point"] = [(ns, point)]
     points = write_bag(tmp_path / "points", frames)
-    get = dict(vars(replay.parse_args([str(bag), "--policy", str(npz)])))
+    get = dict(vars(replay_cli.parse_args([str(bag), "--policy", str(npz)])))
     want = replay.replay(bag, get, log=lambda text: None)
     get.update(goal_topic="/clicked_point", goal_point=True)
     got = replay.replay(points, get, log=lambda text: None)
@@ -368,7 +369,7 @@ def test_goal_policy_needs_goal_and_odometry_topics(
     if drop is not None:
         bag = write_bag(tmp_path / "rec", {k: v for k, v in goal_frames().items() if k != drop})
     args = [str(bag), "--policy", str(npz), "--plot", str(tmp_path / "p.png"), *flags]
-    assert replay.main(args) == 2
+    assert replay_cli.main(args) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
 
@@ -378,7 +379,7 @@ def test_bad_policy_file_is_one_line(bag, tmp_path, capsys, kind):
     """A damaged, special or refused --policy: one line naming it, exit 2; a FIFO does not block."""
     path, message = damaged(kind, tmp_path)
     args = [str(bag), "--policy", str(path), "--topic", SCAN, "--plot", str(tmp_path / "p.png")]
-    assert bounded(replay.main, args, fifo=path if kind == "fifo" else None) == 2
+    assert bounded(replay_cli.main, args, fifo=path if kind == "fifo" else None) == 2
     assert capsys.readouterr().err == f"error: {path}: {message}\n"
     assert not (tmp_path / "p.png").exists()
 
@@ -408,7 +409,7 @@ def test_damaged_bag_is_one_line(tmp_path, capsys):
     the bag (and the message), exit 2, no traceback."""
     npz, frames = write_policy_npz(tmp_path / "policy.npz"), depth_frames()
     bag = write_damaged_bag(tmp_path / "cdr", frames, bad=3)
-    assert replay.main([str(bag), "--policy", str(npz)]) == 2
+    assert replay_cli.main([str(bag), "--policy", str(npz)]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {bag}: {DEPTH}: message 4 on that topic cannot be decoded as ")
     assert "sensor_msgs/msg/Image (Invalid sequence length" in err and err.count("\n") == 1, err
@@ -417,7 +418,7 @@ def test_damaged_bag_is_one_line(tmp_path, capsys):
     bag = write_damaged_bag(tmp_path / "sqlite", frames)
     raw = bytes(TS.serialize_cdr(frames[5][1], replay.IMAGE))
     corrupt_page(bag / "sqlite.db3", raw[4000:4064])  # inside message 5's data
-    assert replay.main([str(bag), "--policy", str(npz)]) == 2
+    assert replay_cli.main([str(bag), "--policy", str(npz)]) == 2
     err = capsys.readouterr().err
     want = f"error: {bag}: unreadable rosbag2 after 5 messages (database disk image is malformed)\n"
     assert err == want

@@ -168,6 +168,7 @@ def test_robot_side_runs_without_jax(tmp_path):
 def test_replay_imports_without_jax():
     """`python -m jaxnav.replay` runs where jax cannot be imported (numpy, matplotlib, rosbags)."""
     code = """
+        import jaxnav.cli.replay
         import jaxnav.replay
         heavy = sorted(m for m in sys.modules if m.partition(".")[0] in ("jax", "flax", "rclpy"))
         print(heavy)

@@ -21,6 +21,7 @@ from test_replay import write_goal_policy_npz  # noqa: E402
 from test_robot_side import ROOT, write_policy_npz  # noqa: E402
 
 from jaxnav import twin  # noqa: E402
+from jaxnav.cli import twin as twin_cli  # noqa: E402
 from jaxnav.core.randomize import FIDELITY  # noqa: E402
 from jaxnav.evaluation import METRIC_KEYS  # noqa: E402
 from jaxnav.io.layouts import Box, RoomLayout, save_layouts  # noqa: E402
@@ -122,7 +123,9 @@ def test_cli_writes_evaluates_keys(needs_gl, forward_npz, tmp_path, capsys):
     out = tmp_path / "twin.json"
     args = ["--policy", str(forward_npz), "--layouts", str(tmp_path / "room.json")]
     size = ["--width", "160", "--height", "120"]
-    assert twin.main([*args, "--episodes", "2", "--steps", "15", *size, "--json", str(out)]) == 0
+    assert (
+        twin_cli.main([*args, "--episodes", "2", "--steps", "15", *size, "--json", str(out)]) == 0
+    )
     results = json.loads(out.read_text())
     assert set(results["layouts"]["small"]) == set(METRIC_KEYS)
     assert set(results["overall"]) == set(METRIC_KEYS)
@@ -159,7 +162,7 @@ def test_goal_policies_get_goals_and_odometry(needs_gl, tmp_path):
 )
 def test_mistakes_are_one_line(flags, message, forward_npz, capsys, monkeypatch):
     monkeypatch.chdir(ROOT)
-    assert twin.main([f.format(npz=forward_npz) for f in flags]) == 2
+    assert twin_cli.main([f.format(npz=forward_npz) for f in flags]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {message}") and err.count("\n") == 1
 

@@ -1,8 +1,8 @@
-"""The command lines: `jaxnav.cli.train` and `jaxnav.cli.evaluate`, each a thin `main(argv)` over
-the library (`jaxnav.training`, `jaxnav.evaluation`), run by `python -m jaxnav.train` and
-`python -m jaxnav.evaluate`; and what every command line shares (export, replay and the twin's
-too): argparse that reports a user mistake as one line (`UsageError`, `Parser`, `print_error`)
-and `--help GROUP`.
+"""The command lines: `jaxnav.cli.train`, `evaluate`, `export`, `replay` and `twin`, each a thin
+`main(argv)` over the library (`jaxnav.training`, `jaxnav.evaluation`, `jaxnav.export`,
+`jaxnav.replay`, `jaxnav.twin`), run by `python -m jaxnav.<command>`; and what they share:
+argparse that reports a user mistake as one line (`UsageError`, `Parser`, `print_error`) and
+`--help GROUP`.
 """
 
 from __future__ import annotations
