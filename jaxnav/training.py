@@ -13,6 +13,7 @@ import contextlib
 import dataclasses
 import json
 import shutil
+import threading
 import time
 from pathlib import Path
 
@@ -254,8 +255,11 @@ def run(
         distributed.ready()
         if stop is not None:
             stop.at_once(_start_note(folder), folder.remove)
-        ts = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
-        return _loop(config, out, trainer, ts, [], 0.0, progress, stop, env.metric_names)
+        key = jax.random.PRNGKey(config.seed)
+        trainer, compiling = compile_chunk_ahead(trainer, key)
+        ts = interruptible(trainer.init, key, waiting=compiling)
+        args = (trainer, ts, [], 0.0, progress, stop, env.metric_names, compiling)
+        return _loop(config, out, *args)
     except BaseException:
         if created:  # (not a folder that another run holds)
             folder.remove()
@@ -336,11 +340,14 @@ def resume(
         if stop is not None:
             note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
             stop.at_once(note, lock.release if main else None)
-        template = interruptible(trainer.init, jax.random.PRNGKey(config.seed))
+        key = jax.random.PRNGKey(config.seed)
+        trainer, compiling = compile_chunk_ahead(trainer, key)
+        template = interruptible(trainer.init, key, waiting=compiling)
         ts = checkpoint.restore_train_state(ckpt, template)
         rows = runlog.read_rows(out / "metrics.csv", upto=meta["update"]) if main else []
         elapsed = meta.get("elapsed_s", 0.0)
-        return _loop(config, out, trainer, ts, rows, elapsed, progress, stop, env.metric_names)
+        args = (trainer, ts, rows, elapsed, progress, stop, env.metric_names, compiling)
+        return _loop(config, out, *args)
     finally:
         if locked:
             lock.release()
@@ -367,15 +374,82 @@ def _with_budget(config: RunConfig, total_steps: int | None) -> RunConfig:
     return dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, total_steps=total_steps))
 
 
+# ---------------------------------------------------------------- compiling the first chunk
+
+COMPILING = "jaxnav: compiling the training step (the first chunk)..."
+
+
+class _Compiling:
+    """The first chunk's compile as the user sees it: the `Waiting` line, shown from its start
+    and counting from then; an `interruptible` wait's `waiting=` (init's, the first chunk's)."""
+
+    def __init__(self):
+        self.start = time.perf_counter()
+        self.line = Waiting(COMPILING)
+
+    def __call__(self, _waited: float) -> None:
+        self.line(self.seconds())
+
+    def seconds(self) -> float:
+        return time.perf_counter() - self.start
+
+
+class _CompiledAhead:
+    """`run_chunk` (a jitted function) lowered and compiled by XLA in a thread of its own from
+    the abstract `shapes` of its argument, from now on. A call waits for that compile, then runs
+    the compiled program: the one the jitted function would compile on its first call, called
+    on every chunk, so nothing compiles twice."""
+
+    def __init__(self, run_chunk, shapes):
+        self._compiled, self._error = None, None
+        self._thread = threading.Thread(
+            target=self._compile, args=(run_chunk, shapes), name="compile-chunk", daemon=True
+        )
+        self._thread.start()
+
+    def _compile(self, run_chunk, shapes) -> None:
+        try:
+            self._compiled = run_chunk.lower(shapes).compile()
+        except BaseException as err:  # noqa: BLE001 (raised by the call that waits for it)
+            self._error = err
+
+    def __call__(self, ts):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._compiled(ts)
+
+
+def compile_chunk_ahead(trainer, key):
+    """(trainer, compile line or None): with one device, a trainer whose chunk XLA starts
+    compiling now, beside `init` (XLA's compile lets go of the GIL, so the two programs compile
+    at the same time), and the compile line, shown from now on.
+
+    The chunk's input is init's output, so it is compiled from init's abstract output
+    (`jax.eval_shape`): the same program on the same inputs as the sequential path. With several
+    devices the chunk's input shardings are those XLA chooses for init's output, known only once
+    init is compiled: there, and for a `run_chunk` that is not jitted, the trainer is as it was
+    and the chunk compiles on its first call, after init.
+    """
+    if jax.device_count() > 1 or not hasattr(trainer.run_chunk, "lower"):
+        return trainer, None
+    shapes = jax.eval_shape(trainer.init, key)
+    compiling = _Compiling()
+    return trainer._replace(run_chunk=_CompiledAhead(trainer.run_chunk, shapes)), compiling
+
+
 # ---------------------------------------------------------------- the loop
 
 
-def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names) -> Path:
+def _loop(
+    config, out, trainer, ts, rows, elapsed, progress, stop, metric_names, compiling=None
+) -> Path:
     """Runs chunks until the budget is spent or a stop is requested; checkpoints on the way.
 
-    The first chunk (the compile) runs interruptibly; then `stop` defers signals to the end of
-    the chunk under way. Without `stop`, the loop listens itself. With several processes, all run
-    it together and process 0 writes; a signal to any of them stops all after the chunk.
+    The first chunk (the compile; `compiling`: already under way, its line shown) runs
+    interruptibly; then `stop` defers signals to the end of the chunk under way. Without `stop`,
+    the loop listens itself. With several processes, all run it together and process 0 writes;
+    a signal to any of them stops all after the chunk.
     """
     cfg, main = config.ppo, distributed.is_main()
     start = time.perf_counter() - elapsed
@@ -408,7 +482,10 @@ def _loop(config, out, trainer, ts, rows, elapsed, progress, stop, metric_names)
         first = True
         while update < cfg.num_updates:
             before, tick = update, time.perf_counter()
-            ts, metrics = _first_chunk(trainer, ts, stop, kept) if first else trainer.run_chunk(ts)
+            if first:
+                ts, metrics = _first_chunk(trainer, ts, stop, kept, compiling)
+            else:
+                ts, metrics = trainer.run_chunk(ts)
             first = False
             metrics = interruptible(distributed.to_host, metrics)  # a second signal ends it
             update = int(distributed.to_host(ts.update))
@@ -448,18 +525,14 @@ def _save(out: Path, ts, config: RunConfig, meta: dict, main: bool) -> Path:
     return ckpt
 
 
-def _first_chunk(trainer, ts, stop: Interrupts, kept):
-    """The first chunk of a session (XLA compiles it), interruptible at once; then signals wait
-    for the end of a chunk."""
-    waiting = Waiting("jaxnav: compiling the training step (the first chunk)...")
-    tick = time.perf_counter()
-    out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)), waiting=waiting)
+def _first_chunk(trainer, ts, stop: Interrupts, kept, compiling: _Compiling | None = None):
+    """The first chunk of a session (XLA compiles it, or finishes compiling it: `compiling`),
+    interruptible at once; then signals wait for the end of a chunk."""
+    compiling = compiling or _Compiling()
+    out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)), waiting=compiling)
     stop.defer(kept)  # before the line: a signal after it waits for the chunk and checkpoint
-    waiting.end()
-    print(
-        f"jaxnav: compiled and ran the first chunk in {time.perf_counter() - tick:.1f} s",
-        flush=True,
-    )
+    compiling.line.end()
+    print(f"jaxnav: compiled and ran the first chunk in {compiling.seconds():.1f} s", flush=True)
     return out
 
 
