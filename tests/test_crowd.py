@@ -221,14 +221,20 @@ def crowd_run():
     return env, start, [np.asarray(x) for x in zip(*out, strict=True)]
 
 
+@pytest.mark.slow
 def test_env_declares_the_walker_metrics(crowd_run):
+    """The env declares walker_hit, and evaluation the collisions the robot caused. Slow: the
+    walker env compiles and rolls out 40 steps of 64 episodes for these tests."""
     env, _, _ = crowd_run
     assert env.metric_names == ("collision", "walker_hit")
     assert [m.name for m in env.eval_metrics][-1] == "robot_collision_rate"
     assert env.walkers.slots == env.walkers.crowd_count[1] == 6
 
 
+@pytest.mark.slow
 def test_sampled_walkers_start_clear_at_their_speeds(crowd_run):
+    """Sampled walkers start clear of everything, at speeds in their range. Slow: the walker env
+    compiles and rolls out 40 steps of 64 episodes for these tests."""
     env, p, (_, _, _, speed) = crowd_run
     crowd_rooms = np.asarray(p.layout_id) == crowd.CROWD_ROOM  # [E]
     assert 20 < crowd_rooms.sum() < 44
@@ -258,7 +264,11 @@ def test_sampled_walkers_start_clear_at_their_speeds(crowd_run):
     assert (speed <= pace + 1e-5).all() and (speed[:, sampled] > 0).mean() > 0.8
 
 
+@pytest.mark.slow
 def test_collisions_are_attributed(crowd_run):
+    """A non-reactive walker hitting a robot that stood is told apart from the robot's
+    collisions. Slow: the walker env compiles and rolls out 40 steps of 64 episodes for these
+    tests."""
     _, p, (collision, walker_hit, done, _) = crowd_run
     ids = np.asarray(p.layout_id)
     first = np.argmax(done, axis=0)  # [E] the step each episode ended (0: still running)
