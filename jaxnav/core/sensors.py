@@ -167,17 +167,27 @@ def camera_pose(
     return pos, yaw + error[2], jnp.asarray(robot.camera_pitch) + error[1]
 
 
+def _camera_frame(cfg: SensorConfig) -> jax.Array:
+    """[rows, C, 3] unit directions of the rays in the camera frame (x optical axis, y left, z up);
+    x is the cosine between each ray and the optical axis (the factor from range to depth)."""
+    h = jnp.asarray(cfg.ray_angles, jnp.float32)[None, :]  # [1, C]
+    v = jnp.asarray(cfg.elevations, jnp.float32)[:, None]  # [rows, 1]
+    return jnp.stack(
+        jnp.broadcast_arrays(jnp.cos(v) * jnp.cos(h), jnp.cos(v) * jnp.sin(h), jnp.sin(v)), -1
+    )
+
+
+def _pitched(cam: jax.Array, pitch) -> tuple[jax.Array, jax.Array]:
+    """(forward, up) [rows, C] components of the camera-frame rays `cam` pitched down by `pitch`."""
+    cp, sp = jnp.cos(pitch), jnp.sin(pitch)
+    return cp * cam[..., 0] + sp * cam[..., 2], -sp * cam[..., 0] + cp * cam[..., 2]
+
+
 def _directions(cfg: SensorConfig, yaw, pitch) -> tuple[jax.Array, jax.Array]:
     """World unit directions [rows, C, 3] of the rays and the cosine [rows, C] between each ray and
     the optical axis (the factor from range to camera depth)."""
-    h = jnp.asarray(cfg.ray_angles, jnp.float32)[None, :]  # [1, C]
-    v = jnp.asarray(cfg.elevations, jnp.float32)[:, None]  # [rows, 1]
-    # Camera frame (x optical axis, y left, z up), then pitched down by `pitch`, then yawed.
-    cam = jnp.stack(
-        jnp.broadcast_arrays(jnp.cos(v) * jnp.cos(h), jnp.cos(v) * jnp.sin(h), jnp.sin(v)), -1
-    )
-    cp, sp = jnp.cos(pitch), jnp.sin(pitch)
-    fx, fz = cp * cam[..., 0] + sp * cam[..., 2], -sp * cam[..., 0] + cp * cam[..., 2]
+    cam = _camera_frame(cfg)  # pitched down by `pitch`, then yawed
+    fx, fz = _pitched(cam, pitch)
     cy, sy = jnp.cos(yaw), jnp.sin(yaw)
     world = jnp.stack([cy * fx - sy * cam[..., 1], sy * fx + cy * cam[..., 1], fz], -1)
     return world, cam[..., 0]
@@ -210,8 +220,8 @@ def ray_readings(params, qpos: jax.Array, cfg: SensorConfig, robot: RobotSpec) -
     slot = jnp.where(floor, -1, slot)
     # The floor rule's mount: the true one off by the episode's calibration error (the robot's
     # rule uses its calibrated mount).
-    believed, _ = _directions(cfg, yaw, pitch + params.camera[4])
-    return Rays(dist * scale, slot, believed[..., 2] / scale, pos[2] + params.camera[3])
+    _, believed_up = _pitched(_camera_frame(cfg), pitch + params.camera[4])
+    return Rays(dist * scale, slot, believed_up / scale, pos[2] + params.camera[3])
 
 
 def _floor(rays: Rays, reading, valid, cfg: SensorConfig):
