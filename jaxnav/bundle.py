@@ -168,7 +168,8 @@ NODE_NOTES = {
     "enable_topic": "std_msgs/Bool: false = zero velocity until true",
     "goal_status_topic": "goal policies: std_msgs/String status",
     "header_stamps": "age sensor messages by header.stamp (false: by arrival)",
-    "goal_topic": "goal policies: geometry_msgs/PoseStamped goal, in the odometry's frame",
+    "goal_topic": "goal policies: geometry_msgs/PoseStamped goal (odom, or a frame tf2 links)",
+    "goal_frame_tf": "goal policies: a goal in another frame (map) is placed in odom with tf2",
     "goal_point": "true: goal_topic carries geometry_msgs/PointStamped (RViz's Publish Point)",
     "odom_topic": "goal policies: nav_msgs/Odometry (the Kobuki driver's)",
     "rate_hz": "commands per second: 1 / the control period the policy was trained with",
@@ -182,7 +183,7 @@ NODE_NOTES = {
     "camera_height": "camera height above the floor, m: as trained; config/mount.yaml's too",
     "calibration": "check: refuse to drive where the first frames' mount is off tilt_deg, "
     "camera_height; use: drive with that mount; off",
-    "calibration_frames": "frames with floor the start-up calibration estimates from",
+    "calibration_frames": "frames with floor the calibration estimates from (also ~/calibrate)",
     "pitch_tolerance_deg": "calibration check: largest pitch error let pass, deg",
     "height_tolerance": "calibration check: largest camera height error let pass, m",
     "roll_tolerance_deg": "calibration check and use: largest roll let pass, deg",
@@ -594,6 +595,11 @@ Pause the policy (zero velocity) and resume it:
 
   ros2 topic pub --once /{node}/enable std_msgs/msg/Bool "{{data: false}}"
   ros2 topic pub --once /{node}/enable std_msgs/msg/Bool "{{data: true}}"
+
+Re-check the camera mount (robot on open floor; zero velocity meanwhile, the answer says whether
+it drives again):
+
+  ros2 service call /{node}/calibrate std_srvs/srv/Trigger
 
 The configuration: {node_config} (the policy node: topics, rate, camera mount,
 speed_calibration), {smoother_config} (the limits the policy trained with),

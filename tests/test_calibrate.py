@@ -142,13 +142,13 @@ def node_loop(npz, logs, **params):
     return ros_node.make_loop({**vars(args), **params}, logs.append)[0]
 
 
-def run(loop, frame, seconds=1.0, rate=30.0):
-    """Sends `frame` at `rate` Hz for `seconds` with the camera's CameraInfo, ticking at 10 Hz;
-    the states of the ticks."""
+def run(loop, frame, seconds=1.0, rate=30.0, start=0.0):
+    """Sends `frame` at `rate` Hz for `seconds` from `start` s with the camera's CameraInfo,
+    ticking at 10 Hz; the states of the ticks."""
     loop.on_camera_info(camera_info(ASTRA_K))
     states = []
     for k in range(round(seconds * rate)):
-        now = k / rate
+        now = start + k / rate
         loop.on_observation(image_msg(frame), now)
         if k % 3 == 0:
             loop.tick(now)
@@ -310,3 +310,104 @@ def test_node_reports_the_refusal_on_diagnostics(monkeypatch, five_row_npz):
     assert last.level == b"\x02" and last.message.startswith("camera mount refused: pitch 2.0")
     values = {kv.key: kv.value for kv in last.values}
     assert values["tilt_deg"] == "0.00" and values["calibration"].startswith("check: pitch 2.0")
+
+
+def test_recalibration_stops_collects_and_decides(five_row_npz):
+    """The mount was checked at start-up only: a stand knocked 2 deg down later was driven with
+    (a phantom obstacle), and a fixed stand needed a restart. `recalibrate` (the node's
+    ~/calibrate) stops the robot at once, takes the next 5 frames with floor and decides as at
+    start-up: refused (check), driving again once the stand is level, or with the new estimate
+    (use); `calibration_answer` gives the outcome, or after 10 s that there is none yet."""
+    level, knocked = tilted_frame(), tilted_frame(math.radians(2.0))
+    logs = []
+    loop = node_loop(five_row_npz, logs)
+    assert run(loop, level, 0.7)[-1] == "policy"
+    assert run(loop, knocked, 0.2, start=1.0)[-1] == "policy" and loop.obs.min() < 1.0
+    assert loop.recalibrate() is None and loop.tick(1.2) == ros_node.STOP
+    assert loop.state == "calibrating the camera mount: 0 of 5 frames"
+    assert logs[-2:] == ["re-calibrating the camera mount from the next 5 frames",
+                         "calibrating the camera mount: 0 of 5 frames: sending zero velocity"]  # fmt: skip
+    assert loop.calibration_answer(1.2, 1.2) is None
+    states = run(loop, knocked, 0.3, start=1.3)
+    assert loop.recalibrate() is None  # under way: the frames so far count
+    assert len(loop.calibration.mounts) == 3 and loop.calibration_answer(1.2, 1.6) is None
+    states += run(loop, knocked, 0.4, start=1.6)
+    assert states[0] == "calibrating the camera mount: 1 of 5 frames" and loop.obs is None
+    assert states[-1].startswith("camera mount refused: pitch 2.0")
+    drives, why = loop.calibration_answer(1.2, 2.0)
+    assert not drives and why == loop.state
+    assert loop.recalibrate() is None  # the stand levelled again
+    assert run(loop, level, 0.7, start=3.0)[-1] == "policy"
+    assert loop.calibration_answer(1.2, 3.7) == (True, f"camera mount within tolerance: "
+                                                 f"{loop.calibration.mount.describe()}")  # fmt: skip
+    use = node_loop(five_row_npz, [], calibration="use")
+    assert run(use, level, 0.7)[-1] == "policy" and use.recalibrate() is None
+    assert run(use, knocked, 0.7, start=1.0)[-1] == "policy"
+    np.testing.assert_allclose(use.obs, 5.0, rtol=0.01)  # read at the new mount: no phantom
+    drives, why = use.calibration_answer(1.0, 1.7)
+    assert drives and why.startswith("camera mount used: pitch 2.0")
+    wall = tilted_frame(boxes=((0.7, 1.0, -2.0, 2.0, 1.0),))
+    assert use.recalibrate() is None and run(use, wall, 0.3, start=2.0)[-1].startswith(
+        "calibrating the camera mount: 0 of 5 frames (3 without floor"
+    )
+    assert use.calibration_answer(2.0, 11.9) is None
+    drives, why = use.calibration_answer(2.0, 12.0)
+    assert not drives and why.startswith("undecided after 10 s, stopped: calibrating the camera")
+
+
+def test_recalibration_where_there_is_none(five_row_npz, tmp_path):
+    """A scan or a one-row policy reads no floor, and calibration:=off was asked for: the
+    request is answered at once, the robot left as it is."""
+    for loop, why in [
+        (node_loop(five_row_npz, [], scan=True), "no camera mount to calibrate: scans and one-row"),
+        (node_loop(write_policy_npz(tmp_path / "one.npz"), []), "no camera mount to calibrate"),
+        (node_loop(five_row_npz, [], calibration="off"), "calibration is off (calibration:=check"),
+    ]:
+        drives, message = loop.recalibrate()
+        assert not drives and message.startswith(why)
+
+
+def answer(coroutine):
+    """The response of a service coroutine once it has one (None while it waits)."""
+    try:
+        coroutine.send(None)
+    except StopIteration as done:
+        return done.value
+    return None
+
+
+def test_node_calibrate_service(monkeypatch, five_row_npz):
+    """std_srvs/Trigger on ~/calibrate: the node sends zero velocity at once, calibrates from the
+    frames that come while the call waits (a coroutine: the executor runs the image callbacks
+    meanwhile), and answers with the outcome; a scan node answers at once."""
+    ros = FakeRos().install(monkeypatch)
+    node = ros_node._make_node(ros_node.parse_args(["--policy", str(five_row_npz)])[0])
+    kind, on_calibrate = node.services_["~/calibrate"]
+    assert kind == "Trigger"
+    on_image = next(cb for kind, _, cb in node.subscriptions_ if kind == "Image")
+    next(cb for kind, _, cb in node.subscriptions_ if kind == "CameraInfo")(camera_info(ASTRA_K))
+    on_timer = node.timers_[0][1]
+
+    def frames(frame, start, count):
+        for k in range(count):
+            ros.time = start + k / 30
+            on_image(image_msg(frame))
+            if k % 3 == 0:
+                on_timer()
+
+    frames(tilted_frame(), 5.0, 21)
+    assert ros.published()[-1] != (0.0, 0.0)
+    driven = len(ros.published())
+    call = on_calibrate(None, FakeRos.TriggerResponse())
+    assert answer(call) is None and ros.published()[-1] == (0.0, 0.0)  # stopped at once
+    knocked = tilted_frame(math.radians(2.0))
+    frames(knocked, 6.0, 12)
+    assert answer(call) is None and node.loop.state.startswith("calibrating the camera mount: 4")
+    frames(knocked, 6.4, 1)  # the fifth: decided, answered at the tick after it
+    response = answer(call)
+    assert not response.success and response.message.startswith("camera mount refused: pitch 2.0")
+    assert ros.published()[driven:] == [(0.0, 0.0)] * 6  # the call's, then 5 ticks
+    assert ros.messages("DiagnosticArray")[-1].status[0].level == b"\x02"
+    scan = ros_node._make_node(ros_node.parse_args(["--policy", str(five_row_npz), "--scan"])[0])
+    response = answer(scan.services_["~/calibrate"][1](None, FakeRos.TriggerResponse()))
+    assert not response.success and response.message.startswith("no camera mount to calibrate")

@@ -260,6 +260,22 @@ class FakeRos:
         dict(OK=b"\x00", WARN=b"\x01", ERROR=b"\x02"),
     )
     DiagnosticArray = message("DiagnosticArray", header=Header, status=list)
+    Trigger = type("Trigger", (), {})
+    TriggerResponse = message("TriggerResponse", success=False, message="")
+
+    class Future:
+        """rclpy.task.Future's part the node uses: set_result, and await in a coroutine."""
+
+        def __init__(self):
+            self.answer, self.is_done = None, False
+
+        def set_result(self, answer):
+            self.answer, self.is_done = answer, True
+
+        def __await__(self):
+            while not self.is_done:
+                yield
+            return self.answer
 
     def __init__(self, params=None, spin=None):
         self.time, self.params, self.spin_body = 0.0, params or {}, spin
@@ -271,6 +287,7 @@ class FakeRos:
         class Node:
             def __init__(self, name):
                 self.subscriptions_, self.timers_, self.publishers_ = [], [], {}
+                self.services_ = {}
                 ros.nodes.append(self)
 
             def declare_parameter(self, name, value):
@@ -285,6 +302,9 @@ class FakeRos:
 
             def create_subscription(self, msg_type, topic, callback, qos):
                 self.subscriptions_.append((msg_type.__name__, topic, callback))
+
+            def create_service(self, srv_type, name, callback):
+                self.services_[name] = (srv_type.__name__, callback)
 
             def create_timer(self, period, callback):
                 self.timers_.append((period, callback))
@@ -318,6 +338,7 @@ class FakeRos:
             "rclpy": rclpy,
             "rclpy.node": types.SimpleNamespace(Node=Node),
             "rclpy.qos": types.SimpleNamespace(qos_profile_sensor_data=None),
+            "rclpy.task": types.SimpleNamespace(Future=FakeRos.Future),
             "rclpy.signals": types.SimpleNamespace(SignalHandlerOptions=types.SimpleNamespace(NO=0))
             if signals
             else None,  # None in sys.modules: ImportError, as on Foxy
@@ -329,6 +350,8 @@ class FakeRos:
             "geometry_msgs.msg": types.SimpleNamespace(**geometry),
             "std_msgs": types.SimpleNamespace(),
             "std_msgs.msg": types.SimpleNamespace(Bool=FakeRos.Bool, String=FakeRos.String),
+            "std_srvs": types.SimpleNamespace(),
+            "std_srvs.srv": types.SimpleNamespace(Trigger=FakeRos.Trigger),
             "diagnostic_msgs": types.SimpleNamespace(),
             "diagnostic_msgs.msg": types.SimpleNamespace(
                 DiagnosticArray=FakeRos.DiagnosticArray,
@@ -739,15 +762,21 @@ def test_goal_reached_latches_until_a_new_goal(goal_loop):
     assert drive(loop, 0.04, (4.69, 0.0, 0.0)) != STOP and loop.goal_status() == "driving"
 
 
-def test_node_goal_status_topic(monkeypatch, tmp_path):
-    """A goal policy's node publishes the goal's status at every tick on `goal_status_topic`."""
-    npz = str(write_goal_policy_npz(tmp_path / "goal.npz"))
-    ros = FakeRos().install(monkeypatch)
+def install_goal_messages(monkeypatch) -> None:
+    """Stand-ins of the goal policies' message classes, beside FakeRos's."""
     ns = types.SimpleNamespace
     monkeypatch.setitem(sys.modules, "nav_msgs", ns())
     monkeypatch.setitem(sys.modules, "nav_msgs.msg", ns(Odometry=type("Odometry", (), {})))
     sys.modules["geometry_msgs.msg"].PoseStamped = type("PoseStamped", (), {})
     sys.modules["geometry_msgs.msg"].PointStamped = type("PointStamped", (), {})
+
+
+def test_node_goal_status_topic(monkeypatch, tmp_path):
+    """A goal policy's node publishes the goal's status at every tick on `goal_status_topic`."""
+    npz = str(write_goal_policy_npz(tmp_path / "goal.npz"))
+    ros = FakeRos().install(monkeypatch)
+    ns = types.SimpleNamespace
+    install_goal_messages(monkeypatch)
     args = ros_node.parse_args(["--policy", npz, "--scan", "--goal-point", "--goal-topic", "/clicked_point"])[0]  # fmt: skip
     point = ros_node._make_node(args)  # RViz's Publish Point: a PointStamped goal
     assert ("PointStamped", "/clicked_point") in [s[:2] for s in point.subscriptions_]
@@ -804,3 +833,152 @@ def test_node_stamped_commands_and_enable_topic(monkeypatch, tmp_path, policy):
     assert "paused (false on the enable topic): sending zero velocity" in logs
     ros_node._make_node(ros_node.parse_args(["--policy", npz])[0])
     assert ros.nodes[-1].publishers_ == {"cmd_vel": "Twist", "/diagnostics": "DiagnosticArray"}
+
+
+def quaternion(yaw: float):
+    """A geometry_msgs/Quaternion-like rotation by `yaw` (rad) about z."""
+    return types.SimpleNamespace(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+
+
+def test_transform_points_by_hand():
+    """Map's origin at (1, 2) in odom, turned 90 deg: map's x axis is odom's y axis, so the map
+    point (3, 0) is odom's (1, 2 + 3) and (3, 4) is (1 - 4, 2 + 3). Turned 30 deg and at
+    (0.5, -1): (2, 0) is (0.5 + 2 cos 30, -1 + 2 sin 30) = (2.2320508, 0)."""
+    quarter = (1.0, 2.0, math.pi / 2)
+    np.testing.assert_allclose(ros_node.transform_points(quarter, (3.0, 0.0)), [1.0, 5.0])
+    points = np.array([[3.0, 0.0], [3.0, 4.0], [0.0, 0.0]])  # [3, 2]
+    want = [[1.0, 5.0], [-3.0, 5.0], [1.0, 2.0]]
+    np.testing.assert_allclose(ros_node.transform_points(quarter, points), want, atol=1e-12)
+    turned = (0.5, -1.0, math.radians(30.0))
+    got = ros_node.transform_points(turned, (2.0, 0.0))
+    np.testing.assert_allclose(got, [2.2320508, 0.0], atol=1e-7)
+    ns = types.SimpleNamespace
+    msg = ns(translation=ns(x=1.0, y=2.0, z=0.3), rotation=quaternion(math.pi / 2))
+    assert ros_node.planar_transform(msg) == pytest.approx(quarter)
+
+
+def test_goal_in_map_is_driven_to_its_odom_point(goal_loop):
+    """A goal in `map` was refused (zero velocity) while odometry is in `odom`. It is now placed
+    in odom at every tick with the newest map -> odom transform: the policy sees exactly what it
+    sees for the goal given in odom at that point, also after map and odom drift apart (the
+    goal stays one goal: no new episode), and stops within the success radius of it there."""
+    loop, _ = goal_loop
+    map_in_odom, asked = [(1.0, 2.0, math.pi / 2)], []
+
+    def lookup(target, source):
+        asked.append((target, source))
+        return map_in_odom[0]
+
+    loop.goal.transforms = lookup
+    loop.goal.on_goal(3.0, 0.0, "map")  # by hand: odom (1 - 0, 2 + 3)
+    same = ControlLoop(loop.controller, MessageReader(scan=True), log=[].append, goal=GoalInput())
+    same.goal.on_goal(1.0, 5.0, "odom")
+    twist = drive(loop, 0.0, (0.0, 0.0, 0.0))
+    assert asked == [("odom", "map")] and loop.goal.target == pytest.approx((1.0, 5.0))
+    assert twist == drive(same, 0.0, (0.0, 0.0, 0.0)) != STOP and loop.state == "policy"
+    np.testing.assert_array_equal(loop.obs, same.obs)
+    map_in_odom[0] = (1.5, 2.0, math.pi / 2)  # localisation moved map 0.5 m along odom's x
+    same.goal.on_goal(1.5, 5.0, "odom")
+    assert drive(loop, 0.02, (0.01, 0.0, 0.0)) == drive(same, 0.02, (0.01, 0.0, 0.0))
+    np.testing.assert_array_equal(loop.obs, same.obs)
+    assert loop.goal.goal == (3.0, 0.0) and loop.goal.target == pytest.approx((1.5, 5.0))
+    loop.goal.on_pose(1.5, 4.75, 0.0, 0.04, "odom")  # there: 0.25 m from the odom point
+    loop.on_observation(scan_msg(np.full(640, 3.0)), 0.04)
+    assert loop.tick(0.04) == STOP and loop.goal_status() == "reached"
+
+
+MISSING_MAP = '("map" passed to lookupTransform argument source_frame does not exist.)'
+
+
+def test_goal_in_another_frame_without_a_transform_is_refused(goal_loop):
+    """No transforms (the replay, the twin): refused, as before. tf2 without the transform (no
+    localisation yet, a frame of another tree): refused with tf2's reason, in the goal status and
+    the diagnostics (WARN); driven to once the transform comes, refused again once it fails."""
+    loop, log = goal_loop
+    loop.goal.on_goal(3.0, 0.0, "map")
+    assert drive(loop, 0.0, (0.0, 0.0, 0.0)) == STOP
+    frames = "goal in frame 'map', odometry in 'odom'"
+    assert loop.state == frames and loop.goal.target is None
+    known = {}
+
+    def lookup(target, source):
+        if (target, source) not in known:
+            raise LookupError(f'"{source}" passed to lookupTransform argument source_frame does '
+                              "not exist. ")  # fmt: skip
+        return known[target, source]
+
+    loop.goal.transforms = lookup
+    assert drive(loop, 0.02, (0.0, 0.0, 0.0)) == STOP
+    why = f"{frames}: no transform {MISSING_MAP}"
+    assert loop.state == why and loop.goal_status() == f"stopped: {why}"
+    assert loop.diagnosis()[:2] == (1, why) and log[-1] == f"{why}: sending zero velocity"
+    known["odom", "map"] = (0.0, 0.0, 0.0)
+    assert drive(loop, 0.04, (0.0, 0.0, 0.0)) != STOP and loop.goal_status() == "driving"
+    del known["odom", "map"]
+    assert drive(loop, 0.06, (0.0, 0.0, 0.0)) == STOP and loop.state == why
+    known["odom", "map"] = (NAN, 0.0, 0.0)  # a broken transform
+    assert drive(loop, 0.07, (0.0, 0.0, 0.0)) == STOP
+    assert loop.state == f"{frames}: no transform (not finite: the goal at [nan, 0.0])"
+    loop.goal.transforms = ros_node.no_transforms("goal_frame_tf is false")
+    assert drive(loop, 0.08, (0.0, 0.0, 0.0)) == STOP
+    assert loop.state == f"{frames}: no transform (goal_frame_tf is false)"
+
+
+class TfBuffer:
+    """tf2_ros.Buffer's lookup_transform: the transforms set in `known`, else tf2's error."""
+
+    def __init__(self):
+        self.known, self.times = {}, []
+
+    def lookup_transform(self, target, source, time):
+        self.times.append(time)
+        if (target, source) not in self.known:
+            raise LookupError(f'"{source}" passed to lookupTransform argument source_frame does '
+                              "not exist. ")  # fmt: skip
+        return types.SimpleNamespace(transform=self.known[target, source])
+
+
+def test_node_places_map_goals_with_tf2(monkeypatch, tmp_path):
+    """The node listens to tf2 (a Buffer filled by a TransformListener on the node) and looks up
+    the newest transform (rclpy Time(): zero) at every tick without waiting; with tf2_ros
+    missing, or goal_frame_tf false, a map goal is refused, the reason in the goal status."""
+    npz = str(write_goal_policy_npz(tmp_path / "goal.npz"))
+    ns = types.SimpleNamespace
+    buffers = []
+
+    def buffer():
+        buffers.append(TfBuffer())
+        return buffers[-1]
+
+    tf2 = ns(Buffer=buffer, TransformListener=lambda buffer, node: ("listening", buffer, node))
+    cases = [(tf2, {}), (tf2, {"goal_frame_tf": False}), (None, {})]  # None: ImportError
+    statuses = []
+    for module, params in cases:
+        ros = FakeRos(params).install(monkeypatch)
+        install_goal_messages(monkeypatch)
+        monkeypatch.setitem(sys.modules, "tf2_ros", module)
+        monkeypatch.setitem(sys.modules, "rclpy.time", ns(Time=lambda: "newest"))
+        node = ros_node._make_node(ros_node.parse_args(["--policy", npz, "--scan"])[0])
+        subs = {kind: callback for kind, _, callback in node.subscriptions_}
+        on_timer = node.timers_[0][1]
+        goal = ns(header=ns(frame_id="map"), pose=ns(position=ns(x=3.0, y=0.0)))
+        subs["PoseStamped"](goal)
+        for t in (1.0, 1.1):
+            ros.time = t
+            subs["LaserScan"](scan_msg(np.full(640, 3.0)))
+            subs["Odometry"](odometry(0.0, 0.0, 0.0))
+            on_timer()
+            if module is not None and not params and t == 1.0:  # the transform comes
+                quarter = ns(translation=ns(x=1.0, y=2.0, z=0.0), rotation=quaternion(math.pi / 2))
+                buffers[-1].known["odom", "map"] = quarter
+        statuses.append([m.data for m in ros.messages("String")])
+        if module is not None and not params:
+            assert node.tf_listener == ("listening", buffers[-1], node)
+            assert node.loop.goal.target == pytest.approx((1.0, 5.0))
+            assert buffers[-1].times == ["newest", "newest"]
+    frames = "stopped: goal in frame 'map', odometry in 'odom': no transform"
+    assert statuses[0] == [f"{frames} {MISSING_MAP}", "driving"]
+    assert statuses[1] == [f"{frames} (goal_frame_tf is false)"] * 2
+    assert statuses[2][0].startswith(f"{frames} (tf2_ros does not import: ")
+    assert any(e[1].startswith("goals only in the odometry's frame: tf2_ros does not import")
+               for e in ros.events if e[0] == "log")  # fmt: skip

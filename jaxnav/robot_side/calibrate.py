@@ -271,10 +271,11 @@ MODES = ("check", "use", "off")
 
 
 class StartupCalibration:
-    """The node's start-up calibration: its first `frames` depth frames give the mount (`add`),
-    then `verdict` says whether to drive. Modes: "check" (refuse where the estimate is off the
-    configured pitch/height by more than `tolerance`), "use" (drive with the estimate as the
-    mount; a roll beyond tolerance is still refused), "off" (no calibration)."""
+    """The node's calibration of the camera mount: its first `frames` depth frames with floor give
+    the mount (`add`), then `problem` says why not to drive (None: drive). Modes: "check" (refuse
+    where the estimate is off the configured pitch/height by more than `tolerance`), "use" (drive
+    with the estimate as the mount; a roll beyond tolerance is still refused), "off" (no
+    calibration). `restart` starts over from the next frames (the node's `~/calibrate` service)."""
 
     def __init__(self, mode="check", frames=5, tolerance=Tolerance(), cfg=CalibrationConfig()):
         if mode not in MODES:
@@ -282,6 +283,10 @@ class StartupCalibration:
         if frames < 1:
             raise ValueError(f"calibration_frames: must be >= 1, got {frames}")
         self.mode, self.frames, self.tolerance, self.cfg = mode, int(frames), tolerance, cfg
+        self.restart()
+
+    def restart(self) -> None:
+        """Forgets the estimate and the frames: the next `frames` frames with floor decide anew."""
         self.mounts: list[Mount] = []
         self.rejected, self.last_problem = 0, None  # frames without floor, the latest reason
         self.mount: Mount | None = None  # the estimate, once `frames` frames gave one
@@ -306,6 +311,15 @@ class StartupCalibration:
             self.mount = combine(self.mounts, self.rejected)
             use = self.mode == "use"
             self.problem = mount_problem(self.mount, pitch, height, self.tolerance, use)
+
+    def outcome(self) -> tuple[bool, str] | None:
+        """(whether the robot may drive, one line saying why) once decided; None before."""
+        if self.mount is None:
+            return None
+        if self.problem:
+            return False, self.refusal()
+        how = "used" if self.mode == "use" else "within tolerance"
+        return True, f"camera mount {how}: {self.mount.describe()}"
 
     def waiting(self) -> str:
         """Why it is not decided yet (a loop state)."""

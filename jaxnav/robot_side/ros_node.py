@@ -8,10 +8,11 @@ On the robot, in the folder `python -m jaxnav.export RUN --bundle DIR` wrote (nu
 
 (`python -m jaxnav.robot_side.ros_node` works too where jaxnav is installed.) The flags set the
 defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, stamped,
-camera_info_topic, enable_topic, goal_topic, odom_topic, goal_status_topic, header_stamps,
-goal_point, rate_hz, max_age, speed_calibration, blind_fraction, readings_per_stray, max_unknown,
-vfov_deg, band_deg, tilt_deg, camera_height, calibration, calibration_frames, pitch_tolerance_deg,
-height_tolerance, roll_tolerance_deg), which `--ros-args -p` overrides.
+camera_info_topic, enable_topic, goal_topic, odom_topic, goal_status_topic, goal_frame_tf,
+header_stamps, goal_point, rate_hz, max_age, speed_calibration, blind_fraction,
+readings_per_stray, max_unknown, vfov_deg, band_deg, tilt_deg, camera_height, calibration,
+calibration_frames, pitch_tolerance_deg, height_tolerance, roll_tolerance_deg), which
+`--ros-args -p` overrides.
 
 What it does (the logic is `ControlLoop` below, which has no ROS in it and is tested alone;
 `python -m jaxnav.replay` drives the same loop from a recorded bag):
@@ -31,6 +32,11 @@ What it does (the logic is `ControlLoop` below, which has no ROS in it and is te
   `roll_tolerance_deg`, keeps it at zero velocity for good, said in one log line; with use it
   reads depth at the estimated mount; off skips it. Its state goes to `/diagnostics`
   (diagnostic_msgs: OK driving, WARN waiting, ERROR a fault) at each change and every second.
+- The std_srvs/Trigger service `~/calibrate` runs that calibration again on the running node
+  (`ControlLoop.recalibrate`; e.g. after the camera stand was adjusted): zero velocity at once
+  and until the next `calibration_frames` frames with floor give the mount, which is then
+  checked or used as at start-up. The response says whether the robot may drive, and why, once
+  that is decided, or after CALIBRATION_WAIT (10) s that it is not yet (the calibration goes on).
 - A policy file that fails its checks (`policy.NumpyPolicy.from_npz`: unreadable, not a regular
   file, NaN weights, absurd commands, wrong sizes) ends the node with one `error: ...` line and
   exit status 2 before any command is sent; so does a bad parameter.
@@ -49,19 +55,22 @@ it commands backing off (0.1 m/s) or a stop on its own `cmd_vel`, which a mux mu
 node. The camera's blind zone (nearer than ~0.6 m) reads near (see `observation.reduce_sectors`),
 but the bumper is the last resort.
 
-Goal policies (exported from the `goal` task) also need the goal and the robot's pose, in one
-frame: a geometry_msgs/PoseStamped on `goal_topic` (default `goal_pose`, what RViz's "2D Goal
-Pose" tool publishes; with `goal_point`, a PointStamped, e.g. RViz's "Publish Point" on
-/clicked_point) and nav_msgs/Odometry on `odom_topic` (default `odom`, the Kobuki driver's).
-The goal must be given in the odometry's frame (`odom`; a goal in another frame, e.g. `map`, is
-refused with zero velocity until one in the right frame comes: transform it first, e.g. with tf2).
-The node sends zero velocity before the first goal, when the odometry is older than `max_age`,
-after an odometry jump (a step farther or a turn wider than the robot can make, `odometry_jump`)
-until the odometry has been consistent for `ODOM_RESUME` messages, and once the robot is within
-the policy's success radius of the goal, until a new goal comes (the goal stays reached if the
-robot drifts out again). Each tick it publishes the goal's status on `goal_status_topic`
-(std_msgs/String, default `goal_status`): "no goal", "driving", "reached", "odometry jump" or
-"stopped: <why>".
+Goal policies (exported from the `goal` task) also need the goal and the robot's pose: a
+geometry_msgs/PoseStamped on `goal_topic` (default `goal_pose`, what RViz's "2D Goal Pose" tool
+publishes; with `goal_point`, a PointStamped, e.g. RViz's "Publish Point" on /clicked_point) and
+nav_msgs/Odometry on `odom_topic` (default `odom`, the Kobuki driver's). A goal in another frame
+than the odometry's (e.g. `map`, where a localisation node publishes map -> odom) is placed in
+the odometry's frame at every tick with tf2's newest transform (x, y and yaw of
+`lookup_transform(odom, map)`, not waited for: `tf2_transforms`), so the robot drives to the map
+point while map and odom drift apart; where there is no such transform (none published yet,
+tf2_ros not installed, or `goal_frame_tf` false) the goal is refused with zero velocity, the
+reason in the goal status and the diagnostics. The node sends zero velocity before the first
+goal, when the odometry is older than `max_age`, after an odometry jump (a step farther or a turn
+wider than the robot can make, `odometry_jump`) until the odometry has been consistent for
+`ODOM_RESUME` messages, and once the robot is within the policy's success radius of the goal,
+until a new goal comes (the goal stays reached if the robot drifts out again). Each tick it
+publishes the goal's status on `goal_status_topic` (std_msgs/String, default `goal_status`):
+"no goal", "driving", "reached", "odometry jump" or "stopped: <why>".
 
 Depth images may be 32FC1 (metres) or 16UC1 (millimetres). Their column angles and ray rows come
 from the camera's calibration, the K of sensor_msgs/CameraInfo on `camera_info_topic` (default:
@@ -71,9 +80,9 @@ trained with one row of rays (a horizontal fan) only image rows within +-band_de
 are read; for one trained with several rows (`--sensor.rows 5`) the pixels along its rays are read
 and those that see the floor are left out, by the simulator's own rule (`observation.floor_mask`),
 which needs the camera's pitch and height (tilt_deg, camera_height; default: the policy file's).
-rclpy and the message packages are imported inside `main` only: everything else here is numpy,
-and reads messages by their fields (`MessageReader`), so rclpy's messages and those the `rosbags`
-library deserialises both work.
+rclpy, tf2_ros and the message packages are imported on `main`'s path only: everything else
+here is numpy, and reads messages by their fields (`MessageReader`), so rclpy's messages and
+those the `rosbags` library deserialises both work.
 """
 
 from __future__ import annotations
@@ -124,6 +133,10 @@ DIAGNOSTICS_PERIOD = 1.0  # s between diagnostic_msgs reports, besides one at ea
 # s at least between the frames given to the start-up calibration (every third of a 30 Hz camera):
 # one costs 10-40 ms, and a camera facing no floor would take most of a core while the robot waits.
 CALIBRATION_PERIOD = 0.08
+# s a `~/calibrate` request waits for the new estimate before it is answered "not decided" (the
+# calibration goes on): 5 frames with floor take 0.4 s at the least.
+CALIBRATION_WAIT = 10.0
+CALIBRATE_SERVICE = "~/calibrate"  # std_srvs/Trigger: re-calibrate the camera mount
 # Odometry steps the robot can make (`odometry_jump`): the Kobuki's top speeds, twice over, for the
 # time between two messages (at most ODOM_GAP) plus ODOM_JITTER of stamp or delivery jitter.
 TOP_SPEED, TOP_YAW_RATE = 0.7, math.pi  # m/s, rad/s
@@ -289,12 +302,47 @@ def odometry_jump(before, after, dt: float) -> str | None:
     return f"{moved:.2f} m and {math.degrees(turned):.0f} deg in {dt:.3g} s"
 
 
-class GoalInput:
-    """The goal task's inputs on the robot: the newest goal and odometry pose, in one frame."""
+def transform_points(transform, points) -> np.ndarray:
+    """[..., 2] `points` (x, y; m) of frame A in frame B, where `transform` (x, y, yaw; m, rad)
+    is A's origin and heading in B: the rotation by yaw, then the translation (the 2-D part of a
+    tf2 lookup_transform(B, A))."""
+    x, y, yaw = (float(v) for v in transform)
+    c, s = math.cos(yaw), math.sin(yaw)
+    rotation = np.array([[c, -s], [s, c]])  # [2, 2]
+    return np.asarray(points, np.float64) @ rotation.T + np.array([x, y])
 
-    def __init__(self):
-        self.goal: tuple[float, float] | None = None
+
+def planar_transform(msg) -> tuple[float, float, float]:
+    """(x, y, yaw) of a geometry_msgs/Transform: its translation's x, y and its rotation's yaw
+    (z, roll and pitch are left out: the robot drives on the floor)."""
+    t = msg.translation
+    return float(t.x), float(t.y), yaw_of(msg.rotation)
+
+
+def no_transforms(why: str) -> Callable[[str, str], tuple[float, float, float]]:
+    """A `GoalInput.transforms` that has none, saying `why`."""
+
+    def lookup(target: str, source: str):
+        raise LookupError(why)
+
+    return lookup
+
+
+class GoalInput:
+    """The goal task's inputs on the robot: the newest goal and odometry pose.
+
+    A goal in another frame than the odometry's (e.g. `map`) is placed in the odometry's frame
+    at every `problem` call (each control tick) with the newest transform of
+    `transforms(target, source) -> (x, y, yaw)` (the node's: tf2's, `tf2_transforms`), so the
+    robot drives to the goal's point in its own frame while that frame drifts against the
+    odometry's; where `transforms` is None or raises, the goal is refused, with the reason.
+    """
+
+    def __init__(self, transforms: Callable[[str, str], tuple[float, float, float]] | None = None):
+        self.transforms = transforms
+        self.goal: tuple[float, float] | None = None  # as given, in goal_frame
         self.goal_frame: str | None = None
+        self.target: tuple[float, float] | None = None  # the goal in the odometry's frame
         self.pose: tuple[float, float, float] | None = None  # x, y, yaw
         self.pose_frame: str | None = None
         self.pose_stamp = -math.inf  # when the pose was measured
@@ -349,12 +397,33 @@ class GoalInput:
             return f"odometry stamps over {MAX_AHEAD:g} s ahead of this clock{OTHER_CLOCK}"
         if now - self.pose_stamp > max_age:
             return f"no odometry for over {max_age:g} s"
-        if self.goal_frame and self.pose_frame and self.goal_frame != self.pose_frame:
-            return f"goal in frame '{self.goal_frame}', odometry in '{self.pose_frame}'"
+        unplaced = self._place()
+        if unplaced:
+            return unplaced
         if self.jump is not None:
             return f"odometry jump of {self.jump}: waiting for {ODOM_RESUME} consistent messages"
-        self.reached = self.reached or math.dist(self.goal, self.pose[:2]) <= success_radius
+        self.reached = self.reached or math.dist(self.target, self.pose[:2]) <= success_radius
         return "goal reached" if self.reached else None
+
+    def _place(self) -> str | None:
+        """Sets `target`, the goal in the odometry's frame (through `transforms` where the goal
+        is in another); why it cannot be placed (`target` None), or None. An empty frame is the
+        odometry's."""
+        self.target = self.goal
+        if not (self.goal_frame and self.pose_frame) or self.goal_frame == self.pose_frame:
+            return None
+        self.target = None
+        frames = f"goal in frame '{self.goal_frame}', odometry in '{self.pose_frame}'"
+        if self.transforms is None:
+            return frames
+        try:
+            target = transform_points(self.transforms(self.pose_frame, self.goal_frame), self.goal)
+            if not np.isfinite(target).all():
+                raise ValueError(f"not finite: the goal at {target.tolist()}")
+        except Exception as err:  # noqa: BLE001 - tf2 raises several kinds; each refuses
+            return f"{frames}: no transform ({' '.join(str(err).split()) or type(err).__name__})"
+        self.target = (float(target[0]), float(target[1]))
+        return None
 
 
 class ControlLoop:
@@ -364,13 +433,14 @@ class ControlLoop:
     first message, when the newest message is more than `max_age` s old at the tick (the camera
     or its driver stalled), when it cannot be read, is almost all unknown (`BlindFrame`) or the
     policy fails on it (the error is logged and the loop carries on with the next message), and
-    for goal policies whenever `GoalInput.problem` says so. A message is read and acted on once,
-    at the first tick that uses it; later ticks repeat its command while it is fresh. Each change
-    of state is logged once. Times are seconds on any one clock (the node's, or a bag's receipt
-    times). A message's age counts from its arrival, or with `header_stamps` from its
-    header.stamp where that is set (not zero); a stamp more than MAX_AHEAD s ahead of its arrival
-    is refused. `reader(msg, controller, camera)` turns a message into the observation (`camera`:
-    the calibration from `on_camera_info`, or None).
+    for goal policies whenever `GoalInput.problem` says so, and while the camera mount is being
+    calibrated (at start-up, and again after `recalibrate`) or was refused. A message is read and
+    acted on once, at the first tick that uses it; later ticks repeat its command while it is
+    fresh. Each change of state is logged once. Times are seconds on any one clock (the node's,
+    or a bag's receipt times). A message's age counts from its arrival, or with `header_stamps`
+    from its header.stamp where that is set (not zero); a stamp more than MAX_AHEAD s ahead of
+    its arrival is refused. `reader(msg, controller, camera)` turns a message into the
+    observation (`camera`: the calibration from `on_camera_info`, or None).
 
     After each tick, `obs` is the observation acted on (None when it sent STOP) and `state` says why:
     "policy" or the reason for stopping.
@@ -438,6 +508,31 @@ class ControlLoop:
         if cal.mode == "use" and cal.problem is None:
             pitch, height = math.degrees(cal.mount.pitch), cal.mount.height
             self.reader = dataclasses.replace(self.reader, tilt_deg=pitch, camera_height=height)
+
+    def recalibrate(self) -> tuple[bool, str] | None:
+        """Calibrates the camera mount again, as at start-up (the node's `~/calibrate`): zero
+        velocity until the next `calibration_frames` frames with floor give the mount, which is
+        then checked or used by the `calibration` mode. None: started, or already under way
+        (`calibration_answer` gives the outcome); else (False, why it cannot run)."""
+        cal = self.calibration
+        if cal is None:
+            return False, "no camera mount to calibrate: scans and one-row policies read no floor"
+        if cal.mode == "off":
+            return False, "calibration is off (calibration:=check or calibration:=use)"
+        if cal.done:
+            cal.restart()
+            self.log(f"re-calibrating the camera mount from the next {cal.frames} frames")
+        return None
+
+    def calibration_answer(self, asked: float, now: float) -> tuple[bool, str] | None:
+        """The answer at `now` (s) to a `recalibrate` request made at `asked`: (whether the robot
+        may drive, why) once the calibration has decided, (False, ...) while it is still
+        undecided CALIBRATION_WAIT s later; None: not yet."""
+        cal = self.calibration
+        outcome = cal.outcome()
+        if outcome is None and now - asked >= CALIBRATION_WAIT:
+            outcome = False, f"undecided after {CALIBRATION_WAIT:g} s, stopped: {cal.waiting()}"
+        return outcome
 
     def on_odometry(self, msg, received: float) -> None:
         """A nav_msgs/Odometry message received at `received` (s), for the goal inputs."""
@@ -566,12 +661,13 @@ class ControlLoop:
         """The goal policy's stacked observation of `sectors`, the pose, the goal and the last
         command; records the command the policy sends for it."""
         policy = self.controller.policy
-        if self.goal.goal != self._goal_seen:  # a new goal: a new episode
+        given = (self.goal.goal, self.goal.goal_frame)  # not its drifting place in odom
+        if given != self._goal_seen:  # a new goal: a new episode
             self._frames.reset()
-            self._goal_seen = self.goal.goal
+            self._goal_seen = given
         obs = self._frames(
             goal_observation(
-                sectors, self.goal.pose, self.goal.goal, self._last, policy.command_scale
+                sectors, self.goal.pose, self.goal.target, self._last, policy.command_scale
             )
         )
         self._last = policy.command(obs)
@@ -675,6 +771,13 @@ def _add_node_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--goal-status-topic", default="goal_status", help="goal policies: std_msgs/String"
+    )
+    p.add_argument(
+        "--goal-frame-tf",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="goal policies: place a goal in another frame than the odometry's with tf2's "
+        "newest transform at each tick (--no-goal-frame-tf, or no tf2_ros: refuse it)",
     )
     p.add_argument(
         "--header-stamps",
@@ -785,6 +888,35 @@ def _subscribe(node, get: dict) -> None:
         node.create_subscription(Odometry, get["odom_topic"], node.on_odom, sensor_qos)
 
 
+def goal_transforms(node, get: dict, log) -> Callable[[str, str], tuple[float, float, float]]:
+    """The goal inputs' `transforms`: tf2's (`tf2_transforms`) with goal_frame_tf (absent: true)
+    where tf2_ros imports; otherwise one that says why there are none (logged once here)."""
+    if not get.get("goal_frame_tf", True):
+        return no_transforms("goal_frame_tf is false")
+    try:
+        return tf2_transforms(node)
+    except ImportError as err:
+        log(f"goals only in the odometry's frame: tf2_ros does not import ({err})")
+        return no_transforms(f"tf2_ros does not import: {err}")
+
+
+def tf2_transforms(node) -> Callable[[str, str], tuple[float, float, float]]:
+    """transforms(target, source) -> (x, y, yaw): the newest transform of `source` in `target`
+    (`planar_transform`) in a tf2 Buffer that a TransformListener on `node` fills; tf2's
+    exception where it has none. It does not wait: it is looked up in the control timer, and a
+    wait there would hold back rclpy's single-threaded executor, and with it the /tf messages."""
+    import tf2_ros
+    from rclpy.time import Time
+
+    buffer = tf2_ros.Buffer()
+    node.tf_listener = tf2_ros.TransformListener(buffer, node)
+
+    def lookup(target: str, source: str) -> tuple[float, float, float]:
+        return planar_transform(buffer.lookup_transform(target, source, Time()).transform)
+
+    return lookup
+
+
 def diagnostic_array(diagnosis, stamp, name: str):
     """A diagnostic_msgs/DiagnosticArray of one status, `ControlLoop.diagnosis`'s (level,
     message, values), stamped `stamp`, named after the node."""
@@ -806,19 +938,26 @@ def _make_node(args):
     from geometry_msgs.msg import Twist as TwistMsg
     from geometry_msgs.msg import TwistStamped
     from rclpy.node import Node
+    from rclpy.task import Future
     from std_msgs.msg import String
+    from std_srvs.srv import Trigger
 
     class PolicyNode(Node):
         def __init__(self):
             super().__init__("jaxnav_policy")
             get = _declare_parameters(self, args)
             logger = self.get_logger()
-            self.loop, rate = make_loop(get, getattr(logger, "warning", None) or logger.warn)
+            warn = getattr(logger, "warning", None) or logger.warn
+            self.loop, rate = make_loop(get, warn)
+            if self.loop.goal is not None:
+                self.loop.goal.transforms = goal_transforms(self, get, warn)
             self.stamped = get["stamped"]
             self.pub = self.create_publisher(
                 TwistStamped if self.stamped else TwistMsg, get["cmd_vel"], 10
             )
             _subscribe(self, get)
+            self.calibrations = []  # (future, when asked) of ~/calibrate requests unanswered
+            self.create_service(Trigger, CALIBRATE_SERVICE, self.on_calibrate)
             self.status_pub = None
             if self.loop.goal is not None:
                 self.status_pub = self.create_publisher(String, get["goal_status_topic"], 10)
@@ -844,6 +983,35 @@ def _make_node(args):
         def on_odom(self, msg):
             self.loop.on_odometry(msg, self.now())
 
+        async def on_calibrate(self, request, response):
+            """std_srvs/Trigger: re-calibrates the camera mount (`ControlLoop.recalibrate`);
+            answers once it is decided, or CALIBRATION_WAIT s on. A coroutine, so that the
+            executor runs the image callbacks that calibrate while it waits."""
+            response.success, response.message = await self.recalibration()
+            return response
+
+        def recalibration(self):
+            """A future of a re-calibration's (success, message), set at once where it cannot
+            run, else by the tick that has the answer (`answer_calibrations`)."""
+            future, refused = Future(), self.loop.recalibrate()
+            if refused:
+                future.set_result(refused)
+                return future
+            self.calibrations.append((future, self.now()))
+            self.on_timer()  # stop now, not at the next tick
+            return future
+
+        def answer_calibrations(self):
+            """Sets the futures of the re-calibration requests whose answer is known."""
+            now, waiting = self.now(), []
+            for future, asked in self.calibrations:
+                answer = self.loop.calibration_answer(asked, now)
+                if answer is None:
+                    waiting.append((future, asked))
+                else:
+                    future.set_result(answer)
+            self.calibrations = waiting
+
         def on_timer(self):
             self.send(self.loop.tick(self.now()))
             if self.status_pub is not None:
@@ -851,6 +1019,7 @@ def _make_node(args):
                 status.data = self.loop.goal_status()
                 self.status_pub.publish(status)
             self.diagnose()
+            self.answer_calibrations()
 
         def diagnose(self):
             """A diagnostic_msgs report at each change of the loop's state, and every
