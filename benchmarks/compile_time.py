@@ -4,22 +4,29 @@ compilation cache saves a repeated run with the same shapes.
     python benchmarks/compile_time.py --preset cpu             # avoid and goal, on this machine
     python benchmarks/compile_time.py --preset gpu --json benchmarks/results/compile_time_h100.json
     python benchmarks/compile_time.py --pieces --json benchmarks/results/compile_time_cpu.json
+    python benchmarks/compile_time.py --xla-flags ",--xla_backend_optimization_level=3" --json ...
 
-`--pieces`: each piece of the training program lowered and compiled on its own in this process,
-with the preset's shapes (`PIECES`), `--repeats` times in fresh programs (medians): trace+lower
-and XLA compile seconds, and the size of its HLO (ops of the lowered StableHLO, characters of the
-optimised HLO).
+`--pieces`: each piece of the training program lowered and compiled on its own in this process
+with jaxnav's compiler options and the preset's shapes (`PIECES`), `--repeats` times in fresh
+programs (medians): trace+lower and XLA compile seconds, and the size of its HLO (ops of the
+lowered StableHLO, characters of the optimised HLO).
 
 Per task: in this process, `trainer.run_chunk` lowered (tracing: `jax.stages` `.lower`) and
 compiled (`.compile`) on its own, with the size of its HLO text; then `python -m jaxnav.train` run
 twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
 chunk: the seconds to its "compiled and ran the first chunk" line and the whole command's wall
 time, cold and with the cache warm. Prints the table last; writes the JSON.
+
+`--xla-flags A,B,...`: per task and per `XLA_FLAGS` value (an empty one: jaxnav's own compiler
+options, `jaxnav.core.xla`), `python -m jaxnav.train --no-compile-cache` for `--chunks` chunks: the
+seconds to its first chunk's end and the training pace after it (env steps per second, from the
+run's metrics.csv), so that a faster compile is seen not to cost speed.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import os
 import re
 import subprocess
@@ -85,8 +92,8 @@ def piece_programs(env_name: str, preset: str) -> dict:
     cfg, env = config.ppo, make_run_env(config)
     trainer = make_train(cfg, env)
     parts, shape = trainer.parts, jax.eval_shape
-    keys = jax.ShapeDtypeStruct((cfg.num_envs, 2), jax.numpy.uint32)
-    key = jax.ShapeDtypeStruct((2,), jax.numpy.uint32)
+    key = shape(jax.random.PRNGKey, 0)  # raw key data: (2,) for threefry
+    keys = jax.ShapeDtypeStruct((cfg.num_envs, *key.shape), key.dtype)
     ts = shape(trainer.init, key)
     rolled = shape(parts["rollout"], ts)  # (env_state, key, traj)
     action = jax.tree_util.tree_map(
@@ -122,11 +129,13 @@ def time_piece(fn, args, repeats: int) -> dict:
 
     import jax
 
+    from jaxnav.core.xla import compiler_options
+
     lowers, compiles = [], []
     for _ in range(repeats):
         jax.clear_caches()
         tick = time.perf_counter()
-        lowered = jax.jit(fn).lower(*args)
+        lowered = jax.jit(fn, compiler_options=compiler_options()).lower(*args)
         lowers.append(time.perf_counter() - tick)
         tick = time.perf_counter()
         compiled = lowered.compile()
@@ -208,6 +217,36 @@ def cli_runs(env: str, preset: str) -> dict:
     return out
 
 
+def flag_runs(env: str, preset: str, flags: list[str], chunks: int) -> dict:
+    """{XLA_FLAGS: {first_chunk_s, steps_per_s after it, wall_s}} of `chunks`-chunk runs."""
+    from jaxnav.training import build_config
+
+    cfg = build_config(preset, env=env).ppo
+    out = {}
+    for flag in flags:
+        run = Path(tempfile.mkdtemp(prefix="jaxnav-run-")) / "run"
+        environ = {**os.environ, "XLA_FLAGS": flag}
+        cmd = [sys.executable, "-m", "jaxnav.train", "--env", env, "--preset", preset]
+        cmd += ["--out", str(run), "--no-progress", "--no-compile-cache"]
+        cmd += ["--total-steps", str(chunks * cfg.updates_per_chunk * cfg.batch_size)]
+        tick = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=environ, timeout=1800)
+        wall = time.perf_counter() - tick
+        found = re.search(r"compiled and ran the first chunk in ([\d.]+) s", proc.stdout)
+        rows = list(csv.DictReader((run / "metrics.csv").open())) if proc.returncode == 0 else []
+        first, last = (rows[cfg.updates_per_chunk - 1], rows[-1]) if rows else ({}, {})
+        steps = int(last.get("env_steps", 0)) - int(first.get("env_steps", 0))
+        seconds = float(last.get("elapsed_s", 0)) - float(first.get("elapsed_s", 0))
+        out[flag or "jaxnav"] = {
+            "first_chunk_s": float(found.group(1)) if found else None,
+            "steps_per_s": round(steps / seconds) if seconds > 0 else None,
+            "wall_s": round(wall, 1),
+            "rc": proc.returncode,
+        }
+        print(env, flag or "jaxnav", out[flag or "jaxnav"], flush=True)
+    return out
+
+
 def _one_update(env: str, preset: str) -> int:
     from jaxnav.training import build_config
 
@@ -222,7 +261,21 @@ def main() -> None:
     p.add_argument("--pieces", action="store_true", help="time each piece (module doc)")
     p.add_argument("--only", default="", help="with --pieces: these pieces only (comma list)")
     p.add_argument("--repeats", type=int, default=3, help="with --pieces: fresh jits per piece")
+    p.add_argument("--xla-flags", default=None, help="comma list of XLA_FLAGS (module doc)")
+    p.add_argument("--chunks", type=int, default=3, help="with --xla-flags: chunks per run")
     args = p.parse_args()
+    if args.xla_flags is not None:
+        flags = args.xla_flags.split(",")
+        rows = {
+            env: flag_runs(env, args.preset, flags, args.chunks) for env in args.envs.split(",")
+        }
+        info = run_info("command", "device", "jax", "mujoco", "date")
+        write_json(args.json, {**info, "preset": args.preset, "chunks": args.chunks, "rows": rows})
+        print(f"{'env':<6} {'XLA_FLAGS':<44} {'first chunk s':>13} {'steps/s after':>13}")
+        for env, table in rows.items():
+            for flag, r in table.items():
+                print(f"{env:<6} {flag:<44} {r['first_chunk_s']!s:>13} {r['steps_per_s']!s:>13}")
+        return
     if args.pieces:
         only = [x for x in args.only.split(",") if x]
         rows = {env: pieces(env, args.preset, args.repeats, only) for env in args.envs.split(",")}

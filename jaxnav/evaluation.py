@@ -30,6 +30,7 @@ from jaxnav.core import families
 from jaxnav.core.assets import scenes_dir
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig, SceneParams
 from jaxnav.core.scene import SceneConfig
+from jaxnav.core.xla import compiler_options
 from jaxnav.io import barn
 from jaxnav.io.files import read_json
 from jaxnav.io.layouts import RoomLayout, check_goal_distance
@@ -185,7 +186,7 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
         first = jax.tree_util.tree_map(lambda x: x[firsts], state.info["params"])
         return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=jnp.swapaxes(qpos, 0, 1), params=first)
 
-    return jax.jit(rollout)
+    return jax.jit(rollout, compiler_options=compiler_options())
 
 
 def metrics(

@@ -8,7 +8,9 @@ from conftest import TINY_FLAGS
 
 import jaxnav.cli.train as train_cli
 from jaxnav import training as train_module
+from jaxnav.core import xla
 from jaxnav.io import checkpoint, runlog
+from jaxnav.ppo import train as ppo_train
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # an XLA compile or a cache load
 CHUNK_AHEAD = train_module.compile_chunk_ahead
@@ -66,3 +68,23 @@ def test_chunk_compiled_beside_init_trains_the_same_and_compiles_once(tmp_path, 
     assert sum("(run_chunk)" in name for name in compiled) == 1, compiled
     assert sum("(init)" in name for name in compiled) == 1, compiled
     assert checkpoint.resolve(tmp_path / "beside").name == "update_000006"
+
+
+def test_cpu_programs_compile_at_jaxnav_level(monkeypatch):
+    """On the CPU, jaxnav's programs take `core.xla`'s options (LLVM at -O2); other backends and a
+    user's own level in XLA_FLAGS keep XLA's defaults."""
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert xla.compiler_options("cpu") == {xla.OPTION: xla.CPU_OPT_LEVEL}
+    assert xla.compiler_options("cuda") is None
+    monkeypatch.setenv("XLA_FLAGS", f"--{xla.OPTION}=3")
+    assert xla.compiler_options("cpu") is None
+
+
+def test_the_trainer_hands_its_options_to_xla(monkeypatch):
+    """The options reach XLA's compile of the trainer's programs: an option XLA does not know
+    fails the compile, naming it."""
+    monkeypatch.setattr(ppo_train, "compiler_options", lambda platform: {"xla_no_such_one": 1})
+    config = tiny_config()
+    trainer = ppo_train.make_train(config.ppo, train_module.make_run_env(config))
+    with pytest.raises(Exception, match="xla_no_such_one"):
+        trainer.init(jax.random.PRNGKey(0))

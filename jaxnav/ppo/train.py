@@ -17,6 +17,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.core.types import ContinuousActions
+from jaxnav.core.xla import compiler_options
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
@@ -297,6 +298,6 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
 
     parts = {"rollout": _rollout, "learn": _learn, "update": _update}
-    return Trainer(
-        network, jax.jit(init), jax.jit(run_chunk, donate_argnums=0), jax.jit(train), parts
-    )
+    options = compiler_options(list(devices or jax.devices())[0].platform)
+    jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
+    return Trainer(network, jit(init), jit(run_chunk, donate_argnums=0), jit(train), parts)

@@ -1,0 +1,25 @@
+"""XLA's compile options for jaxnav's programs (`jax.jit(..., compiler_options=compiler_options())`).
+
+On the CPU, XLA hands its fused kernels to LLVM at -O3. jaxnav's programs are large (a reset holds
+every room family's sampler) and each kernel runs briefly, so -O2 compiles the training chunk in
+about three quarters of the time and trains as fast (`benchmarks/compile_time.py --opt-levels`,
+docs/results.md). Other backends keep XLA's defaults, and so does a user's own
+`--xla_backend_optimization_level` in `XLA_FLAGS`.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+
+CPU_OPT_LEVEL = 2  # LLVM's optimisation level for jaxnav's CPU programs (XLA's own default: 3)
+OPTION = "xla_backend_optimization_level"
+
+
+def compiler_options(backend: str | None = None) -> dict[str, int] | None:
+    """The options for a program on `backend` (default: JAX's default backend), or None for
+    XLA's defaults: on the CPU `CPU_OPT_LEVEL`, unless `XLA_FLAGS` sets the level itself."""
+    if OPTION in os.environ.get("XLA_FLAGS", ""):
+        return None
+    return {OPTION: CPU_OPT_LEVEL} if (backend or jax.default_backend()) == "cpu" else None
