@@ -255,7 +255,7 @@ def smoother_step(last, target, accel, period: float, coupled: bool = True) -> n
     if not coupled:
         return last + np.clip(change, -bound, bound)
     moving = change != 0
-    scale = min(1.0, *(bound[moving] / np.abs(change[moving])))
+    scale = min([1.0, *(bound[moving] / np.abs(change[moving]))])  # 1 where nothing changes
     return last + scale * change
 
 
@@ -564,8 +564,10 @@ class Twin:
         return dict(collided=hit, success=success, steps=len(poses) - 1, poses=poses, states=states)
 
     def reading(self, draw: Draw, pose) -> np.ndarray:
-        """[D] what the node's loop reads from one frame rendered with the robot at rest at
-        `pose` (x, y, yaw) on the episode's mount: for comparing with the simulator's sensor."""
+        """[D] the sectors the node's loop reads from one frame rendered with the robot at rest
+        at `pose` (x, y, yaw) on the episode's mount: for comparing with the simulator's sensor.
+        The loop's reader itself: a goal policy's loop acts only with a goal and odometry, and
+        stacks frames."""
         loop = self.loop(draw)
         self.place(draw)
         self.data.qpos[:3] = pose
@@ -573,9 +575,7 @@ class Twin:
         loop.on_camera_info(
             self.messages.camera_info(self.cfg.focal, self.cfg.width, self.cfg.height, CLOCK0)
         )
-        loop.on_observation(self.frame(CLOCK0), CLOCK0)
-        loop.tick(CLOCK0)
-        return loop.obs
+        return np.asarray(loop.reader(self.frame(CLOCK0), loop.controller, loop.camera), np.float32)
 
     def drive(self, draw: Draw) -> Drive:
         """The episode's command path: its latency, the smoother at its rate and limits (waiting

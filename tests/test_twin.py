@@ -10,7 +10,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -22,9 +24,10 @@ from test_robot_side import ROOT, write_policy_npz  # noqa: E402
 
 from jaxnav import twin  # noqa: E402
 from jaxnav.cli import twin as twin_cli  # noqa: E402
-from jaxnav.core.randomize import FIDELITY  # noqa: E402
+from jaxnav.core.randomize import FIDELITY, RandomizeConfig  # noqa: E402
 from jaxnav.evaluation import METRIC_KEYS  # noqa: E402
 from jaxnav.io.layouts import Box, RoomLayout, save_layouts  # noqa: E402
+from jaxnav.tasks.base import NavTask  # noqa: E402
 from jaxnav.tasks.goal import GoalEnv  # noqa: E402
 
 SMALL = dict(width=160, height=120)  # px; fx = 142.6, the Astra's 570.3 at 640 wide, scaled
@@ -67,6 +70,27 @@ def test_smoother_ramps_and_keeps_the_direction():
     # The simulator's drive: each on its own.
     out = step([0.5, 0.0], [0.0, 1.5], (0.3, 3.5), 0.05, coupled=False)
     np.testing.assert_allclose(out, [0.5 - 0.015, 0.175])
+
+
+@pytest.mark.parametrize("coupled", [True, False])
+def test_simulator_smoother_is_the_twins(coupled):
+    """The simulator's smoother over one 0.1 s control period (`NavTask._smoothed`) moves the
+    command as the twin's kobuki_velocity_smoother does in its two 20 Hz cycles, by the rule
+    `RandomizeConfig.coupled_smoother` picks; a limit of 0 is none in the simulator."""
+    cfg = RandomizeConfig(coupled_smoother=coupled)
+    env = types.SimpleNamespace(control_period=0.1, randomize=cfg)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        last, target = rng.uniform(-0.7, 0.7, 2), rng.uniform(-3.0, 3.0, 2)
+        target[0] = rng.choice([target[0], last[0]])  # some with one component unchanged
+        accel = rng.uniform([0.1, 1.0], [0.5, 6.0])
+        sim = last + np.asarray(NavTask._smoothed(env, jnp.asarray(target - last), accel))
+        twice = last
+        for _ in range(2):
+            twice = twin.smoother_step(twice, target, accel, 0.05, coupled=coupled)
+        np.testing.assert_allclose(sim, twice, atol=1e-6)
+    free = NavTask._smoothed(env, jnp.asarray([0.4, 2.0]), jnp.asarray([0.0, 3.5]))
+    np.testing.assert_allclose(free, [0.4, 0.35] if coupled is False else [0.07, 0.35])
 
 
 def test_drive_latency_silence_and_driver_timeout():

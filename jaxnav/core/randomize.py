@@ -198,6 +198,10 @@ class RandomizeConfig:
     0: no smoother, commanded speeds within one step)."""
     angular_accel_limit: tuple[float, float] = (0.0, 0.0)
     """Angular acceleration limit, rad/s^2 (Kobuki: 3.5)."""
+    coupled_smoother: bool = False
+    """The velocity smoother's rule: True shrinks the forward and the turn change of a step by one
+    factor, so the (m/s, rad/s) change keeps its direction, as kobuki_velocity_smoother does
+    (`jaxnav.twin.smoother_step`); False limits each on its own."""
     latency_steps: tuple[int, int] = (0, 0)
     """Command latency in control steps, uniform over the range (0.1 s each)."""
     wheel_asymmetry: tuple[float, float] = (0.0, 0.0)

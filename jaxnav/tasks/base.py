@@ -245,21 +245,28 @@ class NavTask:
     def actuate(self, params: SceneParams, act: Actuator, target: jax.Array):
         """What reaches the motors this step for the policy's command `target` [2] (m/s, rad/s):
         delayed by the episode's latency, rate-limited by its acceleration limits (the Kobuki's
-        velocity smoother; a limit <= 0 is none), split over the wheels with their gains and scaled
+        velocity smoother, `_smoothed`; a limit <= 0 is none), split over the wheels with their gains and scaled
         by the speed gain. Returns ([2] command, the new Actuator)."""
         queue = jnp.concatenate([target[None], act.queue[:-1]])
         delayed = queue[jnp.clip(params.latency, 0, MAX_LATENCY)]
-        step = params.accel * self.control_period
-        change = jnp.where(
-            step > 0, jnp.clip(delayed - act.velocity, -step, step), delayed - act.velocity
-        )
-        velocity = act.velocity + change
+        velocity = act.velocity + self._smoothed(delayed - act.velocity, params.accel)
         half_track = 0.5 * self.robot.wheelbase
         left, right = params.wheel_gain * (
             velocity[0] + jnp.array([-1.0, 1.0]) * velocity[1] * half_track
         )
         command = jnp.stack([0.5 * (left + right), (right - left) / (2 * half_track)])
         return command * params.speed_gain, Actuator(queue, velocity)
+
+    def _smoothed(self, change: jax.Array, accel: jax.Array) -> jax.Array:
+        """[2] the velocity smoother's part of the wanted `change` [2] (m/s, rad/s) in one control
+        period, at acceleration limits `accel` [2] (<= 0: none), by its rule
+        (`RandomizeConfig.coupled_smoother`)."""
+        bound = accel * self.control_period  # [2]
+        if not self.randomize.coupled_smoother:
+            return jnp.where(bound > 0, jnp.clip(change, -bound, bound), change)
+        limited = (bound > 0) & (change != 0)
+        ratio = jnp.where(limited, bound / jnp.where(limited, jnp.abs(change), 1.0), jnp.inf)
+        return change * jnp.minimum(1.0, ratio.min())
 
     def drive(self, params: SceneParams, data: mjx.Data, command: jax.Array):
         """Holds `command` [2] (forward m/s, yaw rad/s, as `actuate` passes it) for one period of
