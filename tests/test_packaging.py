@@ -25,7 +25,16 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "README.md", "jaxnav", "scenes")  # what the build reads
 # Come with ROS 2, not from PyPI.
-ROS_MODULES = {"rclpy", "sensor_msgs", "geometry_msgs", "nav_msgs", "std_msgs", "diagnostic_msgs"}
+ROS_MODULES = {
+    "rclpy",
+    "sensor_msgs",
+    "geometry_msgs",
+    "nav_msgs",
+    "std_msgs",
+    "std_srvs",
+    "diagnostic_msgs",
+    "tf2_ros",
+}
 
 # Builds the default env from the installed package and resets it once.
 _MAKE_ENV = """
