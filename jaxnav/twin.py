@@ -146,6 +146,9 @@ class TwinConfig:
     used (`calibration:=use`); "check": the node's default, the policy file's mount checked
     against that estimate (off by more than the tolerance: it refuses to drive); "policy": the
     policy file's mount, off by the mount error, unchecked. The yaw error stays unknown to it."""
+    node_flags: tuple[str, ...] = ()
+    """Flags of the node (`python -m jaxnav_robot.ros_node`) its loop is built with, as a lab
+    would pass them, e.g. ("--blind-hold", "0"); () : the node's defaults."""
     goal_min_distance: float = 1.5
     """Goal policies in rooms without a goal: a goal is drawn at least this far (m) from the spawn
     (the goal task's default), on the free cells the spawn can reach."""
@@ -447,7 +450,10 @@ class Twin:
 
     def __init__(self, layout: RoomLayout, policy_path, cfg: TwinConfig, video: bool = False):
         self.layout, self.cfg, self.messages = layout, cfg, Messages()
-        self.get = vars(node_args(["--policy", str(policy_path)])[0])  # the node's defaults
+        args, rest = node_args(["--policy", str(policy_path), *cfg.node_flags])
+        if rest:
+            raise TwinError(f"node_flags: not flags of the node: {' '.join(rest)}")
+        self.get = vars(args)
         loop, rate = make_loop(self.get, _quiet)  # checks the policy file first
         self.policy = loop.controller.policy
         self.model = room_model(layout, cfg)
@@ -686,7 +692,8 @@ def _add_segment(scene, start, end) -> None:
 def run_room(policy_path, layout: RoomLayout, index: int, cfg: TwinConfig, video=False) -> dict:
     """`cfg.episodes` episodes in one room: its per-episode arrays ("collided", "steps",
     "distance", "start", "goal", "metrics", "paths" [T + 1, 2], "poses" [T + 1, 3], "draws"),
-    "control_period", "states" (ticks per loop state), "seconds" of wall time, and with `video`
+    "control_period", "states" (ticks per loop state; "episode_states" per episode), "seconds"
+    of wall time, and with `video`
     the first episode's "frames"."""
     tick = time.perf_counter()
     twin = Twin(layout, policy_path, cfg, video)
@@ -713,6 +720,7 @@ def run_room(policy_path, layout: RoomLayout, index: int, cfg: TwinConfig, video
         "draws": [draw for draw, _ in runs],
         "control_period": twin.period,
         "states": sum((run["states"] for _, run in runs), Counter()),
+        "episode_states": [run["states"] for _, run in runs],
         "frames": frames,
     }
     if goals:

@@ -224,6 +224,7 @@ def test_node_flags():
     assert args.speed_calibration == 1.0 and args.band_deg == 2.0 and args.rate_hz is None
     assert args.max_age == 0.25 and args.blind_fraction == 0.5 and args.readings_per_stray == 50
     assert args.max_unknown == 0.9 and math.isnan(args.vfov_deg) and args.header_stamps
+    assert args.blind_hold == ros_node.BLIND_HOLD
     assert not args.stamped and args.enable_topic == "~/enable" and args.camera_info_topic == ""
     assert ros_node.parse_args(["--no-header-stamps", "--stamped"])[0].header_stamps is False
 
@@ -579,6 +580,45 @@ def test_broken_frames_stop_the_robot(policy):
     assert "over 90% of its readings unknown (lens covered, sunlight, or a surface" in blind
 
 
+def test_a_wall_in_the_blind_zone_reads_near_for_a_while(policy):
+    """A wall nearer than range_min across the whole view is unknown in every pixel, which the
+    frame check refused: in the twin the node stopped for good facing it in 6 of 256 goal
+    episodes, where the simulator reads it near and the policy turns away. After a frame that
+    measured a surface within NEAR_MARGIN of range_min, such a frame now reads range_min in every
+    sector for `blind_hold` s, then stops; after a far frame, or one that read near only by the
+    blind share (sunlight), it still stops at once (a covered lens)."""
+    sensor = policy.sensor
+    near_wall, far_wall, covered = astra_frame(wall=0.7), astra_frame(), np.zeros((480, 640))
+    log = []
+    loop = ControlLoop(Controller(policy), MessageReader(), log=log.append, blind_hold=1.0)
+    loop.on_camera_info(camera_info(ASTRA_K))
+    loop.on_observation(image_msg(near_wall), 0.0)
+    assert loop.tick(0.0) != STOP and loop.state == "policy"
+    assert loop.obs.max() <= sensor.range_min + ros_node.NEAR_MARGIN
+    all_near = Controller(policy).act(np.full(sensor.num_sectors, sensor.range_min, np.float32))
+    for t in (0.1, 0.5, 1.0):
+        loop.on_observation(image_msg(covered), t)
+        assert loop.tick(t) == pytest.approx(all_near) and loop.state == ros_node.BLIND_ZONE
+        assert (loop.obs == sensor.range_min).all() and loop.diagnosis()[0] == 1
+    loop.on_observation(image_msg(covered), 1.1)
+    assert loop.tick(1.1) == STOP and loop.state.startswith("sensor blind")
+    sunlit = far_wall.copy()
+    sunlit[:, :512] = 0.0
+    for first in (far_wall, sunlit):  # nothing measured near: a covered lens stops at once
+        loop.on_observation(image_msg(first), 2.0)
+        assert loop.tick(2.0) != STOP
+        loop.on_observation(image_msg(covered), 2.1)
+        assert loop.tick(2.1) == STOP and loop.state.startswith("sensor blind")
+    off = ControlLoop(Controller(policy), MessageReader(), log=log.append, blind_hold=0.0)
+    off.on_camera_info(camera_info(ASTRA_K))
+    off.on_observation(image_msg(near_wall), 0.0)
+    off.tick(0.0)
+    off.on_observation(image_msg(covered), 0.1)
+    assert off.tick(0.1) == STOP
+    with pytest.raises(ValueError, match="blind_hold"):
+        ControlLoop(Controller(policy), MessageReader(), blind_hold=-1.0)
+
+
 def stamped(msg, seconds: float):
     """`msg` with a header stamped `seconds` (0: unset)."""
     sec = math.floor(seconds)
@@ -928,14 +968,46 @@ class TfBuffer:
     """tf2_ros.Buffer's lookup_transform: the transforms set in `known`, else tf2's error."""
 
     def __init__(self):
-        self.known, self.times = {}, []
+        self.known, self.times, self.stamps = {}, [], {}
 
     def lookup_transform(self, target, source, time):
         self.times.append(time)
         if (target, source) not in self.known:
             raise LookupError(f'"{source}" passed to lookupTransform argument source_frame does '
                               "not exist. ")  # fmt: skip
-        return types.SimpleNamespace(transform=self.known[target, source])
+        stamp = self.stamps.get((target, source), 0.0)  # 0: /tf_static's
+        header = FakeRos.Header(stamp=FakeRos.Time(sec=int(stamp), nanosec=0), frame_id=target)
+        return types.SimpleNamespace(header=header, transform=self.known[target, source])
+
+
+def test_a_stale_map_transform_refuses_the_goal(monkeypatch, tmp_path):
+    """A localisation node that died left its last map -> odom transform in tf2's buffer, and the
+    robot drove to a goal placed with it for good. The node now refuses a goal whose transform is
+    more than goal_tf_max_age s older than its clock, saying so; a fresh or static (stamp 0) one
+    places it."""
+    npz = str(write_goal_policy_npz(tmp_path / "goal.npz"))
+    ns = types.SimpleNamespace
+    buffer = TfBuffer()
+    tf2 = ns(Buffer=lambda: buffer, TransformListener=lambda buffer, node: None)
+    ros = FakeRos({"goal_tf_max_age": 2.0}).install(monkeypatch)
+    install_goal_messages(monkeypatch)
+    monkeypatch.setitem(sys.modules, "tf2_ros", tf2)
+    monkeypatch.setitem(sys.modules, "rclpy.time", ns(Time=lambda: "newest"))
+    node = ros_node._make_node(ros_node.parse_args(["--policy", npz, "--scan"])[0])
+    subs = {kind: callback for kind, _, callback in node.subscriptions_}
+    subs["PoseStamped"](ns(header=ns(frame_id="map"), pose=ns(position=ns(x=3.0, y=0.0))))
+    buffer.known["odom", "map"] = ns(translation=ns(x=1.0, y=0.0, z=0.0), rotation=quaternion(0))
+    for t, stamp in ((10.0, 7.0), (10.1, 9.0), (10.2, 0.0)):
+        buffer.stamps["odom", "map"] = stamp
+        ros.time = t
+        subs["LaserScan"](scan_msg(np.full(640, 3.0)))
+        subs["Odometry"](odometry(0.0, 0.0, 0.0))
+        node.timers_[0][1]()
+    frames = "stopped: goal in frame 'map', odometry in 'odom': no transform"
+    stale = f"{frames} (newest transform 3.0 s old, over goal_tf_max_age 2 s)"
+    assert [m.data for m in ros.messages("String")] == [stale, "driving", "driving"]
+    assert node.loop.goal.target == pytest.approx((4.0, 0.0))
+    assert ros_node.parse_args([])[0].goal_tf_max_age == ros_node.GOAL_TF_MAX_AGE
 
 
 def test_node_places_map_goals_with_tf2(monkeypatch, tmp_path):

@@ -9,10 +9,10 @@ On the robot, in the folder `python -m jaxnav.export RUN --bundle DIR` wrote (nu
 (`python -m jaxnav.robot_side.ros_node` works too where jaxnav is installed.) The flags set the
 defaults of ROS 2 parameters of the same names (policy, topic, scan, cmd_vel, stamped,
 camera_info_topic, enable_topic, goal_topic, odom_topic, goal_status_topic, goal_frame_tf,
-header_stamps, goal_point, rate_hz, max_age, speed_calibration, blind_fraction,
-readings_per_stray, max_unknown, vfov_deg, band_deg, tilt_deg, camera_height, calibration,
-calibration_frames, pitch_tolerance_deg, height_tolerance, roll_tolerance_deg), which
-`--ros-args -p` overrides.
+goal_tf_max_age, header_stamps, goal_point, rate_hz, max_age, speed_calibration,
+blind_fraction, readings_per_stray, max_unknown, blind_hold, vfov_deg, band_deg, tilt_deg,
+camera_height, calibration, calibration_frames, pitch_tolerance_deg, height_tolerance,
+roll_tolerance_deg), which `--ros-args -p` overrides.
 
 What it does (the logic is `ControlLoop` below, which has no ROS in it and is tested alone;
 `python -m jaxnav.replay` drives the same loop from a recorded bag):
@@ -22,7 +22,9 @@ What it does (the logic is `ControlLoop` below, which has no ROS in it and is te
 - It sends zero velocity when that message is older than `max_age` (default 0.25 s), aged from its
   header.stamp where that is set (else from its arrival; `--no-header-stamps`: always from its
   arrival), before the first message, when a stamp is ahead of this computer's clock, when a frame
-  is almost all unknown (over `max_unknown`, default 90 %: a covered lens or sunlight), when a
+  is almost all unknown (over `max_unknown`, default 90 %: a covered lens or sunlight; but for
+  `blind_hold` s after a frame that measured a surface just beyond range_min it reads everything
+  near, as trained, so the robot turns away from a wall that filled the blind zone), when a
   message cannot be converted or the policy fails (logged; it carries on), and while `false` was
   last published on `enable_topic` (std_msgs/Bool, default `~/enable`) until `true` comes.
 - Policies trained with several rows (a floor rule) first estimate the camera's mount from the
@@ -62,9 +64,9 @@ nav_msgs/Odometry on `odom_topic` (default `odom`, the Kobuki driver's). A goal 
 than the odometry's (e.g. `map`, where a localisation node publishes map -> odom) is placed in
 the odometry's frame at every tick with tf2's newest transform (x, y and yaw of
 `lookup_transform(odom, map)`, not waited for: `tf2_transforms`), so the robot drives to the map
-point while map and odom drift apart; where there is no such transform (none published yet,
-tf2_ros not installed, or `goal_frame_tf` false) the goal is refused with zero velocity, the
-reason in the goal status and the diagnostics. The node sends zero velocity before the first
+point while map and odom drift apart; where there is no such transform (none published yet, the
+newest over `goal_tf_max_age` s old, tf2_ros not installed, or `goal_frame_tf` false) the goal
+is refused with zero velocity, the reason in the goal status and the diagnostics. The node sends zero velocity before the first
 goal, when the odometry is older than `max_age`, after an odometry jump (a step farther or a turn
 wider than the robot can make, `odometry_jump`) until the odometry has been consistent for
 `ODOM_RESUME` messages, and once the robot is within the policy's success radius of the goal,
@@ -137,6 +139,23 @@ CALIBRATION_PERIOD = 0.08
 # calibration goes on): 5 frames with floor take 0.4 s at the least.
 CALIBRATION_WAIT = 10.0
 CALIBRATE_SERVICE = "~/calibrate"  # std_srvs/Trigger: re-calibrate the camera mount
+BLIND_ZONE = "blind zone: read near"  # the loop's state while it holds a blind frame as near
+BLIND_HOLD = 3.0
+"""Default longest time (s) a frame almost all unknown (`BlindFrame`) is read as everything at
+range_min after the robot's last readable frame measured a surface within NEAR_MARGIN of
+range_min: a surface that came into the camera's blind zone across the whole view, which the
+simulator reads as near, so the policy turns away from it. Later, or when the last readable frame
+measured nothing that near (a covered lens, sunlight), such a frame stops the robot.
+
+A lens covered near an obstacle turns the robot on "everything near" that long before it stops.
+Measured in the twin: `benchmarks/blind_hold.py`, docs/results.md.
+"""
+# s a map -> odom transform may be older than the node's clock before a goal placed with it is
+# refused (`transform_age`): AMCL republishes it with every scan (stamped 1 s ahead), slam_toolbox
+# 50 times a second; odometry drifts ~1-2 % of the distance, so 5 s at 0.5 m/s move a goal a few
+# cm, while a localisation that died is noticed.
+GOAL_TF_MAX_AGE = 5.0
+NEAR_MARGIN = 0.25  # m beyond range_min a readable frame's sector must read to arm BLIND_HOLD
 # Odometry steps the robot can make (`odometry_jump`): the Kobuki's top speeds, twice over, for the
 # time between two messages (at most ODOM_GAP) plus ODOM_JITTER of stamp or delivery jitter.
 TOP_SPEED, TOP_YAW_RATE = 0.7, math.pi  # m/s, rad/s
@@ -431,8 +450,8 @@ class ControlLoop:
 
     STOP (zero velocity) is sent when the loop is shut down or paused (`set_enabled`), before the
     first message, when the newest message is more than `max_age` s old at the tick (the camera
-    or its driver stalled), when it cannot be read, is almost all unknown (`BlindFrame`) or the
-    policy fails on it (the error is logged and the loop carries on with the next message), and
+    or its driver stalled), when it cannot be read, is almost all unknown (`BlindFrame`, unless
+    `blind_hold` reads it near: `_sectors`) or the policy fails on it (the error is logged and the loop carries on with the next message), and
     for goal policies whenever `GoalInput.problem` says so, and while the camera mount is being
     calibrated (at start-up, and again after `recalibrate`) or was refused. A message is read and
     acted on once, at the first tick that uses it; later ticks repeat its command while it is
@@ -443,7 +462,7 @@ class ControlLoop:
     observation (`camera`: the calibration from `on_camera_info`, or None).
 
     After each tick, `obs` is the observation acted on (None when it sent STOP) and `state` says why:
-    "policy" or the reason for stopping.
+    "policy", BLIND_ZONE (the policy acting on a blind frame read near) or the reason for stopping.
     """
 
     def __init__(
@@ -455,13 +474,18 @@ class ControlLoop:
         goal: GoalInput | None = None,
         header_stamps: bool = False,
         calibration: StartupCalibration | None = None,
+        blind_hold: float = BLIND_HOLD,
     ):
         if not max_age > 0:
             raise ValueError(f"max_age: must be > 0 s, got {max_age}")
+        if not blind_hold >= 0:
+            raise ValueError(f"blind_hold: must be >= 0 s, got {blind_hold}")
         self.controller, self.reader, self.max_age, self.log = controller, reader, max_age, log
         self.goal = goal  # the goal task's inputs; None for policies without them
         self.header_stamps = header_stamps
         self.calibration = calibration  # the start-up mount check of depth images; None: none
+        self.blind_hold = blind_hold  # s a blind frame reads near after a near one (BLIND_HOLD)
+        self._near_at = -math.inf  # when the last readable frame measuring a near surface was taken
         self._calibrated_at = -math.inf  # when the last frame went to the calibration
         self.camera: Intrinsics | None = None  # the depth camera's calibration, once known
         self.enabled = True
@@ -598,7 +622,7 @@ class ControlLoop:
             return "reached"
         if goal.jump is not None:
             return "odometry jump"
-        return "driving" if self.state == "policy" else f"stopped: {self.state}"
+        return "driving" if self.obs is not None else f"stopped: {self.state}"
 
     def shutdown(self) -> Twist:
         """Stops for good: returns STOP, and every later tick sends STOP too."""
@@ -621,9 +645,9 @@ class ControlLoop:
         if self.goal is not None:  # the pose moves between frames: act at every tick
             radius = self.controller.policy.success_radius
             why = self.goal.problem(now, self.max_age, radius)
-            return (None, STOP, why) if why else self._act(self._msg)
+            return (None, STOP, why) if why else self._act(self._msg, now)
         if self._result is None:
-            self._result = self._act(self._msg)
+            self._result = self._act(self._msg, now)
         return self._result
 
     def _mount_state(self) -> str | None:
@@ -646,16 +670,33 @@ class ControlLoop:
             return f"sensor messages over {self.max_age:g} s old on arrival{OTHER_CLOCK}"
         return f"no sensor message for over {self.max_age:g} s"
 
-    def _act(self, msg):
+    def _act(self, msg, now: float):
         try:
-            obs = np.asarray(self.reader(msg, self.controller, self.camera), np.float32)
+            obs, state = self._sectors(msg, now)
             if self.goal is not None:
                 obs = self._goal_obs(obs)
-            return obs, self.controller.act(obs), "policy"
+            return obs, self.controller.act(obs), state
         except BlindFrame as err:
             return None, STOP, f"sensor blind: {err}"
         except Exception as err:  # noqa: BLE001 - any failure must stop the robot, not the node
             return None, STOP, f"error: {type(err).__name__}: {err}"
+
+    def _sectors(self, msg, now: float) -> tuple[np.ndarray, str]:
+        """(the sectors of `msg`, the loop's state acting on them). A blind frame (`BlindFrame`)
+        within `blind_hold` s of a readable frame with a sector measured within NEAR_MARGIN of
+        range_min reads range_min in every sector, as the simulator reads a surface nearer than
+        range_min across the view (BLIND_HOLD); otherwise it is raised."""
+        sensor = self.controller.policy.sensor
+        try:
+            sectors = np.asarray(self.reader(msg, self.controller, self.camera), np.float32)
+        except BlindFrame:
+            if now - self._near_at > self.blind_hold:
+                raise
+            return np.full(sensor.num_sectors, sensor.range_min, np.float32), BLIND_ZONE
+        # above range_min: measured, not made near by the blind share (`reduce_sectors`)
+        measured = (sectors > sensor.range_min) & (sectors <= sensor.range_min + NEAR_MARGIN)
+        self._near_at = self._stamp if measured.any() else -math.inf
+        return sectors, "policy"
 
     def _goal_obs(self, sectors: np.ndarray) -> np.ndarray:
         """The goal policy's stacked observation of `sectors`, the pose, the goal and the last
@@ -706,6 +747,12 @@ def add_loop_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--max-unknown", type=float, default=MAX_UNKNOWN, help="frame unknown share: stop above"
+    )
+    p.add_argument(
+        "--blind-hold",
+        type=float,
+        default=BLIND_HOLD,
+        help="s a frame over max-unknown reads near after one that measured a surface that near",
     )
     nan, file = math.nan, "nan: the policy file's"
     p.add_argument(
@@ -780,6 +827,12 @@ def _add_node_flags(p: argparse.ArgumentParser) -> None:
         "newest transform at each tick (--no-goal-frame-tf, or no tf2_ros: refuse it)",
     )
     p.add_argument(
+        "--goal-tf-max-age",
+        type=float,
+        default=GOAL_TF_MAX_AGE,
+        help="s; a goal's transform older than this (localisation stopped): refuse it",
+    )
+    p.add_argument(
         "--header-stamps",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -825,8 +878,9 @@ def make_loop(get: dict, log) -> tuple[ControlLoop, float]:
     )
     goal = GoalInput() if policy.extra_observations else None
     stamps = get.get("header_stamps", False)
+    calibration = startup_calibration(get, policy)
     loop = ControlLoop(
-        controller, reader, get["max_age"], log, goal, stamps, startup_calibration(get, policy)
+        controller, reader, get["max_age"], log, goal, stamps, calibration, get["blind_hold"]
     )
     return loop, control_rate(policy, get["rate_hz"])
 
@@ -894,17 +948,19 @@ def goal_transforms(node, get: dict, log) -> Callable[[str, str], tuple[float, f
     if not get.get("goal_frame_tf", True):
         return no_transforms("goal_frame_tf is false")
     try:
-        return tf2_transforms(node)
+        return tf2_transforms(node, get.get("goal_tf_max_age", GOAL_TF_MAX_AGE))
     except ImportError as err:
         log(f"goals only in the odometry's frame: tf2_ros does not import ({err})")
         return no_transforms(f"tf2_ros does not import: {err}")
 
 
-def tf2_transforms(node) -> Callable[[str, str], tuple[float, float, float]]:
+def tf2_transforms(node, max_age: float) -> Callable[[str, str], tuple[float, float, float]]:
     """transforms(target, source) -> (x, y, yaw): the newest transform of `source` in `target`
     (`planar_transform`) in a tf2 Buffer that a TransformListener on `node` fills; tf2's
-    exception where it has none. It does not wait: it is looked up in the control timer, and a
-    wait there would hold back rclpy's single-threaded executor, and with it the /tf messages."""
+    exception where it has none, a LookupError where it is more than `max_age` s older than the
+    node's clock (`transform_age`: localisation stopped). It does not wait: it is looked up in
+    the control timer, and a wait there would hold back rclpy's single-threaded executor, and
+    with it the /tf messages."""
     import tf2_ros
     from rclpy.time import Time
 
@@ -912,9 +968,24 @@ def tf2_transforms(node) -> Callable[[str, str], tuple[float, float, float]]:
     node.tf_listener = tf2_ros.TransformListener(buffer, node)
 
     def lookup(target: str, source: str) -> tuple[float, float, float]:
-        return planar_transform(buffer.lookup_transform(target, source, Time()).transform)
+        stamped = buffer.lookup_transform(target, source, Time())
+        now = node.get_clock().now().nanoseconds * 1e-9
+        why = transform_age(stamped, now, max_age)
+        if why:
+            raise LookupError(why)
+        return planar_transform(stamped.transform)
 
     return lookup
+
+
+def transform_age(stamped, now: float, max_age: float) -> str | None:
+    """Why a geometry_msgs/TransformStamped is too old to place a goal with at `now` (s): its
+    stamp more than `max_age` s before now; None: fresh, or stamped zero (a static transform,
+    /tf_static's: it holds for good)."""
+    stamp = header_time(stamped)
+    if stamp is None or now - stamp <= max_age:
+        return None
+    return f"newest transform {now - stamp:.1f} s old, over goal_tf_max_age {max_age:g} s"
 
 
 def diagnostic_array(diagnosis, stamp, name: str):
