@@ -86,10 +86,15 @@ class Kept:
 
 
 def eval_randomize(
-    spawn: str = "layout", stochastic_env: bool = True, moving: dict | None = None
+    spawn: str = "layout",
+    stochastic_env: bool = True,
+    moving: dict | None = None,
+    coupled_smoother: bool = False,
 ) -> RandomizeConfig:
     """Layouts only (no sampled rooms); the layout's spawn or a random free one; `moving`: the
-    `MOVING_FIELDS` that add moving obstacles to every room ({"moving_count": (1, 3)}).
+    `MOVING_FIELDS` that add moving obstacles to every room ({"moving_count": (1, 3)});
+    `coupled_smoother`: the velocity smoother limits as kobuki_velocity_smoother does
+    (`RandomizeConfig.coupled_smoother`: what the robot meets), not per axis.
 
     `stochastic_env`: the robot as it really is, drawn per episode from the training ranges and
     the sim-to-real ranges of `randomize.FIDELITY` (traction, speed gain, the Kobuki's velocity
@@ -105,7 +110,9 @@ def eval_randomize(
     rooms = dict(sampled_room_prob=0.0, random_spawn_prob=0.0 if spawn == "layout" else 1.0)
     rooms.update(moving or {})
     if stochastic_env:
-        return RandomizeConfig(**rooms, **FIDELITY)
+        return RandomizeConfig(**rooms, **FIDELITY, coupled_smoother=coupled_smoother)
+    if coupled_smoother:
+        raise ValueError("coupled_smoother: exact physics has no velocity smoother to couple")
     return RandomizeConfig(
         **rooms,
         friction=(1.0, 1.0),
@@ -463,6 +470,7 @@ def evaluate(
     stochastic_env: bool = True,
     physics: str | None = None,
     moving: dict | None = None,
+    coupled_smoother: bool = False,
 ) -> dict:
     """Runs `episodes` episodes of at most `steps` control steps in each layout (or each room of
     `suite`, see `load_suite`), all rooms in one compiled batch.
@@ -479,7 +487,8 @@ def evaluate(
     `physics` ("fast" or "wheeled") replaces the policy's own `SceneConfig.physics`; the results
     name the one used under `"physics"`. `moving` adds moving obstacles to every room (the
     `RandomizeConfig` fields of `MOVING_FIELDS`, e.g. {"moving_count": (1, 3)}); the results
-    then give them under `"moving"`.
+    then give them under `"moving"`. `coupled_smoother`: the Kobuki's smoother rule
+    (`eval_randomize`), named under `"smoother"` in the results.
     """
     for name, value in (("episodes", episodes), ("steps", steps)):
         if not 1 <= value <= MAX_COUNT:
@@ -499,7 +508,7 @@ def evaluate(
     if radius is not None:  # a goal task: a goal on the fixed spawn would measure nothing
         for layout in layouts:
             check_goal_distance(layout, radius)
-    randomize = eval_randomize(spawn, stochastic_env, moving)
+    randomize = eval_randomize(spawn, stochastic_env, moving, coupled_smoother)
     rooms = evaluate_rooms(
         policy,
         layouts,
@@ -530,6 +539,7 @@ def evaluate(
         "physics": env.scene.cfg.physics,
         "steps": steps,
         "seed": seed,
+        "smoother": "coupled" if coupled_smoother else "per-axis",
         "_trajectories": trajectories,
         "_eval_metrics": env.eval_metrics,
     }

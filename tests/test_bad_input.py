@@ -437,6 +437,10 @@ def test_export_out_is_not_writable(runs, tmp_path, capsys):
         # A JAX OverflowError once, after the layouts and the policy were loaded.
         (["--policy", "forward", "--steps", str(10**12)], ("--steps", "at most 2,147,483,647")),
         (["--policy", "forward", "--episodes", str(2**31)], ("--episodes", "at most 2,147,")),
+        (
+            ["--policy", "forward", "--coupled-smoother", "--deterministic-env"],
+            ("--coupled-smoother", "--deterministic-env"),
+        ),
     ],
 )
 def test_evaluate_bad_flags(tmp_path, monkeypatch, capsys, argv, names):

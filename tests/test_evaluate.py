@@ -60,7 +60,8 @@ def random_results(room):
 
 def test_results_schema_and_ranges(forward_results, room):
     r = forward_results
-    assert set(strip_private(r)) == {"layouts", "overall", "policy", "physics", "steps", "seed"}
+    keys = {"layouts", "overall", "policy", "physics", "steps", "seed", "smoother"}
+    assert set(strip_private(r)) == keys and r["smoother"] == "per-axis"
     assert r["physics"] == "fast"  # the policy's own (SceneConfig default)
     assert r["policy"] == "forward" and r["steps"] == STEPS and r["seed"] == 0
     assert list(r["layouts"]) == [room[0].name]
@@ -178,6 +179,16 @@ def test_plot_reward_curve(tmp_path):
     csv_path.write_text("\n".join(rows) + "\n")
     plot_reward_curve(csv_path, png)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_coupled_smoother_reaches_the_evaluation_env(room):
+    """--coupled-smoother: the sim-to-real ranges with the Kobuki's smoother rule; exact physics
+    has no smoother to couple."""
+    coupled = eval_randomize(coupled_smoother=True)
+    assert coupled == dataclasses.replace(eval_randomize(), coupled_smoother=True)
+    assert coupled.accel_limit[1] > 0  # the smoother it couples is on
+    with pytest.raises(ValueError, match="coupled_smoother"):
+        eval_randomize(stochastic_env=False, coupled_smoother=True)
 
 
 def test_evaluate_rejects_bad_arguments(room):

@@ -106,6 +106,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="exact physics and sensing: no randomised traction, gains, smoother, latency or noise",
     )
     p.add_argument(
+        "--coupled-smoother",
+        action="store_true",
+        help="the velocity smoother limits both speeds by one factor, as the Kobuki's "
+        "kobuki_velocity_smoother does (default: each on its own, as in training)",
+    )
+    p.add_argument(
         "--physics",
         choices=PHYSICS,
         help="the robot's physics: fast (the training default) or wheeled (the validation model: "
@@ -142,6 +148,8 @@ def _check_args(args) -> None:
     for flag, value in (("--episodes", args.episodes), ("--steps", args.steps or 1)):
         if value > MAX_COUNT:
             raise UsageError(f"{flag}: at most {MAX_COUNT:,} (a 32-bit count), got {value:,}")
+    if args.coupled_smoother and args.deterministic_env:
+        raise UsageError("--coupled-smoother: --deterministic-env has no velocity smoother")
     if args.checkpoint is not None and _kind(args.checkpoint, "--checkpoint") != "folder":
         raise UsageError(f"--checkpoint: no such directory: {args.checkpoint}")
     for flag, value in (("--plots", args.plots), ("--video", args.video)):
@@ -353,6 +361,7 @@ def _run(argv) -> None:
         stochastic_env=not args.deterministic_env,
         physics=args.physics,
         moving=overrides_from_args(args)["randomize"],
+        coupled_smoother=args.coupled_smoother,
     )
     print(format_table(results))
     if "barn" in results:
