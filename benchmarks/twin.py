@@ -13,9 +13,10 @@ pooled per family too) by
    the wheeled Kobuki, the velocity smoother, latency and mount error (`--episodes` per room),
    with kobuki_velocity_smoother's rule and, unless `--no-per-axis`, again with the simulator's
    per-axis one (the difference is the smoother's share of any gap);
-2. `jaxnav.evaluation.evaluate` on the same rooms and spawns, the evaluation's sim-to-real ranges on
-   with the twin's smoother rule (`--coupled-smoother`, kobuki_velocity_smoother's), under the fast physics (`--eval-episodes` per room: cheap, so its figure is the tighter one)
-   and under the wheeled model (`--wheeled-episodes`), the twin's own physics.
+2. `jaxnav.evaluation.evaluate` on the same rooms and spawns, the evaluation's sim-to-real ranges
+   on with the twin's smoother rule (`--coupled-smoother`, kobuki_velocity_smoother's), under the
+   fast physics (`--eval-episodes` per room: cheap, so its figure is the tighter one) and under the
+   wheeled model (`--wheeled-episodes`), the twin's own physics.
 Episodes run the policy's own time limit (its task's `max_steps`: 600 steps avoid, 500 goal) unless
 `--steps` says otherwise; goal episodes end at the goal on both sides, and the twin draws goals at
 the task's `goal_min_distance`. Prints, per room, per family and overall, side by side with

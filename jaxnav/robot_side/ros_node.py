@@ -66,13 +66,13 @@ the odometry's frame at every tick with tf2's newest transform (x, y and yaw of
 `lookup_transform(odom, map)`, not waited for: `tf2_transforms`), so the robot drives to the map
 point while map and odom drift apart; where there is no such transform (none published yet, the
 newest over `goal_tf_max_age` s old, tf2_ros not installed, or `goal_frame_tf` false) the goal
-is refused with zero velocity, the reason in the goal status and the diagnostics. The node sends zero velocity before the first
-goal, when the odometry is older than `max_age`, after an odometry jump (a step farther or a turn
-wider than the robot can make, `odometry_jump`) until the odometry has been consistent for
-`ODOM_RESUME` messages, and once the robot is within the policy's success radius of the goal,
-until a new goal comes (the goal stays reached if the robot drifts out again). Each tick it
-publishes the goal's status on `goal_status_topic` (std_msgs/String, default `goal_status`):
-"no goal", "driving", "reached", "odometry jump" or "stopped: <why>".
+is refused with zero velocity, the reason in the goal status and the diagnostics. The node sends
+zero velocity before the first goal, when the odometry is older than `max_age`, after an odometry
+jump (a step farther or a turn wider than the robot can make, `odometry_jump`) until the odometry
+has been consistent for `ODOM_RESUME` messages, and once the robot is within the policy's success
+radius of the goal, until a new goal comes (the goal stays reached if the robot drifts out again).
+Each tick it publishes the goal's status on `goal_status_topic` (std_msgs/String, default
+`goal_status`): "no goal", "driving", "reached", "odometry jump" or "stopped: <why>".
 
 Depth images may be 32FC1 (metres) or 16UC1 (millimetres). Their column angles and ray rows come
 from the camera's calibration, the K of sensor_msgs/CameraInfo on `camera_info_topic` (default:
@@ -454,15 +454,16 @@ class ControlLoop:
     STOP (zero velocity) is sent when the loop is shut down or paused (`set_enabled`), before the
     first message, when the newest message is more than `max_age` s old at the tick (the camera
     or its driver stalled), when it cannot be read, is almost all unknown (`BlindFrame`, unless
-    `blind_hold` reads it near: `_sectors`) or the policy fails on it (the error is logged and the loop carries on with the next message), and
-    for goal policies whenever `GoalInput.problem` says so, and while the camera mount is being
-    calibrated (at start-up, and again after `recalibrate`) or was refused. A message is read and
-    acted on once, at the first tick that uses it; later ticks repeat its command while it is
-    fresh. Each change of state is logged once. Times are seconds on any one clock (the node's,
-    or a bag's receipt times). A message's age counts from its arrival, or with `header_stamps`
-    from its header.stamp where that is set (not zero); a stamp more than MAX_AHEAD s ahead of
-    its arrival is refused. `reader(msg, controller, camera)` turns a message into the
-    observation (`camera`: the calibration from `on_camera_info`, or None).
+    `blind_hold` reads it near: `_sectors`) or the policy fails on it (the error is logged and the
+    loop carries on with the next message), and for goal policies whenever `GoalInput.problem` says
+    so, and while the camera mount is being calibrated (at start-up, and again after `recalibrate`)
+    or was refused. A message is read and acted on once, at the first tick that uses it; later
+    ticks repeat its command while it is fresh. Each change of state is logged once. Times are
+    seconds on any one clock (the node's, or a bag's receipt times). A message's age counts from
+    its arrival, or with `header_stamps` from its header.stamp where that is set (not zero); a
+    stamp more than MAX_AHEAD s ahead of its arrival is refused. `reader(msg, controller,
+    camera)` turns a message into the observation (`camera`: the calibration from
+    `on_camera_info`, or None).
 
     After each tick, `obs` is the observation acted on (None when it sent STOP) and `state` says why:
     "policy", BLIND_ZONE (the policy acting on a blind frame read near) or the reason for stopping.
