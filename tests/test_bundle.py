@@ -3,6 +3,7 @@ is run against stand-ins for ROS 2's `launch`, `launch_ros` and `ament_index_pyt
 parameter files are read back and checked against the parameters the node declares and
 cmd_vel_mux's format, and the Dockerfile and the README are read."""
 
+import dataclasses
 import importlib.util
 import math
 import re
@@ -295,6 +296,25 @@ def test_velocity_smoother_has_the_trained_limits(deployed):
     readme = (deployed / "README.txt").read_text()
     assert "One command every 0.1 s (10 Hz)" in readme
     assert "0.3 m/s^2" in readme and "3.5 rad/s^2" in readme
+
+
+def test_a_policy_trained_per_axis_is_told_of_the_kobukis_smoother(deployed, one_run):  # noqa: F811
+    """The Kobuki's smoother shrinks both speed changes by one factor; a goal policy trained with
+    the simulator's per-axis rule lost 11 points of success under it. A bundle of such a policy
+    says so (README.txt, the smoother's YAML, the export command), and one trained with the
+    robot's rule does not."""
+    readme = (deployed / "README.txt").read_text()
+    assert "Note: the policy trained with each speed's change limited on its own" in readme
+    assert "--randomize.coupled-smoother true" in readme
+    smoother = (deployed / bundle.SMOOTHER_CONFIG).read_text()
+    assert "python -m jaxnav.evaluate --coupled-smoother" in smoother
+    saved = export.read_policy(export.resolve(one_run[0]))
+    dep = bundle.Deployment.from_policy(export.actor_arrays(saved), saved.config, "run")
+    assert dep.coupled_smoother is False
+    coupled = dataclasses.replace(dep, coupled_smoother=True)
+    assert "Note:" not in bundle.readme(coupled)
+    assert "trained with this smoother's rule" in bundle.smoother_yaml(coupled)
+    assert bundle.smoother_note(True) is None
 
 
 def test_accel_limits_where_training_had_none():

@@ -11,6 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from jaxnav.bundle import smoother_note
 from jaxnav.cli import Parser, UsageError, print_error
 from jaxnav.export import (
     CHECK_OBS,
@@ -78,6 +79,9 @@ def main(argv=None) -> int:
     )
     if args.bundle is not None:
         print(f"on the robot: see {args.bundle / 'README.txt'}")
+        note = smoother_note(saved.config.randomize.coupled_smoother)
+        if note:
+            print(f"note: {note}", file=sys.stderr)
     return 0
 
 
