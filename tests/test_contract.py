@@ -180,11 +180,19 @@ def test_analytic_rays_agree_with_mjx_ray():
 def test_wrappers_publish_finished_episode_sums(wrapped_mixed):
     wrapped, reset, step = wrapped_mixed  # 20-step episodes; batch 16, as the fixture's other test
     assert wrapped.task.max_steps == 20
-    state = reset(jax.random.split(jax.random.PRNGKey(3), 16))
+    state = reset(jax.random.split(jax.random.PRNGKey(0), 16))
+    ids = set(np.asarray(state.info["params"].layout_id).tolist())
+    assert {-1, 0, 1} <= ids, ids  # sampled rooms and both layouts in one batch
+    assert state.obs.shape == (16, 8) and state.obs.dtype == jnp.float32
+    lo, hi = wrapped.sensor.range_min, wrapped.sensor.range_max
     returns = np.zeros(16)
     for _ in range(20):
         state = step(state, jnp.full(16, 1, jnp.int32))  # turning in place never collides
         returns += np.asarray(state.reward)
+        obs = np.asarray(state.obs)
+        assert np.isfinite(obs).all() and np.isfinite(returns).all()
+        assert ((obs >= lo - 1e-6) & (obs <= hi)).all()
+    assert state.reward.shape == (16,) and state.done.shape == (16,)
     assert np.asarray(state.done).all() and np.asarray(state.truncated).all()
     np.testing.assert_allclose(np.asarray(state.info[EPISODE]["return"]), returns, rtol=1e-5)
     np.testing.assert_array_equal(np.asarray(state.info[EPISODE]["length"]), 20)

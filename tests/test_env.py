@@ -22,7 +22,11 @@ def test_unknown_env_lists_valid_names():
         jaxnav.make_env("fly")
 
 
+@pytest.mark.slow
 def test_batch_of_mixed_layouts_shapes_and_finite(wrapped_mixed):
+    """Random actions (collisions and time limits) in a mixed batch. Slow: it compiles the
+    wrapped mixed env's reset and step (15 s); the quick tier checks the same shapes and ranges on
+    that program in `test_contract.py::test_wrappers_publish_finished_episode_sums`."""
     _, reset, step = wrapped_mixed
     batch = 16
     state = reset(jax.random.split(jax.random.PRNGKey(0), batch))

@@ -92,7 +92,9 @@ def test_forward_baseline_drives_straight_into_obstacles(forward_results):
     assert m["mean_distance"] == pytest.approx(m["mean_speed"] * m["mean_steps"] * 0.1, rel=0.15)
 
 
+@pytest.mark.slow
 def test_random_baseline_moves_less_per_step_than_forward(forward_results, random_results):
+    """Slow: the random baseline's evaluation compiles a program of its own (9 s)."""
     fwd, rnd = forward_results["overall"], random_results["overall"]
     # Over the same steps run, random turns two thirds of the time: it covers less ground per step.
     assert rnd["mean_speed"] < 0.7 * fwd["mean_speed"]
