@@ -49,7 +49,8 @@ PIXEL = 2 * math.tan(VFOV / 2) / HEIGHT  # rad: one pixel's angle at the image c
 TOL = 0.03  # m; see the module docstring
 # The camera turned by up to one pixel (pitch, yaw): the rays of a pixel's neighbourhood.
 SHIFTS = [(0.0, 0.0)] + [(a * PIXEL, b * PIXEL) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
-ONE_ROW = SensorConfig(far_invalid=True)  # the default fan; far_invalid: beyond 8 m reads 0
+# A horizontal fan; far_invalid: beyond 8 m reads 0.
+ONE_ROW = SensorConfig(rows=1, far_invalid=True)
 FIVE_ROWS = SensorConfig(rows=5, far_invalid=True)
 # Sampled rooms with low obstacles and overhangs, the camera mount off by its full error range;
 # no noise, dropout or dark obstacles (the renderer has none).
