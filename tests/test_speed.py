@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from mujoco import mjx
 
 import jaxnav
 from jaxnav.core.randomize import TRAINING
@@ -44,8 +45,12 @@ def full_and_fast():
     fast = jaxnav.make_env("avoid", randomize=TRAINING)
     start = jax.jit(jax.vmap(full.reset))(jax.random.split(jax.random.PRNGKey(7), ROBOTS))
     placed = start.replace(data=jax.jit(jax.vmap(fast.place))(start.info["params"]))
+    # The reset leaves MuJoCo's derived quantities to the first step; here they are computed.
+    kinematics = jax.vmap(lambda p, d: mjx.kinematics(full.scene.physics_model(p), d))
+    posed = start.replace(data=jax.jit(kinematics)(start.info["params"], start.data))
     actions = forward_biased(jax.random.PRNGKey(8), (STEPS, ROBOTS))
-    runs = rollout(full)(start, actions), rollout(fast)(placed, actions)
+    run_full = rollout(full)
+    runs = run_full(start, actions), rollout(fast)(placed, actions), run_full(posed, actions)
     return [[np.asarray(x) for x in r] for r in runs]
 
 
@@ -64,7 +69,7 @@ def test_episodes_without_mjx_contacts_are_bit_identical(full_and_fast):
     """Every step of every episode up to its end, the colliding step included, is the same bit
     for bit: pose, velocity, observation, reward and termination. Slow: the full MJX path
     (contacts, the constraint solver) compiles beside the fast one."""
-    full, fast = full_and_fast
+    full, fast, _ = full_and_fast
     done = full[-1]  # [T, R]
     live = np.cumsum(done, 0) - done == 0  # [T, R]: the step starts in the first episode
     assert done.any(0).sum() >= ROBOTS // 3  # many robots reach an obstacle
@@ -75,6 +80,17 @@ def test_episodes_without_mjx_contacts_are_bit_identical(full_and_fast):
     # really are different physics.
     after = ~live & done.any(0)
     assert not np.array_equal(full[0][after], fast[0][after])
+
+
+@pytest.mark.slow  # shares the fixture of the test above
+def test_a_reset_without_kinematics_steps_as_one_with_them(full_and_fast):
+    """The reset sets the robot's position alone (`NavTask.place`); MuJoCo's kinematics there
+    (body and geom poses) would change no step of the full MJX path, contacts and constraint
+    solver included: the first step derives them from the position. Slow: see the fixture."""
+    full, _, posed = full_and_fast
+    assert posed[-1].any()  # episodes end (collisions) within the compared steps
+    for name, a, b in zip(("qpos", "qvel", "obs", "reward", "done"), full, posed, strict=True):
+        np.testing.assert_array_equal(a, b, err_msg=name)
 
 
 class Countdown:

@@ -216,11 +216,13 @@ class NavTask:
         return {"walker_hit": (by & hit).astype(jnp.float32)}
 
     def place(self, params: SceneParams) -> mjx.Data:
-        """The physics state of the robot at `params.spawn` in the room of `params`."""
-        data = self._data0.replace(qpos=self._data0.qpos.at[:3].set(params.spawn))
-        # Kinematics places the robot (and the new room's geoms, where the physics has them);
-        # contacts come with the first step.
-        return mjx.kinematics(self.scene.physics_model(params), data)
+        """The physics state of the robot at rest at `params.spawn`: its position alone. The
+        quantities MuJoCo derives from it (body and geom poses, contacts) come with the first
+        step, which computes them from the position before anything reads them, so a reset
+        computes none (MJX's kinematics here cost a third of the goal reset's compile time,
+        `benchmarks/compile_time.py --pieces`; `tests/test_env.py` checks the first step is the
+        same either way)."""
+        return self._data0.replace(qpos=self._data0.qpos.at[:3].set(params.spawn))
 
     def command(self, action: jax.Array) -> jax.Array:
         """[2] the (forward m/s, yaw rad/s) the policy's `action` asks for: a row of the command
