@@ -3,7 +3,6 @@
 import csv
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -248,8 +247,8 @@ def test_commands_keep_compiled_programs_in_the_user_cache(tmp_path, monkeypatch
 @pytest.mark.slow
 def test_a_repeated_run_compiles_nothing_anew(tmp_path):
     """Two processes (the cache is what outlives a process): the second run of the same shapes
-    adds nothing to the cache, and `--no-compile-cache` leaves it alone. Slow: three training
-    processes, each compiling or reading the cache (the process boundary is what is tested)."""
+    adds nothing to the cache. Slow: two training processes, one compiling, one reading the
+    cache (the process boundary is what is tested)."""
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
     cache = tmp_path / "cache" / "jaxnav" / "xla"
@@ -262,8 +261,31 @@ def test_a_repeated_run_compiles_nothing_anew(tmp_path):
 
     first = train("a")
     assert first and train("b") == first
-    shutil.rmtree(cache)
-    assert train("c", "--no-compile-cache") == []
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_no_compile_cache_turns_the_cache_off_before_anything_compiles(
+    command, tmp_path, monkeypatch, capsys
+):
+    """`--no-compile-cache` reaches the cache before the first compile: a command that stops at
+    a missing layout file (before any program is built) has left JAX without a cache folder,
+    and the user's cache folder is not made."""
+    import importlib
+
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    main = importlib.import_module(f"jaxnav.cli.{command}").main
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path / "elsewhere"))
+    try:
+        missing = ["--layouts", str(tmp_path / "none.json"), "--no-compile-cache"]
+        extra = ["--out", str(tmp_path / "run")] if command == "train" else ["--policy", "forward"]
+        assert main([*missing, *extra]) == 2
+        assert not jax.config.jax_compilation_cache_dir
+        assert not (tmp_path / "cache").exists()
+        assert "none.json" in capsys.readouterr().err
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
 
 
 def test_train_layouts_of_several_files_are_named_by_file(tmp_path):
