@@ -219,9 +219,9 @@ class NavTask:
         """The physics state of the robot at rest at `params.spawn`: its position alone. The
         quantities MuJoCo derives from it (body and geom poses, contacts) come with the first
         step, which computes them from the position before anything reads them, so a reset
-        computes none (MJX's kinematics here cost a third of the goal reset's compile time,
-        `benchmarks/compile_time.py --pieces`; `tests/test_env.py` checks the first step is the
-        same either way)."""
+        computes none (MJX's kinematics cost the reset's compile 1 s of 5.6 s for avoid on 2
+        CPU cores, docs/results.md "Start-up"; `tests/test_speed.py` checks that the steps are
+        the same either way)."""
         return self._data0.replace(qpos=self._data0.qpos.at[:3].set(params.spawn))
 
     def command(self, action: jax.Array) -> jax.Array:
