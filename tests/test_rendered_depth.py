@@ -197,10 +197,16 @@ def _robot_side(images, params, cfg, robot):
     return np.stack(obs), np.array([f.sum() for f in floor])
 
 
-@pytest.fixture(scope="module", params=[ONE_ROW, FIVE_ROWS], ids=["one-row", "five-rows"])
+@pytest.fixture(
+    scope="module",
+    params=[pytest.param(ONE_ROW, marks=pytest.mark.slow), FIVE_ROWS],
+    ids=["one-row", "five-rows"],
+)
 def observed(request, scenes):
     """The simulator's observations (unshifted, and the least and most over `SHIFTS`), the robot
-    side's of the rendered images, and its floor pixels per scene, for one sensor."""
+    side's of the rendered images, and its floor pixels per scene, for one sensor. The one-row
+    sensor's cases are slow: its env compiles for this module alone (13 s on 2 cores); the
+    quick tier checks the default five-row sensor."""
     cfg = request.param
     env, params, data, qpos, kinds = scenes
     sims = _simulated(env, cfg, params, data, qpos)
