@@ -335,16 +335,19 @@ ON_GRID = dataclasses.replace(DETOUR, name="on_grid", robot_pos=(-1.5, -1.0))
 @pytest.fixture(scope="module")
 def detour_env():
     """`goal` in the rooms behind a partition (layouts 0, 1, 2: DETOUR, AT_WALL, ON_GRID), 200-step
-    episodes: (env, jitted reset, jitted step), compiled once for the tests below."""
+    episodes: (env, jitted reset, jitted step), compiled once for the two slow tests below (11 s
+    on 2 cores for this env alone)."""
     env = jaxnav.make_env(
         "goal", layouts=[DETOUR, AT_WALL, ON_GRID], randomize=EXACT, max_steps=200
     )
     return env, jax.jit(env.reset), jax.jit(env.step)
 
 
+@pytest.mark.slow
 def test_geodesic_progress_pays_for_a_detour(detour_env):
     """Behind a wall, driving around it gains geodesic progress; the straight line would punish
-    the first leg. Summed over the path the progress is the geodesic distance covered."""
+    the first leg. Summed over the path the progress is the geodesic distance covered. Slow: its
+    env (`detour_env`) compiles for two tests."""
     env, reset, step = detour_env
     state = start_in(env, reset, 2)
     geodesic = jax.jit(jaxnav.core.goals.geodesic)
@@ -359,12 +362,14 @@ def test_geodesic_progress_pays_for_a_detour(detour_env):
     np.testing.assert_allclose(total, start_geo - geo, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_privileged_critic_sees_the_way_to_go(detour_env):
     """What only the critic sees (`state.info["critic"]`): the distance to go as the progress
     reward measures it, how much closer a 0.3 m step in each of 8 directions would bring the
     robot, and the share of the time limit used. Behind a wall a step along it towards its open
     end brings the robot closer, where the straight line to the goal says it would not; in the
-    open the best step is along the straight line."""
+    open the best step is along the straight line. Slow: its env (`detour_env`) compiles for two
+    tests."""
     from jaxnav.tasks.goal import CRITIC_FEATURES, LOOK
 
     env, reset, step = detour_env

@@ -215,8 +215,10 @@ def _launch(out: Path, *flags):
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay", [1.0, 2.5])
 def test_sigint_while_importing_exits_at_once(tmp_path, delay):
+    """Slow: a training process per case, signalled while it imports."""
     proc = _launch(tmp_path / "run")
     time.sleep(delay)
     proc.send_signal(signal.SIGINT)
@@ -351,7 +353,9 @@ def hold_lock(folder: Path, go: Path, seconds: float = 60.0) -> subprocess.Popen
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 def test_lock_refuses_a_second_writer_and_takes_over_a_dead_one(fake, tmp_path, capsys):
+    """Slow: a second process holds the lock, then is killed."""
     assert fake("--out", "run", *TINY_FLAGS) == 0
     lock = tmp_path / "run" / files.LOCK
     (tmp_path / "go").touch()
@@ -377,7 +381,9 @@ def test_a_lock_naming_a_reused_live_pid_does_not_block(fake, tmp_path, capsys):
     assert fake("--resume", "run", "--total-steps", str(16 * 16 * 8), "--no-progress") == 0
 
 
+@pytest.mark.slow
 def test_processes_racing_for_a_stale_lock_one_wins(tmp_path):
+    """Slow: 8 processes race for the lock."""
     (tmp_path / files.LOCK).write_text("999999999\n")  # left by a dead process
     go = tmp_path / "go"
     racers = [hold_lock(tmp_path, go, seconds=3.0) for _ in range(8)]
