@@ -17,6 +17,10 @@ twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with 
 chunk: the seconds to its "compiled and ran the first chunk" line and the whole command's wall
 time, cold and with the cache warm. Prints the table last; writes the JSON.
 
+`--checkout DIR`: the command-line runs only, of the jaxnav in DIR (a checkout of an earlier
+commit, e.g. `git worktree add DIR COMMIT`, run from a folder outside this one), for a before and
+after pair measured back to back.
+
 `--xla-flags A,B,...`: per task and per `XLA_FLAGS` value (an empty one: jaxnav's own compiler
 options, `jaxnav.core.xla`), `python -m jaxnav.train --no-compile-cache` for `--chunks` chunks: the
 seconds to its first chunk's end and the training pace after it (env steps per second, from the
@@ -177,11 +181,14 @@ def print_pieces(rows: dict) -> None:
             )
 
 
-def cli_runs(env: str, preset: str) -> dict:
-    """Two runs of the command line with one fresh cache: (first chunk s, wall s) each."""
+def cli_runs(env: str, preset: str, checkout: Path | None = None) -> dict:
+    """Two runs of the command line with one fresh cache: (first chunk s, wall s) each; of the
+    jaxnav in `checkout` if given."""
     cache = tempfile.mkdtemp(prefix="jaxnav-cache-")
     environ = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     environ["XDG_CACHE_HOME"] = cache
+    if checkout is not None:
+        environ["PYTHONPATH"] = os.pathsep.join([str(checkout), environ.get("PYTHONPATH", "")])
     out = {}
     for label in ("cold", "warm"):
         run = tempfile.mkdtemp(prefix="jaxnav-run-") + "/run"
@@ -206,6 +213,7 @@ def cli_runs(env: str, preset: str) -> dict:
             text=True,
             env=environ,
             timeout=1800,
+            cwd=cache if checkout else None,  # not this folder, which `python -m` imports from
         )
         wall = time.perf_counter() - tick
         found = re.search(r"compiled and ran the first chunk in ([\d.]+) s", proc.stdout)
@@ -263,7 +271,19 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3, help="with --pieces: fresh jits per piece")
     p.add_argument("--xla-flags", default=None, help="comma list of XLA_FLAGS (module doc)")
     p.add_argument("--chunks", type=int, default=3, help="with --xla-flags: chunks per run")
+    p.add_argument("--checkout", type=Path, help="command-line runs of the jaxnav there only")
     args = p.parse_args()
+    if args.checkout is not None:
+        rows = {env: cli_runs(env, args.preset, args.checkout) for env in args.envs.split(",")}
+        info = run_info("command", "device", "jax", "mujoco", "date")
+        write_json(
+            args.json, {**info, "preset": args.preset, "checkout": str(args.checkout), "rows": rows}
+        )
+        for env, r in rows.items():
+            print(
+                f"{env:<6} cold {r['cold']['first_chunk_s']} s, warm {r['warm']['first_chunk_s']} s"
+            )
+        return
     if args.xla_flags is not None:
         flags = args.xla_flags.split(",")
         rows = {

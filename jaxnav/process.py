@@ -150,10 +150,14 @@ class Waiting:
 def compile_cache(enabled: bool = True) -> Path | None:
     """Turns on JAX's persistent compilation cache for a command, so that a run with the shapes of
     an earlier one skips XLA's compile: in JAX_COMPILATION_CACHE_DIR if the user set it, else
-    `$XDG_CACHE_HOME/jaxnav/xla` (~/.cache/jaxnav/xla). Returns the folder (None: off, by
-    `enabled=False` or a folder that cannot be made)."""
+    `$XDG_CACHE_HOME/jaxnav/xla` (~/.cache/jaxnav/xla); and the store of traced training programs
+    in its `programs/` folder (`jaxnav.programs`), so that such a run skips tracing too. Returns
+    the folder (None: both off, by `enabled=False` or a folder that cannot be made)."""
     import jax
 
+    from jaxnav import programs
+
+    programs.use(None)
     if not enabled:
         jax.config.update("jax_compilation_cache_dir", None)
         return None
@@ -167,6 +171,7 @@ def compile_cache(enabled: bool = True) -> Path | None:
         print(f"warning: {folder}: no compilation cache ({err.strerror})", file=sys.stderr)
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
+    programs.use(Path(folder) / "programs")
     return Path(folder)
 
 

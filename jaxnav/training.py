@@ -21,7 +21,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jaxnav import distributed, runs
+from jaxnav import distributed, programs, runs
 from jaxnav.io import checkpoint, files, runlog
 from jaxnav.io.layouts import layout_to_dict, load_layouts, parse_layouts
 from jaxnav.ppo.config import derived_minibatch, preset
@@ -249,14 +249,15 @@ def run(
         if fresh and distributed.is_main():
             check_new_out(out)
         env, trainer = interruptible(_build, config)
+        key = jax.random.PRNGKey(config.seed)
+        trainer = interruptible(programs.with_init, trainer, config, key)
         memory_check(config, env, trainer)
         folder.create()
         created = True
         distributed.ready()
         if stop is not None:
             stop.at_once(_start_note(folder), folder.remove)
-        key = jax.random.PRNGKey(config.seed)
-        trainer, compiling = compile_chunk_ahead(trainer, key)
+        trainer, compiling = compile_chunk_ahead(trainer, key, config)
         ts = interruptible(trainer.init, key, waiting=compiling)
         args = (trainer, ts, [], 0.0, progress, stop, env.metric_names, compiling)
         return _loop(config, out, *args)
@@ -341,7 +342,8 @@ def resume(
             note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
             stop.at_once(note, lock.release if main else None)
         key = jax.random.PRNGKey(config.seed)
-        trainer, compiling = compile_chunk_ahead(trainer, key)
+        trainer = interruptible(programs.with_init, trainer, config, key)
+        trainer, compiling = compile_chunk_ahead(trainer, key, config)
         template = interruptible(trainer.init, key, waiting=compiling)
         ts = checkpoint.restore_train_state(ckpt, template)
         rows = runlog.read_rows(out / "metrics.csv", upto=meta["update"]) if main else []
@@ -395,10 +397,10 @@ class _Compiling:
 
 
 class _CompiledAhead:
-    """`run_chunk` (a jitted function) lowered and compiled by XLA in a thread of its own from
-    the abstract `shapes` of its argument, from now on. A call waits for that compile, then runs
-    the compiled program: the one the jitted function would compile on its first call, called
-    on every chunk, so nothing compiles twice."""
+    """`run_chunk` (a jitted function, or a stored program) lowered and compiled by XLA in a
+    thread of its own from the abstract `shapes` of its argument, from now on. A call waits for
+    that compile, then runs the compiled program: the one the jitted function would compile on
+    its first call, called on every chunk, so nothing compiles twice."""
 
     def __init__(self, run_chunk, shapes):
         self._compiled, self._error = None, None
@@ -420,7 +422,7 @@ class _CompiledAhead:
         return self._compiled(ts)
 
 
-def compile_chunk_ahead(trainer, key):
+def compile_chunk_ahead(trainer, key, config=None):
     """(trainer, compile line or None): with one device, a trainer whose chunk XLA starts
     compiling now, beside `init` (XLA's compile lets go of the GIL, so the two programs compile
     at the same time), and the compile line, shown from now on.
@@ -430,12 +432,22 @@ def compile_chunk_ahead(trainer, key):
     devices the chunk's input shardings are those XLA chooses for init's output, known only once
     init is compiled: there, and for a `run_chunk` that is not jitted, the trainer is as it was
     and the chunk compiles on its first call, after init.
+
+    An init from the program store (`programs.with_init`) starts compiling here too, and the
+    chunk is the one stored for `config`'s run, traced meanwhile if the store has none yet.
     """
     if jax.device_count() > 1 or not hasattr(trainer.run_chunk, "lower"):
         return trainer, None
-    shapes = jax.eval_shape(trainer.init, key)
     compiling = _Compiling()
-    return trainer._replace(run_chunk=_CompiledAhead(trainer.run_chunk, shapes)), compiling
+    shapes = jax.eval_shape(trainer.init, key)
+    chunk = trainer.run_chunk
+    if isinstance(trainer.init, programs.Stored):
+        trainer = trainer._replace(init=_CompiledAhead(trainer.init, key))
+        stored = interruptible(
+            programs.program, trainer, config, "chunk", (shapes,), waiting=compiling
+        )
+        chunk = chunk if stored is None else stored
+    return trainer._replace(run_chunk=_CompiledAhead(chunk, shapes)), compiling
 
 
 # ---------------------------------------------------------------- the loop

@@ -53,6 +53,18 @@ from jaxnav.io.layouts import Box, Cylinder, RoomLayout  # noqa: E402
 from jaxnav.viz import render  # noqa: E402
 from jaxnav.wrappers import AutoReset, EpisodeStats  # noqa: E402
 
+
+@pytest.fixture(autouse=True)
+def _program_store_off():
+    """Every test starts with the program store off (`jaxnav.programs`): a command run in this
+    process turns it on, and a later test's monkeypatches would not reach programs it stored."""
+    from jaxnav import programs
+
+    programs.use(None)
+    yield
+    programs.use(None)
+
+
 # Deterministic physics and sensing: no randomisation of gain, traction or noise.
 EXACT = RandomizeConfig(
     sampled_room_prob=0.0,

@@ -1,5 +1,6 @@
-"""A run's first chunk compiles beside `init` (`training.compile_chunk_ahead`): the same run, bit
-for bit, as compiling one after the other, and nothing is compiled twice."""
+"""A run's first chunk compiles beside `init` (`training.compile_chunk_ahead`), and a repeated run
+reads both from the program store (`jaxnav.programs`): the same run, bit for bit, as compiling one
+after the other, and nothing is compiled twice."""
 
 import jax
 import numpy as np
@@ -7,12 +8,14 @@ import pytest
 from conftest import TINY_FLAGS
 
 import jaxnav.cli.train as train_cli
+from jaxnav import programs
 from jaxnav import training as train_module
 from jaxnav.core import xla
 from jaxnav.io import checkpoint, runlog
 from jaxnav.ppo import train as ppo_train
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # an XLA compile or a cache load
+TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"  # a trace, named by its function
 CHUNK_AHEAD = train_module.compile_chunk_ahead
 
 
@@ -21,28 +24,31 @@ def tiny_config():
     return train_module.build_config("cpu", 0, None, train_cli.overrides_from_args(flags))
 
 
-def trained(out, monkeypatch, ahead: bool) -> tuple[dict, list[dict], list[str]]:
-    """(final train state, metrics rows without timings, the programs compiled) of a tiny run,
-    its chunk compiled beside init (`ahead`) or after it."""
+def trained(out, monkeypatch, ahead: bool, store=None) -> tuple[dict, list[dict], dict]:
+    """(final train state, metrics rows without timings, {event: [program names]} of the
+    traces and compiles) of a tiny run, its chunk compiled beside init (`ahead`) or after it,
+    its programs kept in the program store folder `store` (None: the store off)."""
     used = []
 
-    def chunk_ahead(trainer, key):
-        trainer, compiling = CHUNK_AHEAD(trainer, key) if ahead else (trainer, None)
+    def chunk_ahead(trainer, key, config=None):
+        trainer, compiling = CHUNK_AHEAD(trainer, key, config) if ahead else (trainer, None)
         used.append(compiling is not None)
         return trainer, compiling
 
-    compiled = []
+    events = {COMPILE_EVENT: [], TRACE_EVENT: []}
 
     def listen(event, seconds, **kwargs):
-        if event == COMPILE_EVENT:
-            compiled.append(kwargs.get("fun_name", ""))
+        if event in events:
+            events[event].append(kwargs.get("fun_name", ""))
 
     monkeypatch.setattr(train_module, "compile_chunk_ahead", chunk_ahead)
+    programs.use(store)
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         final = train_module.run(tiny_config(), out, progress=False)
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
+        programs.use(None)
     assert used == [ahead]
     with np.load(final / "train_state.npz") as data:
         state = {k: data[k] for k in data.files}
@@ -51,23 +57,45 @@ def trained(out, monkeypatch, ahead: bool) -> tuple[dict, list[dict], list[str]]
         {k: v for k, v in row.items() if k not in timing}
         for row in runlog.read_rows(out / "metrics.csv")
     ]
-    return state, rows, compiled
+    return state, rows, events
 
 
-@pytest.mark.slow
-def test_chunk_compiled_beside_init_trains_the_same_and_compiles_once(tmp_path, monkeypatch):
-    """Slow: two tiny training runs in this process, each tracing and compiling the trainer."""
-    want_state, want_rows, _ = trained(tmp_path / "after", monkeypatch, ahead=False)
-    state, rows, compiled = trained(tmp_path / "beside", monkeypatch, ahead=True)
+def same_run(got, want) -> None:
+    (state, rows, _), (want_state, want_rows, _) = got, want
     assert state.keys() == want_state.keys()
     for key in want_state:  # weights, optimiser, normaliser, robots and RNG: bit for bit
         np.testing.assert_array_equal(state[key], want_state[key], err_msg=key)
     np.testing.assert_equal(rows, want_rows)  # NaN (no episode ended) equals NaN
     assert [r["update"] for r in rows] == [1, 2, 3, 4, 5, 6]
+
+
+@pytest.mark.slow
+def test_chunk_compiled_beside_init_trains_the_same_and_compiles_once(tmp_path, monkeypatch):
+    """Slow: tiny training runs in this process, tracing and compiling the trainer. Beside init,
+    from the program store (traced and kept by the first run, read back by the second: no trace
+    of the task's programs), the run is the one compiled after init, bit for bit."""
+    want = trained(tmp_path / "after", monkeypatch, ahead=False)
+    got = trained(tmp_path / "beside", monkeypatch, ahead=True)
+    same_run(got, want)
     # One compile each of init and of the chunk, whose three calls run the compiled program.
-    assert sum("(run_chunk)" in name for name in compiled) == 1, compiled
-    assert sum("(init)" in name for name in compiled) == 1, compiled
+    assert sum("(run_chunk)" in name for name in got[2][COMPILE_EVENT]) == 1, got[2]
+    assert sum("(init)" in name for name in got[2][COMPILE_EVENT]) == 1, got[2]
     assert checkpoint.resolve(tmp_path / "beside").name == "update_000006"
+
+    store = tmp_path / "programs"
+    for name in ("traced", "read back"):
+        got = trained(tmp_path / name, monkeypatch, ahead=True, store=store)
+        same_run(got, want)
+        compiled, traced = got[2][COMPILE_EVENT], got[2][TRACE_EVENT]
+        assert sum("(stored_chunk)" in n for n in compiled) == 1, compiled
+        assert sum("(stored_init)" in n for n in compiled) == 1, compiled
+        assert (traced.count("run_chunk"), traced.count("init")) == (
+            (1, 1) if name == "traced" else (0, 0)
+        ), traced
+    assert sorted(p.name.split("-")[1] for p in store.iterdir()) == [
+        "chunk.program",
+        "init.program",
+    ]
 
 
 def test_cpu_programs_compile_at_jaxnav_level(monkeypatch):

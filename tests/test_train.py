@@ -231,6 +231,7 @@ def test_xla_log_lines_are_kept_out_of_a_command_unless_asked(monkeypatch):
 def test_commands_keep_compiled_programs_in_the_user_cache(tmp_path, monkeypatch):
     import jax
 
+    from jaxnav import programs
     from jaxnav.process import compile_cache
 
     before = jax.config.jax_compilation_cache_dir
@@ -239,9 +240,64 @@ def test_commands_keep_compiled_programs_in_the_user_cache(tmp_path, monkeypatch
     try:
         assert compile_cache() == tmp_path / "jaxnav" / "xla"
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "jaxnav" / "xla")
+        assert programs.folder() == tmp_path / "jaxnav" / "xla" / "programs"
         assert compile_cache(enabled=False) is None and not jax.config.jax_compilation_cache_dir
+        assert programs.folder() is None
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_the_program_store_keeps_reads_back_and_traces_a_damaged_file_again(tmp_path, capsys):
+    """`programs.with_init` exports the trainer's init into the store, reads it back without
+    tracing, traces a damaged file again (saying so), and leaves the trainer as it is when the
+    store is off; the stored program computes what the function does."""
+    from jaxnav import programs
+    from jaxnav.ppo.train import Trainer
+    from jaxnav.training import build_config
+
+    traced = []
+
+    def init(key):
+        traced.append(key)
+        return {"twice": key * 2, "sum": key.sum()}
+
+    trainer = Trainer(None, jax.jit(init), None, None, {"init": init})
+    config, key = build_config("cpu"), jax.random.PRNGKey(3)
+    programs.use(tmp_path)
+    kept = programs.with_init(trainer, config, key)
+    assert isinstance(kept.init, programs.Stored) and len(traced) == 1
+    got = kept.init(key)
+    np.testing.assert_array_equal(got["twice"], key * 2)
+    assert int(got["sum"]) == int(key.sum())
+    (path,) = tmp_path.iterdir()
+    read = programs.with_init(trainer, config, key)
+    assert len(traced) == 1 and read.init(key)["twice"].tolist() == (key * 2).tolist()
+    path.write_bytes(b"damaged")
+    assert isinstance(programs.with_init(trainer, config, key).init, programs.Stored)
+    assert len(traced) == 2 and f"{path}: not readable" in capsys.readouterr().err
+    programs.use(None)
+    assert programs.with_init(trainer, config, key) is trainer
+
+
+def test_the_program_store_keys_on_what_the_trace_depends_on(tmp_path):
+    """The key of a run's stored programs is the same for equal configs and changes with the
+    config (the step budget is part of the chunk) and with a file the config names (a robot's
+    MJCF), so a stored program is never one traced for something else."""
+    import dataclasses
+
+    from jaxnav.programs import run_key
+    from jaxnav.training import build_config
+
+    config = build_config("cpu")
+    assert run_key(config) == run_key(build_config("cpu"))
+    budget = dataclasses.replace(config.ppo, total_steps=2 * config.ppo.total_steps)
+    assert run_key(dataclasses.replace(config, ppo=budget)) != run_key(config)
+    mjcf = tmp_path / "robot.xml"
+    mjcf.write_text((jaxnav.core.assets.scene_file(config.robot.mjcf)).read_text())
+    robot = dataclasses.replace(config, robot=dataclasses.replace(config.robot, mjcf=str(mjcf)))
+    first = run_key(robot)
+    mjcf.write_text(mjcf.read_text() + "\n<!-- changed -->\n")
+    assert run_key(robot) != first
 
 
 @pytest.mark.slow

@@ -71,8 +71,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--no-compile-cache",
         action="store_true",
-        help="compile everything anew (default: reuse compiled programs of earlier runs with "
-        "the same shapes, kept in ~/.cache/jaxnav/xla or JAX_COMPILATION_CACHE_DIR)",
+        help="trace and compile everything anew (default: reuse the traced and compiled "
+        "programs of earlier runs with the same shapes, kept in ~/.cache/jaxnav/xla or "
+        "JAX_COMPILATION_CACHE_DIR)",
     )
     distributed.add_flags(parser)
     early = Parser(add_help=False)

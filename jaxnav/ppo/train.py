@@ -57,7 +57,8 @@ class Trainer(NamedTuple):
     train: callable  # key -> (TrainState, metrics [num_updates // updates_per_chunk * chunk])
     # The pieces of one update, not jitted (benchmarks/compile_time.py times each): "rollout":
     # ts -> (env_state, key, traj); "learn": (ts, env_state, key, traj) -> (ts, metrics); "update":
-    # ts -> (ts, metrics), the two in turn.
+    # ts -> (ts, metrics), the two in turn; and "init", "chunk": `init` and `run_chunk` unjitted
+    # (what `jaxnav.programs` exports).
     parts: dict | None = None
 
 
@@ -297,7 +298,13 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     def train(key: jax.Array):
         return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
 
-    parts = {"rollout": _rollout, "learn": _learn, "update": _update}
+    parts = {
+        "rollout": _rollout,
+        "learn": _learn,
+        "update": _update,
+        "init": init,
+        "chunk": run_chunk,
+    }
     options = compiler_options(list(devices or jax.devices())[0].platform)
     jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
     return Trainer(network, jit(init), jit(run_chunk, donate_argnums=0), jit(train), parts)

@@ -1,0 +1,235 @@
+"""A training run's two programs (`init` and the chunk), traced once and kept on disk.
+
+Before XLA compiles anything, a start traces the task's reset and step (under `vmap`, in a scan)
+and lowers them to StableHLO: several seconds of Python on every start (7-9 s for the goal task's
+chunk), which JAX's persistent compilation cache cannot keep, since it keeps XLA's side only. So a
+run on one device exports its two programs with `jax.export` (StableHLO and the pytree structure of
+their arguments and results) into the `programs/` folder of the compilation cache, under a key of
+everything the trace depends on (`run_key`). A repeated run reads them back and hands them to
+`jax.jit`, whose program (a call of the stored one) the first run compiled too, so XLA's side is a
+lookup in the persistent cache.
+
+The store is on with the compilation cache (`process.compile_cache`, which the commands call and
+`--no-compile-cache` turns off), for one device. A program that cannot be exported (an XLA custom
+call without a stability guarantee) is traced as before; a file that cannot be read back is traced
+again and written anew.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import json
+import pickle
+import sys
+from pathlib import Path
+
+import jax
+from jax import export
+
+from jaxnav.core.assets import scenes_dir
+from jaxnav.core.xla import compiler_options
+from jaxnav.io import files
+
+FORMAT = 1
+"""The store's own format; a change of it keys every run anew."""
+
+LIBRARIES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "flax", "optax", "numpy")
+"""The packages whose code a trace runs (their versions are in the key)."""
+
+TRACE_OPTIONS = (
+    "jax_enable_x64",
+    "jax_default_prng_impl",
+    "jax_threefry_partitionable",
+    "jax_default_matmul_precision",
+    "jax_numpy_dtype_promotion",
+)
+"""JAX options that change what a trace produces (their values are in the key)."""
+
+TRACED = {"init": "init", "chunk": "run_chunk"}  # Trainer.parts' programs: their trace's name
+
+_folder: Path | None = None
+
+
+def use(folder: Path | None) -> None:
+    """Keeps the programs of later runs in `folder` (None: nowhere; every run traces)."""
+    global _folder
+    _folder = None if folder is None else Path(folder)
+
+
+def folder() -> Path | None:
+    """Where programs are kept now (None: the store is off)."""
+    return _folder
+
+
+# ---------------------------------------------------------------- the key
+
+
+def run_key(config) -> str:
+    """A digest of everything that decides the traced programs of `config`'s run: the config,
+    jaxnav's own files (code and scenes), the files the config names (a robot's MJCF), the
+    versions of Python and of `LIBRARIES`, `TRACE_OPTIONS` and the device."""
+    raw = config.to_dict()
+    digest = hashlib.sha256()
+    device = jax.devices()[0]
+    facts = {
+        "format": FORMAT,
+        "python": sys.version,
+        "libraries": {name: _version(name) for name in LIBRARIES},
+        "options": {name: str(getattr(jax.config, name, None)) for name in TRACE_OPTIONS},
+        "device": [device.platform, device.device_kind, jax.device_count()],
+        "config": raw,
+    }
+    digest.update(json.dumps(facts, sort_keys=True, default=str).encode())
+    package = Path(__file__).parent
+    for root in (package, scenes_dir()):
+        _digest_tree(digest, root)
+    for path in sorted(_named_files(raw)):
+        digest.update(str(path).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:40]
+
+
+def _version(name: str) -> str:
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return "none"
+
+
+def _digest_tree(digest, root: Path) -> None:
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and "__pycache__" not in path.parts:
+            digest.update(str(path.relative_to(root)).encode())
+            digest.update(path.read_bytes())
+
+
+def _named_files(raw) -> set[Path]:
+    """The existing files that strings of the config's JSON form name."""
+    if isinstance(raw, dict):
+        return set().union(*map(_named_files, raw.values())) if raw else set()
+    if isinstance(raw, (list, tuple)):
+        return set().union(*map(_named_files, raw)) if raw else set()
+    if isinstance(raw, str) and raw and len(raw) < 4096:
+        path = Path(raw).expanduser()
+        try:
+            return {path.resolve()} if path.is_file() else set()
+        except OSError:
+            return set()
+    return set()
+
+
+# ---------------------------------------------------------------- programs
+
+
+class Stored:
+    """A program exported with `jax.export`: called, lowered and compiled like the jitted function
+    it was exported from, on the same pytrees. Its jitted wrapper is named `stored_<name>`."""
+
+    def __init__(self, name: str, exported, in_tree, out_tree, donate: bool):
+        self.name, self.exported = name, exported
+        self.in_tree, self.out_tree = in_tree, out_tree
+
+        def call(*leaves):
+            return exported.call(*leaves)
+
+        call.__name__ = call.__qualname__ = f"stored_{name}"
+        donated = tuple(range(len(exported.in_avals))) if donate else ()
+        options = compiler_options(jax.devices()[0].platform)
+        self._jitted = jax.jit(call, donate_argnums=donated, compiler_options=options)
+
+    def _leaves(self, args) -> list:
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        if tree != self.in_tree:
+            raise ValueError(f"stored program {self.name}: arguments {tree}, not {self.in_tree}")
+        return leaves
+
+    def __call__(self, *args):
+        leaves = self._leaves(args)
+        # Inside another trace (`jax.eval_shape`), a call of the stored program, as a jitted
+        # function would be; XLA's options belong to a top-level jit only.
+        traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
+        out = (self.exported.call if traced else self._jitted)(*leaves)
+        return jax.tree_util.tree_unflatten(self.out_tree, out)
+
+    def lower(self, *args):
+        return _Lowered(self._jitted.lower(*self._leaves(args)), self.out_tree)
+
+
+class _Lowered:
+    def __init__(self, lowered, out_tree):
+        self._lowered, self._out_tree = lowered, out_tree
+
+    def compile(self):
+        compiled, out_tree = self._lowered.compile(), self._out_tree
+        return lambda *args: jax.tree_util.tree_unflatten(
+            out_tree, compiled(*jax.tree_util.tree_leaves(args))
+        )
+
+
+def _export(name: str, fn, args) -> tuple[bytes, object, object]:
+    """(serialized StableHLO, argument tree, result tree) of `fn(*args)`, exported as a function
+    of the leaves (`args`: arrays or ShapeDtypeStructs)."""
+    leaves, in_tree = jax.tree_util.tree_flatten(args)
+    trees = []
+
+    def flat(*xs):
+        out, tree = jax.tree_util.tree_flatten(fn(*jax.tree_util.tree_unflatten(in_tree, xs)))
+        trees.append(tree)
+        return out
+
+    flat.__name__ = flat.__qualname__ = name
+    exported = export.export(jax.jit(flat))(*leaves)
+    return exported.serialize(), in_tree, trees[0]
+
+
+def _load(name: str, entry) -> Stored:
+    blob, in_tree, out_tree = entry
+    return Stored(name, export.deserialize(bytearray(blob)), in_tree, out_tree, name == "chunk")
+
+
+def _read(path: Path) -> tuple | None:
+    try:
+        with open(path, "rb") as fh:
+            entry = pickle.load(fh)
+        return entry["program"] if entry.get("format") == FORMAT else None
+    except FileNotFoundError:
+        return None
+    except Exception as err:  # noqa: BLE001 (a damaged or foreign file: traced again)
+        print(f"jaxnav: {path}: not readable ({err}); tracing the program again", file=sys.stderr)
+        return None
+
+
+def _keep(path: Path, entry: tuple) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        files.write_atomic(path, pickle.dumps({"format": FORMAT, "program": entry}))
+    except OSError as err:
+        print(f"jaxnav: {path}: cannot keep the traced program ({err})", file=sys.stderr)
+
+
+def program(trainer, config, name: str, args) -> Stored | None:
+    """The trainer's program `name` ("init" or "chunk") for `config`'s run, on `args` (arrays or
+    ShapeDtypeStructs): read from the store, or exported now and kept there. None where the store
+    is off, with several devices, or for a program that cannot be exported."""
+    if _folder is None or jax.device_count() > 1 or not trainer.parts:
+        return None
+    path = _folder / f"{run_key(config)}-{name}.program"
+    entry = _read(path)
+    if entry is None or entry[1] != jax.tree_util.tree_structure(args):
+        try:
+            entry = _export(TRACED[name], trainer.parts[name], args)
+        except Exception as err:  # noqa: BLE001 (not exportable: jit traces it as before)
+            line = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
+            print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)
+            return None
+        _keep(path, entry)
+    return _load(name, entry)
+
+
+def with_init(trainer, config, key):
+    """`trainer` with its init stored for `config`'s run (see `program`), or as it is."""
+    if isinstance(trainer.init, Stored):
+        return trainer
+    init = program(trainer, config, "init", (jax.ShapeDtypeStruct(key.shape, key.dtype),))
+    return trainer if init is None else trainer._replace(init=init)
