@@ -15,7 +15,8 @@ Per task: in this process, `trainer.run_chunk` lowered (tracing: `jax.stages` `.
 compiled (`.compile`) on its own, with the size of its HLO text; then `python -m jaxnav.train` run
 twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
 chunk: the seconds to its "compiled and ran the first chunk" line and the whole command's wall
-time, cold and with the cache warm. Prints the table last; writes the JSON.
+time, cold and with the cache warm, and JAX's compile events of each run per program (tracing,
+lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints the table last; writes the JSON.
 
 `--checkout DIR`: the command-line runs only, of the jaxnav in DIR (a checkout of an earlier
 commit, e.g. `git worktree add DIR COMMIT`, run from a folder outside this one), for a before and
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import re
 import subprocess
@@ -192,10 +194,12 @@ def cli_runs(env: str, preset: str, checkout: Path | None = None) -> dict:
     out = {}
     for label in ("cold", "warm"):
         run = tempfile.mkdtemp(prefix="jaxnav-run-") + "/run"
+        events = Path(run).parent / "events.json"
         cmd = [
             sys.executable,
-            "-m",
-            "jaxnav.train",
+            "-c",
+            LISTENED,
+            str(events),
             "--env",
             env,
             "--preset",
@@ -221,8 +225,38 @@ def cli_runs(env: str, preset: str, checkout: Path | None = None) -> dict:
             "first_chunk_s": float(found.group(1)) if found else None,
             "wall_s": round(wall, 1),
             "rc": proc.returncode,
+            **(json.loads(events.read_text()) if events.exists() else {}),
         }
     return out
+
+
+# `python -m jaxnav.train` with JAX's compile events summed per kind and program, written as JSON
+# to argv[1] at exit: the seconds from the start to the compile line ("to_compile_line_s"), and
+# {event: {program: seconds}} of tracing, lowering, XLA compiles or cache loads, cache retrievals.
+LISTENED = """
+import atexit, collections, json, runpy, sys, time
+start = time.perf_counter()
+import jax
+path, sums, marks = sys.argv.pop(1), collections.defaultdict(dict), {}
+def listen(event, seconds, **kw):
+    name = kw.get("fun_name", "")
+    kind = event.rsplit("/", 1)[-1]
+    if seconds >= 0.05:
+        sums[kind][name] = round(sums[kind].get(name, 0.0) + seconds, 2)
+jax.monitoring.register_event_duration_secs_listener(listen)
+class Marked:
+    def __init__(self, out): self.out = out
+    def write(self, text):
+        if "compiling the training step" in text and "line" not in marks:
+            marks["line"] = round(time.perf_counter() - start, 2)
+        return self.out.write(text)
+    def __getattr__(self, name): return getattr(self.out, name)
+sys.stdout = Marked(sys.stdout)
+atexit.register(lambda: open(path, "w").write(json.dumps(
+    {"to_compile_line_s": marks.get("line"), "events": sums})))
+sys.argv[0] = "jaxnav.train"
+runpy.run_module("jaxnav.train", run_name="__main__", alter_sys=True)
+"""
 
 
 def flag_runs(env: str, preset: str, flags: list[str], chunks: int) -> dict:
