@@ -25,6 +25,8 @@ import sys
 from pathlib import Path
 
 import jax
+import mujoco
+import numpy as np
 from jax import export
 
 from jaxnav.core.assets import scenes_dir
@@ -65,10 +67,11 @@ def folder() -> Path | None:
 # ---------------------------------------------------------------- the key
 
 
-def run_key(config) -> str:
+def run_key(config, model=None) -> str:
     """A digest of everything that decides the traced programs of `config`'s run: the config,
-    jaxnav's own files (code and scenes), the files the config names (a robot's MJCF), the
-    versions of Python and of `LIBRARIES`, `TRACE_OPTIONS` and the device."""
+    jaxnav's own files (code and scenes), the files the config names (a robot's MJCF), the MuJoCo
+    `model` its env built (so that what an MJCF includes counts too), the versions of Python and
+    of `LIBRARIES`, `TRACE_OPTIONS` and the device."""
     raw = config.to_dict()
     digest = hashlib.sha256()
     device = jax.devices()[0]
@@ -87,6 +90,10 @@ def run_key(config) -> str:
     for path in sorted(_named_files(raw)):
         digest.update(str(path).encode())
         digest.update(path.read_bytes())
+    if model is not None:
+        saved = np.zeros(mujoco.mj_sizeModel(model), np.uint8)
+        mujoco.mj_saveModel(model, None, saved)
+        digest.update(saved.tobytes())
     return digest.hexdigest()[:40]
 
 
@@ -124,10 +131,11 @@ def _named_files(raw) -> set[Path]:
 
 class Stored:
     """A program exported with `jax.export`: called, lowered and compiled like the jitted function
-    it was exported from, on the same pytrees. Its jitted wrapper is named `stored_<name>`."""
+    it was exported from, on the same pytrees. Its jitted wrapper is named `stored_<name>`; `run`
+    is the key (`run_key`) of the run it is stored for."""
 
-    def __init__(self, name: str, exported, in_tree, out_tree, donate: bool):
-        self.name, self.exported = name, exported
+    def __init__(self, name: str, run: str, exported, in_tree, out_tree, donate: bool):
+        self.name, self.run, self.exported = name, run, exported
         self.in_tree, self.out_tree = in_tree, out_tree
 
         def call(*leaves):
@@ -183,9 +191,10 @@ def _export(name: str, fn, args) -> tuple[bytes, object, object]:
     return exported.serialize(), in_tree, trees[0]
 
 
-def _load(name: str, entry) -> Stored:
+def _load(name: str, run: str, entry) -> Stored:
     blob, in_tree, out_tree = entry
-    return Stored(name, export.deserialize(bytearray(blob)), in_tree, out_tree, name == "chunk")
+    exported = export.deserialize(bytearray(blob))
+    return Stored(name, run, exported, in_tree, out_tree, donate=name == "chunk")
 
 
 def _read(path: Path) -> tuple | None:
@@ -208,13 +217,13 @@ def _keep(path: Path, entry: tuple) -> None:
         print(f"jaxnav: {path}: cannot keep the traced program ({err})", file=sys.stderr)
 
 
-def program(trainer, config, name: str, args) -> Stored | None:
-    """The trainer's program `name` ("init" or "chunk") for `config`'s run, on `args` (arrays or
-    ShapeDtypeStructs): read from the store, or exported now and kept there. None where the store
-    is off, with several devices, or for a program that cannot be exported."""
+def program(trainer, run: str, name: str, args) -> Stored | None:
+    """The trainer's program `name` ("init" or "chunk") for the run of key `run`, on `args`
+    (arrays or ShapeDtypeStructs): read from the store, or exported now and kept there. None
+    where the store is off, with several devices, or for a program that cannot be exported."""
     if _folder is None or jax.device_count() > 1 or not trainer.parts:
         return None
-    path = _folder / f"{run_key(config)}-{name}.program"
+    path = _folder / f"{run}-{name}.program"
     entry = _read(path)
     if entry is None or entry[1] != jax.tree_util.tree_structure(args):
         try:
@@ -224,12 +233,21 @@ def program(trainer, config, name: str, args) -> Stored | None:
             print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)
             return None
         _keep(path, entry)
-    return _load(name, entry)
+    return _load(name, run, entry)
 
 
-def with_init(trainer, config, key):
-    """`trainer` with its init stored for `config`'s run (see `program`), or as it is."""
-    if isinstance(trainer.init, Stored):
+def with_init(trainer, config, env, key):
+    """`trainer` (of `env`, built from `config`) with its init stored for the run (`program`), or
+    as it is where the store is off."""
+    if _folder is None or isinstance(trainer.init, Stored):
         return trainer
-    init = program(trainer, config, "init", (jax.ShapeDtypeStruct(key.shape, key.dtype),))
+    run = run_key(config, getattr(getattr(env, "scene", None), "mj_model", None))
+    init = program(trainer, run, "init", (jax.ShapeDtypeStruct(key.shape, key.dtype),))
     return trainer if init is None else trainer._replace(init=init)
+
+
+def with_chunk(trainer, run: str, shapes):
+    """`trainer` with its chunk stored for the run of key `run` (that of its stored init,
+    `with_init`), on init's result `shapes`; or as it is."""
+    chunk = program(trainer, run, "chunk", (shapes,))
+    return trainer if chunk is None else trainer._replace(run_chunk=chunk)

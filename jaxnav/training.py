@@ -250,14 +250,14 @@ def run(
             check_new_out(out)
         env, trainer = interruptible(_build, config)
         key = jax.random.PRNGKey(config.seed)
-        trainer = interruptible(programs.with_init, trainer, config, key)
+        trainer = interruptible(programs.with_init, trainer, config, env, key)
         memory_check(config, env, trainer)
         folder.create()
         created = True
         distributed.ready()
         if stop is not None:
             stop.at_once(_start_note(folder), folder.remove)
-        trainer, compiling = compile_chunk_ahead(trainer, key, config)
+        trainer, compiling = compile_chunk_ahead(trainer, key)
         ts = interruptible(trainer.init, key, waiting=compiling)
         args = (trainer, ts, [], 0.0, progress, stop, env.metric_names, compiling)
         return _loop(config, out, *args)
@@ -342,8 +342,8 @@ def resume(
             note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
             stop.at_once(note, lock.release if main else None)
         key = jax.random.PRNGKey(config.seed)
-        trainer = interruptible(programs.with_init, trainer, config, key)
-        trainer, compiling = compile_chunk_ahead(trainer, key, config)
+        trainer = interruptible(programs.with_init, trainer, config, env, key)
+        trainer, compiling = compile_chunk_ahead(trainer, key)
         template = interruptible(trainer.init, key, waiting=compiling)
         ts = checkpoint.restore_train_state(ckpt, template)
         rows = runlog.read_rows(out / "metrics.csv", upto=meta["update"]) if main else []
@@ -422,7 +422,7 @@ class _CompiledAhead:
         return self._compiled(ts)
 
 
-def compile_chunk_ahead(trainer, key, config=None):
+def compile_chunk_ahead(trainer, key):
     """(trainer, compile line or None): with one device, a trainer whose chunk XLA starts
     compiling now, beside `init` (XLA's compile lets go of the GIL, so the two programs compile
     at the same time), and the compile line, shown from now on.
@@ -434,20 +434,17 @@ def compile_chunk_ahead(trainer, key, config=None):
     and the chunk compiles on its first call, after init.
 
     An init from the program store (`programs.with_init`) starts compiling here too, and the
-    chunk is the one stored for `config`'s run, traced meanwhile if the store has none yet.
+    chunk is the one stored for the same run, traced meanwhile if the store has none yet.
     """
     if jax.device_count() > 1 or not hasattr(trainer.run_chunk, "lower"):
         return trainer, None
     compiling = _Compiling()
     shapes = jax.eval_shape(trainer.init, key)
-    chunk = trainer.run_chunk
-    if isinstance(trainer.init, programs.Stored):
-        trainer = trainer._replace(init=_CompiledAhead(trainer.init, key))
-        stored = interruptible(
-            programs.program, trainer, config, "chunk", (shapes,), waiting=compiling
-        )
-        chunk = chunk if stored is None else stored
-    return trainer._replace(run_chunk=_CompiledAhead(chunk, shapes)), compiling
+    init = trainer.init
+    if isinstance(init, programs.Stored):  # init compiles while the chunk is read or traced
+        trainer = trainer._replace(init=_CompiledAhead(init, key))
+        trainer = interruptible(programs.with_chunk, trainer, init.run, shapes, waiting=compiling)
+    return trainer._replace(run_chunk=_CompiledAhead(trainer.run_chunk, shapes)), compiling
 
 
 # ---------------------------------------------------------------- the loop

@@ -30,8 +30,8 @@ def trained(out, monkeypatch, ahead: bool, store=None) -> tuple[dict, list[dict]
     its programs kept in the program store folder `store` (None: the store off)."""
     used = []
 
-    def chunk_ahead(trainer, key, config=None):
-        trainer, compiling = CHUNK_AHEAD(trainer, key, config) if ahead else (trainer, None)
+    def chunk_ahead(trainer, key):
+        trainer, compiling = CHUNK_AHEAD(trainer, key) if ahead else (trainer, None)
         used.append(compiling is not None)
         return trainer, compiling
 

@@ -264,26 +264,29 @@ def test_the_program_store_keeps_reads_back_and_traces_a_damaged_file_again(tmp_
     trainer = Trainer(None, jax.jit(init), None, None, {"init": init})
     config, key = build_config("cpu"), jax.random.PRNGKey(3)
     programs.use(tmp_path)
-    kept = programs.with_init(trainer, config, key)
+    kept = programs.with_init(trainer, config, None, key)
     assert isinstance(kept.init, programs.Stored) and len(traced) == 1
     got = kept.init(key)
     np.testing.assert_array_equal(got["twice"], key * 2)
     assert int(got["sum"]) == int(key.sum())
     (path,) = tmp_path.iterdir()
-    read = programs.with_init(trainer, config, key)
+    read = programs.with_init(trainer, config, None, key)
     assert len(traced) == 1 and read.init(key)["twice"].tolist() == (key * 2).tolist()
     path.write_bytes(b"damaged")
-    assert isinstance(programs.with_init(trainer, config, key).init, programs.Stored)
+    assert isinstance(programs.with_init(trainer, config, None, key).init, programs.Stored)
     assert len(traced) == 2 and f"{path}: not readable" in capsys.readouterr().err
     programs.use(None)
-    assert programs.with_init(trainer, config, key) is trainer
+    assert programs.with_init(trainer, config, None, key) is trainer
 
 
 def test_the_program_store_keys_on_what_the_trace_depends_on(tmp_path):
     """The key of a run's stored programs is the same for equal configs and changes with the
-    config (the step budget is part of the chunk) and with a file the config names (a robot's
-    MJCF), so a stored program is never one traced for something else."""
+    config (the step budget is part of the chunk), with a file the config names (a robot's
+    MJCF) and with the MuJoCo model the env built, so a stored program is never one traced for
+    something else."""
     import dataclasses
+
+    import mujoco
 
     from jaxnav.programs import run_key
     from jaxnav.training import build_config
@@ -298,6 +301,11 @@ def test_the_program_store_keys_on_what_the_trace_depends_on(tmp_path):
     first = run_key(robot)
     mjcf.write_text(mjcf.read_text() + "\n<!-- changed -->\n")
     assert run_key(robot) != first
+    model = mujoco.MjModel.from_xml_string("<mujoco><worldbody/></mujoco>")
+    built = run_key(config, model)
+    assert built == run_key(config, model) != run_key(config)
+    model.opt.timestep *= 2  # what an included file could change
+    assert run_key(config, model) != built
 
 
 @pytest.mark.slow
