@@ -121,10 +121,10 @@ def piece_programs(env_name: str, preset: str) -> dict:
         programs["autoreset_step"] = (wrapped.step, (ts.env_state, action, one))
     else:
         programs["autoreset_step"] = (wrapped.step, (ts.env_state, action))
-    programs["init"] = (trainer.init.__wrapped__, (key,))
+    programs["init"] = (parts["init"], (key,))
     programs["rollout"] = (parts["rollout"], (ts,))
     programs["learn"] = (parts["learn"], (ts, *rolled))
-    programs["chunk"] = (trainer.run_chunk.__wrapped__, (ts,))
+    programs["chunk"] = (parts["chunk"], (ts,))
     return programs
 
 
@@ -190,7 +190,8 @@ def cli_runs(env: str, preset: str, checkout: Path | None = None) -> dict:
     environ = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     environ["XDG_CACHE_HOME"] = cache
     if checkout is not None:
-        environ["PYTHONPATH"] = os.pathsep.join([str(checkout), environ.get("PYTHONPATH", "")])
+        paths = [str(Path(checkout).resolve()), environ.get("PYTHONPATH", "")]
+        environ["PYTHONPATH"] = os.pathsep.join(p for p in paths if p)
     out = {}
     for label in ("cold", "warm"):
         run = tempfile.mkdtemp(prefix="jaxnav-run-") + "/run"

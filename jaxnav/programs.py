@@ -34,19 +34,22 @@ from jaxnav.core.xla import compiler_options
 from jaxnav.io import files
 
 FORMAT = 1
-"""The store's own format; a change of it keys every run anew."""
+"""The store's own format, part of the key: a change of it keys every run anew."""
 
-LIBRARIES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "flax", "optax", "numpy")
-"""The packages whose code a trace runs (their versions are in the key)."""
-
-TRACE_OPTIONS = (
-    "jax_enable_x64",
-    "jax_default_prng_impl",
-    "jax_threefry_partitionable",
-    "jax_default_matmul_precision",
-    "jax_numpy_dtype_promotion",
+LIBRARIES = (
+    "jax",
+    "jaxlib",
+    "jax-cuda12-plugin",
+    "jax-cuda12-pjrt",
+    "jax-cuda13-plugin",
+    "jax-cuda13-pjrt",
+    "mujoco",
+    "mujoco-mjx",
+    "flax",
+    "optax",
+    "numpy",
 )
-"""JAX options that change what a trace produces (their values are in the key)."""
+"""The packages whose code a trace runs or lowers (their versions are in the key)."""
 
 TRACED = {"init": "init", "chunk": "run_chunk"}  # Trainer.parts' programs: their trace's name
 
@@ -68,28 +71,23 @@ def folder() -> Path | None:
 
 
 def run_key(config, model=None) -> str:
-    """A digest of everything that decides the traced programs of `config`'s run: the config,
-    jaxnav's own files (code and scenes), the files the config names (a robot's MJCF), the MuJoCo
-    `model` its env built (so that what an MJCF includes counts too), the versions of Python and
-    of `LIBRARIES`, `TRACE_OPTIONS` and the device."""
-    raw = config.to_dict()
+    """A digest of everything that decides the traced programs of `config`'s run: the config but
+    its seed (which only makes init's argument), jaxnav's own files (code and scenes), the MuJoCo
+    `model` its env built (whatever files it came from), the versions of Python and of
+    `LIBRARIES`, every JAX option, and the device."""
     digest = hashlib.sha256()
     device = jax.devices()[0]
     facts = {
         "format": FORMAT,
         "python": sys.version,
         "libraries": {name: _version(name) for name in LIBRARIES},
-        "options": {name: str(getattr(jax.config, name, None)) for name in TRACE_OPTIONS},
+        "options": {name: str(value) for name, value in jax.config.values.items()},
         "device": [device.platform, device.device_kind, jax.device_count()],
-        "config": raw,
+        "config": {k: v for k, v in config.to_dict().items() if k != "seed"},
     }
     digest.update(json.dumps(facts, sort_keys=True, default=str).encode())
-    package = Path(__file__).parent
-    for root in (package, scenes_dir()):
+    for root in (Path(__file__).parent, scenes_dir()):
         _digest_tree(digest, root)
-    for path in sorted(_named_files(raw)):
-        digest.update(str(path).encode())
-        digest.update(path.read_bytes())
     if model is not None:
         saved = np.zeros(mujoco.mj_sizeModel(model), np.uint8)
         mujoco.mj_saveModel(model, None, saved)
@@ -98,6 +96,7 @@ def run_key(config, model=None) -> str:
 
 
 def _version(name: str) -> str:
+    """The installed version of distribution `name` ("none": not installed)."""
     try:
         return importlib.metadata.version(name)
     except importlib.metadata.PackageNotFoundError:
@@ -105,25 +104,11 @@ def _version(name: str) -> str:
 
 
 def _digest_tree(digest, root: Path) -> None:
+    """Adds the names and contents of the files under `root` to `digest`."""
     for path in sorted(root.rglob("*")):
         if path.is_file() and "__pycache__" not in path.parts:
             digest.update(str(path.relative_to(root)).encode())
             digest.update(path.read_bytes())
-
-
-def _named_files(raw) -> set[Path]:
-    """The existing files that strings of the config's JSON form name."""
-    if isinstance(raw, dict):
-        return set().union(*map(_named_files, raw.values())) if raw else set()
-    if isinstance(raw, (list, tuple)):
-        return set().union(*map(_named_files, raw)) if raw else set()
-    if isinstance(raw, str) and raw and len(raw) < 4096:
-        path = Path(raw).expanduser()
-        try:
-            return {path.resolve()} if path.is_file() else set()
-        except OSError:
-            return set()
-    return set()
 
 
 # ---------------------------------------------------------------- programs
@@ -165,6 +150,8 @@ class Stored:
 
 
 class _Lowered:
+    """A lowered `Stored` program, whose compiled form takes and returns the pytrees."""
+
     def __init__(self, lowered, out_tree):
         self._lowered, self._out_tree = lowered, out_tree
 
@@ -192,16 +179,22 @@ def _export(name: str, fn, args) -> tuple[bytes, object, object]:
 
 
 def _load(name: str, run: str, entry) -> Stored:
+    """The `Stored` program of a store entry (bytes, in_tree, out_tree)."""
     blob, in_tree, out_tree = entry
     exported = export.deserialize(bytearray(blob))
     return Stored(name, run, exported, in_tree, out_tree, donate=name == "chunk")
 
 
-def _read(path: Path) -> tuple | None:
+def _read(path: Path, name: str, run: str, args) -> Stored | None:
+    """The program stored at `path` for `args`' structure; None if there is none, or if the
+    file cannot be read back (said on stderr)."""
     try:
         with open(path, "rb") as fh:
             entry = pickle.load(fh)
-        return entry["program"] if entry.get("format") == FORMAT else None
+        stored = _load(name, run, entry["program"])
+        if stored.in_tree != jax.tree_util.tree_structure(args):
+            raise ValueError("its arguments differ")
+        return stored
     except FileNotFoundError:
         return None
     except Exception as err:  # noqa: BLE001 (a damaged or foreign file: traced again)
@@ -210,36 +203,39 @@ def _read(path: Path) -> tuple | None:
 
 
 def _keep(path: Path, entry: tuple) -> None:
+    """Writes `entry` to `path` at once (a reader sees the old file or the new one)."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        files.write_atomic(path, pickle.dumps({"format": FORMAT, "program": entry}))
-    except OSError as err:
+        files.write_atomic(path, pickle.dumps({"program": entry}))
+    except Exception as err:  # noqa: BLE001 (not kept: the run goes on, traced next time too)
         print(f"jaxnav: {path}: cannot keep the traced program ({err})", file=sys.stderr)
 
 
 def program(trainer, run: str, name: str, args) -> Stored | None:
     """The trainer's program `name` ("init" or "chunk") for the run of key `run`, on `args`
     (arrays or ShapeDtypeStructs): read from the store, or exported now and kept there. None
-    where the store is off, with several devices, or for a program that cannot be exported."""
-    if _folder is None or jax.device_count() > 1 or not trainer.parts:
+    where the store is off or for a program that cannot be exported."""
+    if _folder is None:
         return None
     path = _folder / f"{run}-{name}.program"
-    entry = _read(path)
-    if entry is None or entry[1] != jax.tree_util.tree_structure(args):
-        try:
-            entry = _export(TRACED[name], trainer.parts[name], args)
-        except Exception as err:  # noqa: BLE001 (not exportable: jit traces it as before)
-            line = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
-            print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)
-            return None
-        _keep(path, entry)
+    stored = _read(path, name, run, args)
+    if stored is not None:
+        return stored
+    try:
+        entry = _export(TRACED[name], trainer.parts[name], args)
+    except Exception as err:  # noqa: BLE001 (not exportable: jit traces it as before)
+        line = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
+        print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)
+        return None
+    _keep(path, entry)
     return _load(name, run, entry)
 
 
 def with_init(trainer, config, env, key):
     """`trainer` (of `env`, built from `config`) with its init stored for the run (`program`), or
-    as it is where the store is off."""
-    if _folder is None or isinstance(trainer.init, Stored):
+    as it is where the store is off, with several devices, or for a trainer without the
+    unjitted programs (`Trainer.parts`)."""
+    if _folder is None or jax.device_count() > 1 or not trainer.parts:
         return trainer
     run = run_key(config, getattr(getattr(env, "scene", None), "mj_model", None))
     init = program(trainer, run, "init", (jax.ShapeDtypeStruct(key.shape, key.dtype),))

@@ -280,10 +280,10 @@ def test_the_program_store_keeps_reads_back_and_traces_a_damaged_file_again(tmp_
 
 
 def test_the_program_store_keys_on_what_the_trace_depends_on(tmp_path):
-    """The key of a run's stored programs is the same for equal configs and changes with the
-    config (the step budget is part of the chunk), with a file the config names (a robot's
-    MJCF) and with the MuJoCo model the env built, so a stored program is never one traced for
-    something else."""
+    """The key of a run's stored programs is the same for equal configs and for configs that
+    differ in their seed only (init's argument), and changes with the config (the step budget
+    is part of the chunk), the MuJoCo model the env built (what an MJCF or a file it includes
+    holds) and a JAX option, so a stored program is never one traced for something else."""
     import dataclasses
 
     import mujoco
@@ -292,20 +292,21 @@ def test_the_program_store_keys_on_what_the_trace_depends_on(tmp_path):
     from jaxnav.training import build_config
 
     config = build_config("cpu")
-    assert run_key(config) == run_key(build_config("cpu"))
+    assert run_key(config) == run_key(build_config("cpu")) == run_key(build_config("cpu", 7))
     budget = dataclasses.replace(config.ppo, total_steps=2 * config.ppo.total_steps)
     assert run_key(dataclasses.replace(config, ppo=budget)) != run_key(config)
     mjcf = tmp_path / "robot.xml"
-    mjcf.write_text((jaxnav.core.assets.scene_file(config.robot.mjcf)).read_text())
-    robot = dataclasses.replace(config, robot=dataclasses.replace(config.robot, mjcf=str(mjcf)))
-    first = run_key(robot)
-    mjcf.write_text(mjcf.read_text() + "\n<!-- changed -->\n")
-    assert run_key(robot) != first
-    model = mujoco.MjModel.from_xml_string("<mujoco><worldbody/></mujoco>")
-    built = run_key(config, model)
-    assert built == run_key(config, model) != run_key(config)
-    model.opt.timestep *= 2  # what an included file could change
-    assert run_key(config, model) != built
+    mjcf.write_text("<mujoco><worldbody><geom size='0.1'/></worldbody></mujoco>")
+    built = run_key(config, mujoco.MjModel.from_xml_path(str(mjcf)))
+    assert built == run_key(config, mujoco.MjModel.from_xml_path(str(mjcf))) != run_key(config)
+    mjcf.write_text("<mujoco><worldbody><geom size='0.2'/></worldbody></mujoco>")
+    assert run_key(config, mujoco.MjModel.from_xml_path(str(mjcf))) != built
+    plain, promotion = run_key(config), jax.config.jax_numpy_rank_promotion
+    jax.config.update("jax_numpy_rank_promotion", "warn" if promotion != "warn" else "raise")
+    try:
+        assert run_key(config) != plain
+    finally:
+        jax.config.update("jax_numpy_rank_promotion", promotion)
 
 
 @pytest.mark.slow

@@ -71,9 +71,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--no-compile-cache",
         action="store_true",
-        help="trace and compile everything anew (default: reuse the traced and compiled "
-        "programs of earlier runs with the same shapes, kept in ~/.cache/jaxnav/xla or "
-        "JAX_COMPILATION_CACHE_DIR)",
+        help="trace and compile everything anew (default: reuse the programs compiled for "
+        "earlier runs of the same shapes, and those traced for earlier runs of the same config, "
+        "code and libraries, kept in ~/.cache/jaxnav/xla or JAX_COMPILATION_CACHE_DIR)",
     )
     distributed.add_flags(parser)
     early = Parser(add_help=False)
