@@ -86,7 +86,9 @@ def run_key(config, model=None) -> str:
         "config": {k: v for k, v in config.to_dict().items() if k != "seed"},
     }
     digest.update(json.dumps(facts, sort_keys=True, default=str).encode())
-    for root in (Path(__file__).parent, scenes_dir()):
+    package, scenes = Path(__file__).parent, scenes_dir()
+    # Installed from a wheel, the scenes are inside the package: its tree holds them already.
+    for root in (package,) if scenes.is_relative_to(package) else (package, scenes):
         _digest_tree(digest, root)
     if model is not None:
         saved = np.zeros(mujoco.mj_sizeModel(model), np.uint8)
