@@ -39,7 +39,7 @@ from jaxnav.bundle import FILES, FOLDERS, KEPT, ROBOT_PACKAGE, Deployment, write
 from jaxnav.core.types import ContinuousActions
 from jaxnav.io.checkpoint import CheckpointError, resolve
 from jaxnav.ppo.networks import LEAKY_SLOPE, normalize
-from jaxnav.robot_side.policy import FORMAT_VERSION, NumpyPolicy
+from jaxnav.robot_side.policy import FORMAT_VERSION, MEMORY_FORMAT, NumpyPolicy
 from jaxnav.runs import SavedPolicy, read_policy
 
 FORMATS = ("numpy", "onnx")
@@ -115,13 +115,15 @@ def actor_arrays(saved: SavedPolicy) -> dict[str, np.ndarray]:
 
 
 def _format3(config, spec, size: int) -> dict:
-    """The format-3 entries of continuous actions and goal inputs (none for the paper's task)."""
+    """The format-3 entries of continuous actions and goal inputs (none for the paper's task),
+    and the format-4 entries of a memory."""
     out = {}
     if isinstance(spec, ContinuousActions):
         out["action_low"] = np.asarray(spec.low, np.float32)
         out["action_high"] = np.asarray(spec.high, np.float32)
     history = getattr(config.task, "history", 0)
-    extra = size // (1 + history) - config.sensor.num_sectors
+    bins = getattr(config.task, "memory_bins", 0)
+    extra = (size - bins) // (1 + history) - config.sensor.num_sectors
     if history:
         out["history"] = np.int32(history)
     if extra:
@@ -132,6 +134,12 @@ def _format3(config, spec, size: int) -> dict:
         out["success_radius"] = np.float64(config.task.success_radius)
     if out:
         out["format_version"] = np.int32(FORMAT_VERSION)
+    if bins:
+        out["memory_bins"] = np.int32(bins)
+        out["memory_steps"] = np.int32(config.task.memory_steps)
+        out["memory_reach"] = np.float64(config.task.memory_reach)
+        out["memory_forward"] = np.float64(config.robot.camera_forward)
+        out["format_version"] = np.int32(MEMORY_FORMAT)
     return out
 
 
@@ -198,7 +206,8 @@ def onnx_model(arrays: dict[str, np.ndarray]):
     for key in ("action_low", "action_high", "command_scale"):  # format-3 entries, where given
         if key in arrays:
             meta[key] = json.dumps(np.asarray(arrays[key]).tolist())
-    for key in ("extra_observations", "success_radius", "history"):
+    memory = ("memory_bins", "memory_steps", "memory_reach", "memory_forward")
+    for key in ("extra_observations", "success_radius", "history", *memory):
         if key in arrays:
             meta[key] = float(arrays[key])
     helper.set_model_props(model, {k: str(v) for k, v in meta.items()})

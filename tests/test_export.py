@@ -141,6 +141,7 @@ def test_bundle_runs_on_a_robot_without_jax(one_run, tmp_path):
         "__init__.py",
         "bag.py",
         "calibrate.py",
+        "memory.py",
         "observation.py",
         "policy.py",
         "ros_node.py",

@@ -1,11 +1,13 @@
-"""A goal policy end to end: `train --env goal --actions continuous` on the command line, evaluation
-reading the task from the run (success rate, SPL), export to numpy and ONNX, and the robot side
-(goal observation, the control loop's goal inputs, the ROS 2 node's goal and odometry topics).
+"""A goal policy end to end: `train --env goal --actions continuous --task.memory-bins 8` on the
+command line, evaluation reading the task from the run (success rate, SPL), export to numpy and
+ONNX, and the robot side (goal observation, memory, the control loop's goal inputs, the ROS 2
+node's goal and odometry topics).
 
 Slow, all of it: a goal training run on the command line, then its evaluation and export.
 """
 
 import json
+import math
 import subprocess
 import sys
 import types
@@ -17,19 +19,28 @@ from conftest import run_cli
 from test_ros_node import FakeRos
 
 import jaxnav
+from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.export import export
 from jaxnav.io.layouts import RoomLayout, save_layouts
 from jaxnav.robot_side import ros_node
+from jaxnav.robot_side.memory import Memory, MemorySpec
 from jaxnav.robot_side.observation import Controller
-from jaxnav.robot_side.policy import FrameStack, NumpyPolicy, goal_features, goal_observation
+from jaxnav.robot_side.policy import (
+    MEMORY_FORMAT,
+    FrameStack,
+    NumpyPolicy,
+    goal_features,
+    goal_observation,
+)
 from jaxnav.robot_side.ros_node import STOP, ControlLoop, GoalInput, MessageReader
 from jaxnav.tasks.goal import goal_features as sim_goal_features
 
 TINY = [
     *("--num-envs", "16", "--rollout-length", "16", "--minibatch-size", "128"),
     *("--num-epochs", "2", "--total-steps", str(16 * 16 * 2), "--updates-per-chunk", "2"),
-    *("--seed", "3", "--no-progress"),
+    *("--seed", "3", "--no-progress", "--task.memory-bins", "8"),
 ]
+BINS = 8  # the memory's entries, the observation's last
 ROOM = RoomLayout(name="hall", size=(5.0, 4.0), robot_pos=(-1.5, 0.0), goal_pos=(1.5, 0.5))
 
 
@@ -38,7 +49,8 @@ pytestmark = pytest.mark.slow  # every test here shares one CLI training run
 
 @pytest.fixture(scope="module")
 def goal_run(tmp_path_factory):
-    """A tiny continuous-action goal run through the CLI: (run folder, layout file)."""
+    """A tiny continuous-action goal run with a memory through the CLI: (run folder, layout
+    file)."""
     out = tmp_path_factory.mktemp("goal") / "run"
     proc = run_cli("--env", "goal", "--actions", "continuous", "--out", str(out), *TINY)
     assert proc.returncode == 0, proc.stderr
@@ -74,15 +86,19 @@ def test_export_and_robot_side_take_the_goal_observation(goal_run, tmp_path):
     onnx_file = export(out, "onnx", tmp_path / "policy.onnx")
     robot = NumpyPolicy.from_npz(numpy_file)
     assert robot.continuous and robot.success_radius == 0.3
-    assert robot.observation_size == 13 * (1 + robot.history) and robot.history == 16
+    assert robot.observation_size == 13 * (1 + robot.history) + BINS and robot.history == 16
+    assert robot.memory == MemorySpec(BINS, 20, 1.5, TURTLEBOT2I.camera_forward)
     rng = np.random.default_rng(0)
     sectors = rng.uniform(0.6, 8.0, (50, 8)).astype(np.float32)
     poses = rng.uniform(-2, 2, (50, 3)).astype(np.float32)
     goal, last = np.array([1.0, -0.5], np.float32), np.array([0.3, -0.7], np.float32)
     stack = FrameStack(robot.history)
+    memory = Memory(robot.memory, robot.sensor.fov, robot.sensor.range_min, 8.0)
     obs = np.stack(
         [
-            stack(goal_observation(s, p, goal, last, robot.command_scale)).copy()
+            np.concatenate(
+                [stack(goal_observation(s, p, goal, last, robot.command_scale)), memory(s, p)]
+            )
             for s, p in zip(sectors, poses, strict=True)
         ]
     )
@@ -98,6 +114,11 @@ def test_export_and_robot_side_take_the_goal_observation(goal_run, tmp_path):
 
     session = ort.InferenceSession(str(onnx_file), providers=["CPUExecutionProvider"])
     np.testing.assert_allclose(session.run(["action"], {"obs": obs})[0], want, atol=1e-5)
+    arrays = dict(np.load(numpy_file))
+    assert int(arrays["format_version"]) == MEMORY_FORMAT
+    del arrays["memory_reach"]
+    with pytest.raises(ValueError, match="memory_bins without memory_steps, memory_reach"):
+        NumpyPolicy.from_arrays(arrays, "policy.npz")
 
 
 def scan(distance: float):
@@ -109,20 +130,28 @@ def test_control_loop_goal_inputs(goal_run, tmp_path):
     log = []
     goal = GoalInput()
     loop = ControlLoop(Controller(robot), MessageReader(scan=True), log=log.append, goal=goal)
-    loop.on_observation(scan(3.0), 0.0)
+    loop.on_observation(scan(1.0), 0.0)
     assert loop.tick(0.0) == STOP and loop.state == "no goal yet"
     goal.on_goal(2.0, 1.0, "odom")
     assert loop.tick(0.05) == STOP and loop.state == "no odometry yet"
     goal.on_pose(0.0, 0.0, 0.5, 0.05, "odom")
     twist = loop.tick(0.1)
-    sectors = Controller(robot).scan_obs(*ros_node.scan_msg_to_arrays(*vars(scan(3.0)).values()))
+    sectors = Controller(robot).scan_obs(*ros_node.scan_msg_to_arrays(*vars(scan(1.0)).values()))
     obs = goal_observation(sectors, (0.0, 0.0, 0.5), (2.0, 1.0), np.zeros(2), robot.command_scale)
     obs = np.tile(obs, 1 + robot.history)  # the first frame stands in for the earlier ones
+    memory = Memory(robot.memory, robot.sensor.fov, robot.sensor.range_min, 8.0)
+    obs = np.concatenate([obs, memory(sectors, (0.0, 0.0, 0.5))])
     np.testing.assert_allclose(loop.obs, obs)
+    assert (obs[-BINS:] < 1.5).sum() == 2  # the wall 1 m ahead, in the two bins ahead
     assert twist == pytest.approx(tuple(robot(obs))) and loop.state == "policy"
+    goal.on_pose(0.0, 0.0, 0.5 + math.pi, 0.12, "odom")  # turned round, still on the same scan
     loop.tick(0.15)  # the next observation carries the command just sent
     np.testing.assert_allclose(loop.obs[11:13], np.asarray(twist) / robot.command_scale, rtol=1e-6)
-    np.testing.assert_allclose(loop.obs[13:], obs[:-13])  # and the frames before it
+    np.testing.assert_allclose(loop.obs[13:-BINS], obs[: -13 - BINS])  # and the frames before it
+    # The scan already remembered is read back from the new pose, not added again.
+    want = memory(sectors, (0.0, 0.0, 0.5 + math.pi), remember=False)
+    np.testing.assert_allclose(loop.obs[-BINS:], want)
+    assert (want[[0, -1]] < 1.5).all() and (want[1:-1] == 1.5).all()  # the wall is behind
     assert loop.tick(0.5) == STOP and loop.state == "no sensor message for over 0.25 s"
     loop.on_observation(scan(3.0), 0.5)
     assert loop.tick(0.5) == STOP and loop.state == "no odometry for over 0.25 s"

@@ -26,10 +26,15 @@ observation is the sectors, then `goal_features` [3], then the last command / co
 command_scale float32 [2], success_radius (m) and history (int: that many earlier observations
 follow the newest, newest first; `FrameStack`).
 
+Format 4 (MEMORY_FORMAT; written only for policies with a memory) adds memory_bins, memory_steps,
+memory_reach (m) and memory_forward (m): the observation ends with the memory's `memory_bins`
+entries (`jaxnav_robot.memory`, `MemorySpec`'s fields of the same names; memory_forward is its
+camera_forward).
+
 Loading checks the whole file before anything runs, and any problem is a ValueError of one line
 naming the file and the entry: only a regular file of at most MAX_FILE_BYTES is read (a FIFO or a
 device is refused at once, never waited on); a damaged archive says so; format_version and the
-counts (num_sectors, extra_observations, history) must be whole numbers; every number must be
+counts (num_sectors, extra_observations, history, memory_bins, memory_steps) must be whole numbers; every number must be
 finite (clip may be inf); every per-observation array must have one value per observation entry
 (obs_std > 0); and every command (commands, action_low, action_high) must lie within
 +-MAX_FORWARD m/s and +-MAX_YAW_RATE rad/s.
@@ -47,10 +52,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .memory import MemorySpec
 from .observation import Sensor
 
 FORMAT_VERSION = 3
-READS = (2, 3)  # the formats this reader knows
+MEMORY_FORMAT = 4  # the format of policies with a memory, which a format-3 reader would misread
+READS = (2, 3, 4)  # the formats this reader knows
 _REQUIRED = ("W0", "b0", "obs_mean", "obs_std", "clip", "leaky_slope", "action_names", "commands")
 _REQUIRED += ("fov", "range_min", "range_max", "num_sectors")
 MAX_FILE_BYTES = 64 * 2**20  # two 64-unit layers take ~20 kB: far more than any real policy
@@ -183,6 +190,24 @@ class _Entries:
         except ValueError as err:  # Sensor's own checks: name the file too
             raise ValueError(f"{self.source}: {err}") from None
 
+    def memory(self) -> MemorySpec | None:
+        """The file's `MemorySpec`; None where it has none."""
+        if "memory_bins" not in self.arrays:
+            return None
+        try:
+            return MemorySpec(
+                bins=self.whole("memory_bins"),
+                steps=self.whole("memory_steps"),
+                reach=self.number("memory_reach"),
+                camera_forward=self.number("memory_forward"),
+            )
+        except (KeyError, TypeError):
+            raise ValueError(
+                f"{self.source}: memory_bins without memory_steps, memory_reach and memory_forward"
+            ) from None
+        except ValueError as err:  # MemorySpec's own checks: name the file too
+            raise ValueError(f"{self.source}: {err}") from None
+
     def names(self, name: str) -> tuple[str, ...]:
         """Entry `name`, a list of names."""
         value = np.asarray(self.arrays[name])
@@ -237,6 +262,9 @@ class NumpyPolicy:
     """m: the goal task's goal counts as reached within this distance."""
     history: int = 0
     """Earlier observations the goal task stacks after the newest (`FrameStack`); 0 = none."""
+    memory: MemorySpec | None = None
+    """What the observation's last `memory.bins` entries remember (`jaxnav_robot.memory`);
+    None: no memory."""
 
     @property
     def continuous(self) -> bool:
@@ -245,8 +273,9 @@ class NumpyPolicy:
 
     @property
     def observation_size(self) -> int:
-        """D: sectors plus the task's extra entries, times the stacked frames."""
-        return (self.sensor.num_sectors + self.extra_observations) * (1 + self.history)
+        """D: sectors plus the task's extra entries, times the stacked frames, then the memory."""
+        frames = (self.sensor.num_sectors + self.extra_observations) * (1 + self.history)
+        return frames + (self.memory.bins if self.memory else 0)
 
     @classmethod
     def from_arrays(cls, arrays: dict, source: str = "policy") -> NumpyPolicy:
@@ -273,6 +302,7 @@ class NumpyPolicy:
             command_scale=get.floats("command_scale"),
             success_radius=get.number("success_radius"),
             history=get.whole("history", 0),
+            memory=get.memory(),
         )
         policy.check(source)
         if "obs_var" in arrays:  # not applied (obs_std is), but a wrong one means a damaged file

@@ -106,6 +106,7 @@ from .calibrate import (
     StartupCalibration,
     Tolerance,
 )
+from .memory import Memory
 from .observation import (
     BLIND_FRACTION,
     MAX_UNKNOWN,
@@ -494,7 +495,14 @@ class ControlLoop:
         self.camera: Intrinsics | None = None  # the depth camera's calibration, once known
         self.enabled = True
         self._last = np.zeros(2, np.float32)  # the last command sent, in the policy's units
-        self._frames = FrameStack(getattr(controller.policy, "history", 0))
+        policy = controller.policy
+        self._frames = FrameStack(getattr(policy, "history", 0))
+        spec = getattr(policy, "memory", None)  # the goal policy's memory, if it has one
+        self._memory = None
+        if spec is not None:
+            sensor = policy.sensor
+            self._memory = Memory(spec, sensor.fov, sensor.range_min, sensor.range_max)
+        self._remembered = None  # the stamp of the sensor message the memory took last
         self._goal_seen = None  # the goal the stacked frames belong to
         self.obs: np.ndarray | None = None
         self.state = "no sensor message yet"
@@ -593,7 +601,7 @@ class ControlLoop:
         obs, twist, state = self._decide(now)
         if obs is None:  # the robot is told to stop: the goal task's last command is zero
             self._last = np.zeros(2, np.float32)  # and its next frame starts a fresh stack
-            self._frames.reset()
+            self._forget()
         if state != self.state:
             self.log(f"{state}: {'driving' if obs is not None else 'sending zero velocity'}")
         self.obs, self.state = obs, state
@@ -708,15 +716,25 @@ class ControlLoop:
         policy = self.controller.policy
         given = (self.goal.goal, self.goal.goal_frame)  # not its drifting place in odom
         if given != self._goal_seen:  # a new goal: a new episode
-            self._frames.reset()
+            self._forget()
             self._goal_seen = given
         obs = self._frames(
             goal_observation(
                 sectors, self.goal.pose, self.goal.target, self._last, policy.command_scale
             )
         )
+        if self._memory is not None:  # a message is remembered once, at the first tick's pose
+            new, self._remembered = self._stamp != self._remembered, self._stamp
+            obs = np.concatenate([obs, self._memory(sectors, self.goal.pose, remember=new)])
         self._last = policy.command(obs)
         return obs
+
+    def _forget(self) -> None:
+        """A fresh start for the goal policy's stacked frames and memory."""
+        self._frames.reset()
+        if self._memory is not None:
+            self._memory.reset()
+            self._remembered = None
 
 
 def twist_msg(twist: Twist, msg_cls):

@@ -1,14 +1,18 @@
 """`goal`: point-goal navigation. Reach a goal position in a room of obstacles, touching none.
 
-Observation [(1 + history) x (num_sectors + 5)]: a frame is the depth sectors (m, as `avoid`), the
-goal in the robot's frame (distance m, sin and cos of its bearing, positive = to the left) and the
-last command the policy sent (forward / forward_speed, yaw / turn_rate); the newest frame comes
-first, then the `history` (16) before it, newest first. The stacked frames are a short memory: a
-policy that remembers where it has just been gets round walls a memoryless one stalls at
-(docs/results.md). The last command rather than the measured
-velocity: with the Kobuki's velocity smoother and command latency the robot's motion lags the
-command, and the policy needs to know what it already asked for; the command is exact on both
-sides, where a measured velocity would bring the odometry's noise and its own sim-to-real gap.
+Observation [(1 + history) x (num_sectors + 5) + memory_bins]: a frame is the depth sectors (m, as
+`avoid`), the goal in the robot's frame (distance m, sin and cos of its bearing, positive = to the
+left) and the last command the policy sent (forward / forward_speed, yaw / turn_rate); the newest
+frame comes first, then the `history` (16) before it, newest first. The stacked frames are a short
+memory: a policy that remembers where it has just been gets round walls a memoryless one stalls at
+(docs/results.md). The last command rather than the measured velocity: with the Kobuki's velocity
+smoother and command latency the robot's motion lags the command, and the policy needs to know what
+it already asked for; the command is exact on both sides, where a measured velocity would bring
+the odometry's noise and its own sim-to-real gap.
+With `memory_bins` the observation ends with a memory (`jaxnav.robot_side.memory`, the same code
+on the robot): the distance to the nearest point the camera saw in the last `memory_steps` steps in
+each of that many directions round the robot, so an obstacle that left the 60 degree view, or came
+nearer than the camera's range_min, is still seen (docs/results.md, "BARN").
 
 Actions: the paper's three (default) or continuous (forward m/s, yaw rad/s), see `GoalConfig`.
 Reward per step (`GoalConfig`): progress_reward x (metres closer to the goal) + time_reward, plus
@@ -38,6 +42,7 @@ from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal, shortest_paths
 from jaxnav.core.randomize import LARGE_FAMILIES, family_weights
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
+from jaxnav.robot_side.memory import MemorySpec, recall, sector_points
 from jaxnav.tasks.base import (
     Actuator,
     EvalMetric,
@@ -88,6 +93,14 @@ class GoalConfig:
     history: int = 16
     """Earlier observations appended to the current one, newest first (stacked frames: a 1.6 s
     memory); 0 = none. The observation grows to (1 + history) x (sectors + 5)."""
+    memory_bins: int = 0
+    """Directions round the robot in which the observation ends with the distance to the nearest
+    point the camera saw in the last `memory_steps` steps (`jaxnav.robot_side.memory`: what
+    left the view, and what came nearer than range_min); 0 = no memory."""
+    memory_steps: int = 20
+    """Control steps a sector's reading is remembered (20 = 2 s at 10 Hz)."""
+    memory_reach: float = 1.5
+    """m; a memory bin with no remembered point nearer reads this."""
 
     def __post_init__(self):
         require_finite(self)
@@ -100,8 +113,13 @@ class GoalConfig:
             )
         if self.max_steps < 1:
             raise ValueError(f"GoalConfig.max_steps: must be >= 1, got {self.max_steps}")
-        if self.history < 0:
-            raise ValueError(f"GoalConfig.history: must be >= 0, got {self.history}")
+        for name in ("history", "memory_bins"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"GoalConfig.{name}: must be >= 0, got {getattr(self, name)}")
+        if self.memory_steps < 1:
+            raise ValueError(f"GoalConfig.memory_steps: must be >= 1, got {self.memory_steps}")
+        if self.memory_reach <= 0:
+            raise ValueError(f"GoalConfig.memory_reach: must be > 0 m, got {self.memory_reach}")
         if self.progress not in ("geodesic", "straight"):
             raise ValueError(
                 f"GoalConfig.progress: must be 'geodesic' or 'straight', got {self.progress!r}"
@@ -203,7 +221,15 @@ class GoalEnv(NavTask):
         task.check_robot(self.robot)
         self.action_spec = task.action_spec
         self._frame = self.sensor.num_sectors + task.extra_observations  # one observation
-        self.observation_size = self._frame * (1 + task.history)
+        self._frames = self._frame * (1 + task.history)  # the stacked frames
+        self.observation_size = self._frames + task.memory_bins
+        self._memory = None
+        if task.memory_bins:
+            if self.sensor.model != "camera":
+                raise ValueError("GoalConfig.memory_bins: needs a camera (--sensor.model camera)")
+            self._memory = MemorySpec(
+                task.memory_bins, task.memory_steps, task.memory_reach, self.robot.camera_forward
+            )
         self._command_scale = jnp.array([task.forward_speed, task.turn_rate])
         # The traced goal grid covers the largest room (the families fit in GRID_HALF).
         mix = family_weights(self.randomize.families) if self.randomize.families else {}
@@ -240,10 +266,14 @@ class GoalEnv(NavTask):
         info["params"] = params
         here = self._to_go(info, data.qpos[:2])
         info["critic"] = self._critic_features(info, data.qpos[:3], here, jnp.int32(0))
-        frame = self._observe(params, data, goal, command, k_obs)
+        if self._memory is not None:
+            s, m = self.sensor.num_sectors, self._memory.steps
+            info["memory"] = (jnp.zeros((m, s, 2)), jnp.zeros((m, s), bool))
+        frame, info, recalled = self._observe(params, data, goal, command, k_obs, info)
         return EnvState(
             data=data,
-            obs=jnp.tile(frame, 1 + t.history),  # the first frame stands in for the earlier ones
+            # the first frame stands in for the earlier ones
+            obs=jnp.concatenate([jnp.tile(frame, 1 + t.history), recalled]),
             reward=f0,
             done=b0,
             truncated=b0,
@@ -274,9 +304,10 @@ class GoalEnv(NavTask):
         key, k_obs = jax.random.split(info["key"])
         moved = jnp.linalg.norm(data.qpos[:2] - state.data.qpos[:2])
         f32 = lambda x: x.astype(jnp.float32)  # noqa: E731
+        frame, info, recalled = self._observe(params, data, goal, target, k_obs, info)
         return EnvState(
             data=data,
-            obs=self._stack(self._observe(params, data, goal, target, k_obs), state.obs),
+            obs=jnp.concatenate([self._stack(frame, state.obs), recalled]),
             reward=f32(reward),
             done=hit | success | truncated,
             truncated=truncated,
@@ -298,8 +329,8 @@ class GoalEnv(NavTask):
         )
 
     def _stack(self, frame: jax.Array, obs: jax.Array) -> jax.Array:
-        """[observation_size]: the new frame, then the newest `history` frames of `obs`."""
-        return jnp.concatenate([frame, obs[: self.observation_size - self._frame]])
+        """[(1 + history) x frame]: the new frame, then the newest `history` frames of `obs`."""
+        return jnp.concatenate([frame, obs[: self._frames - self._frame]])
 
     def _to_go(self, info, xy, blocked=None) -> jax.Array:
         """[] m from `xy` to the goal, as `GoalConfig.progress` measures it (`blocked`: the
@@ -324,8 +355,24 @@ class GoalEnv(NavTask):
         used = jnp.asarray(steps, jnp.float32) / self.task.max_steps
         return jnp.concatenate([here[None] / 5.0, closer, used[None]])
 
-    def _observe(self, params, data, goal, command, key) -> jax.Array:
-        """[observation_size]: sectors, goal features, the last command scaled to [-1, 1]."""
+    def _observe(self, params, data, goal, command, key, info):
+        """This step's frame [sectors + 5] (sectors, goal features, the last command scaled to
+        [-1, 1]), `info` with the memory that holds its readings, and the memory read back
+        [memory_bins] (`jaxnav.robot_side.memory`; [0] without one)."""
         sectors = self.sense(params, data, key)
         features = goal_features(data.qpos[:3], goal)
-        return jnp.concatenate([sectors, features, command / self._command_scale])
+        frame = jnp.concatenate([sectors, features, command / self._command_scale])
+        spec = self._memory
+        if spec is None:
+            return frame, info, jnp.zeros(0)
+        sensor, pose = self.sensor, data.qpos[:3]
+        new, seen = sector_points(
+            sectors, pose, sensor.fov, sensor.range_min, sensor.range_max, spec.camera_forward, jnp
+        )
+        points, seens = info["memory"]  # [steps, S, 2], [steps, S], newest first
+        points = jnp.concatenate([new[None], points[:-1]])
+        seens = jnp.concatenate([seen[None], seens[:-1]])
+        recalled = recall(
+            points.reshape(-1, 2), seens.reshape(-1), pose, spec.bins, spec.reach, jnp
+        )
+        return frame, {**info, "memory": (points, seens)}, recalled.astype(jnp.float32)

@@ -1,0 +1,104 @@
+"""The goal task's memory on BARN and the benchmark suite: goal policies trained with and without it,
+and with BARN-like dense fields in their room mix.
+
+    python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
+        --runs runs/memory --json benchmarks/results/memory_h100.json
+
+Each variant trains `python -m jaxnav.train --env goal --preset P --seed S --out RUNS/NAME FLAGS`
+(its flags below, given in full so that a row does not depend on the preset's defaults), then is
+evaluated on BARN's 300 worlds (`--suite barn`, `--barn-episodes` a world, 100 s, as
+`benchmarks/barn.py`) and on the 32 rooms of the benchmark suite (`--suite benchmark`, 20 episodes
+a room). Rows already in the JSON file are kept where this run does not measure them again, so
+variants may be run in several calls. Prints a table last.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from report import run_info, write_json
+
+ROOT = Path(__file__).resolve().parent.parent
+VARIANTS = {
+    "plain": ("--task.memory-bins", "0", "--randomize.families", "all"),
+    "plain_dense": ("--task.memory-bins", "0", "--randomize.families", "all,dense_field:3"),
+    "memory": ("--task.memory-bins", "16", "--randomize.families", "all"),
+    "memory_dense": ("--task.memory-bins", "16", "--randomize.families", "all,dense_field:3"),
+}
+BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
+SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
+
+
+def train(preset: str, seed: int, out: Path, flags: list[str]) -> tuple[list[str], float]:
+    """Trains one variant on the command line: (its command, wall seconds)."""
+    command = ["python", "-m", "jaxnav.train", "--env", "goal", "--preset", preset]
+    command += ["--seed", str(seed), "--out", str(out), "--no-progress", *flags]
+    tick = time.perf_counter()
+    done = subprocess.run([sys.executable, *command[1:]], cwd=ROOT, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"memory: {' '.join(command)} failed:\n{done.stderr.strip()}")
+    return command, time.perf_counter() - tick
+
+
+def judge(run: Path, barn_episodes: int) -> dict:
+    """BARN's groups and the benchmark suite's families and overall for the policy in `run`."""
+    import jaxnav
+    from jaxnav.evaluation import evaluate
+
+    policy = jaxnav.load_policy(run)
+    barn = evaluate(policy, suite="barn", episodes=barn_episodes, steps=1000)
+    suite = evaluate(policy, suite="benchmark", episodes=20)
+    pick = lambda m, keys: {k: round(float(m[k]), 4) for k in keys}  # noqa: E731
+    groups = {**barn["families"], "overall": barn["overall"]}  # easy, medium, hard, overall
+    return {
+        "barn": {g: pick(m, BARN_KEYS) for g, m in groups.items()},
+        "suite": pick(suite["overall"], SUITE_KEYS),
+        "suite_families": {f: pick(m, SUITE_KEYS) for f, m in suite["families"].items()},
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="gpu")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--variants", default=",".join(VARIANTS), help=", ".join(VARIANTS))
+    p.add_argument("--runs", type=Path, default=Path("runs/memory"), help="the runs' folder")
+    p.add_argument("--barn-episodes", type=int, default=2, help="per BARN world (default 2)")
+    p.add_argument("--extra", default="", help="more training flags for every variant, quoted")
+    p.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "memory.json")
+    args = p.parse_args()
+    names = args.variants.split(",")
+    if unknown := sorted(set(names) - set(VARIANTS)):
+        p.error(f"--variants: unknown {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
+    rows = json.loads(args.json.read_text())["rows"] if args.json.exists() else {}
+    for name in names:
+        run = (args.runs / name).resolve()
+        flags = [*VARIANTS[name], *args.extra.split()]
+        command, wall = train(args.preset, args.seed, run, flags)
+        rows[name] = {
+            "training": " ".join(command).replace(str(run), f"runs/{name}"),
+            "train_wall_s": round(wall, 1),
+            **run_info("commit", "dirty", "device", "jax", "date"),
+            **judge(run, args.barn_episodes),
+        }
+        print(f"{name}: trained in {wall:.0f} s", file=sys.stderr)
+    info = {**run_info("command", "python"), "barn_episodes": args.barn_episodes}
+    write_json(args.json, {**info, "rows": rows})
+    head = f"{'variant':<14}{'BARN':>7}{'easy':>7}{'medium':>8}{'hard':>7}{'suite':>7}{'SPL':>6}"
+    print(head)
+    for name, row in rows.items():
+        b, s = row["barn"], row["suite"]
+        print(
+            f"{name:<14}{b['overall']['success_rate']:>7.1%}{b['easy']['success_rate']:>7.1%}"
+            f"{b['medium']['success_rate']:>8.1%}{b['hard']['success_rate']:>7.1%}"
+            f"{s['success_rate']:>7.1%}{s['spl']:>6.2f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
