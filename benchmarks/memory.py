@@ -8,8 +8,9 @@ Each variant trains `python -m jaxnav.train --env goal --preset P --seed S --out
 (its flags below, given in full so that a row does not depend on the preset's defaults), then is
 evaluated on BARN's 300 worlds (`--suite barn`, `--barn-episodes` a world, 100 s, as
 `benchmarks/barn.py`) and on the 32 rooms of the benchmark suite (`--suite benchmark`, 20 episodes
-a room). Rows already in the JSON file are kept where this run does not measure them again, so
-variants may be run in several calls. Prints a table last.
+a room). Rows are kept per variant and seed: those already in the JSON file stay where this run
+does not measure them again, so variants and seeds may be run in several calls. Prints a table
+last: each variant's mean over its seeds, and the lowest and highest BARN success.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from report import run_info, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,6 +32,7 @@ VARIANTS = {
     "memory": ("--task.memory-bins", "16", "--randomize.families", "all"),
     "memory_dense": ("--task.memory-bins", "16", "--randomize.families", "all,dense_field:3"),
 }
+GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
 
@@ -62,6 +65,11 @@ def judge(run: Path, barn_episodes: int) -> dict:
     }
 
 
+def mean(runs: list[dict], get) -> float:
+    """The mean of `get(row)` over the rows of a variant's seeds."""
+    return float(np.mean([get(r) for r in runs]))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--preset", default="gpu")
@@ -77,11 +85,11 @@ def main() -> None:
         p.error(f"--variants: unknown {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
     rows = json.loads(args.json.read_text())["rows"] if args.json.exists() else {}
     for name in names:
-        run = (args.runs / name).resolve()
+        run = (args.runs / f"{name}-{args.seed}").resolve()
         flags = [*VARIANTS[name], *args.extra.split()]
         command, wall = train(args.preset, args.seed, run, flags)
-        rows[name] = {
-            "training": " ".join(command).replace(str(run), f"runs/{name}"),
+        rows.setdefault(name, {})[str(args.seed)] = {
+            "training": " ".join(command).replace(str(run), f"runs/{name}-{args.seed}"),
             "train_wall_s": round(wall, 1),
             **run_info("commit", "dirty", "device", "jax", "date"),
             **judge(run, args.barn_episodes),
@@ -89,14 +97,17 @@ def main() -> None:
         print(f"{name}: trained in {wall:.0f} s", file=sys.stderr)
     info = {**run_info("command", "python"), "barn_episodes": args.barn_episodes}
     write_json(args.json, {**info, "rows": rows})
-    head = f"{'variant':<14}{'BARN':>7}{'easy':>7}{'medium':>8}{'hard':>7}{'suite':>7}{'SPL':>6}"
-    print(head)
-    for name, row in rows.items():
-        b, s = row["barn"], row["suite"]
+    head = f"{'variant':<14}{'seeds':>6}{'BARN':>7}{'min-max':>14}{'easy':>7}{'medium':>8}"
+    print(head + f"{'hard':>7}{'suite':>7}{'SPL':>6}")
+    for name, seeds in rows.items():
+        runs = list(seeds.values())
+        barn = [r["barn"]["overall"]["success_rate"] for r in runs]
+        groups = [mean(runs, lambda r, g=g: r["barn"][g]["success_rate"]) for g in GROUPS]
         print(
-            f"{name:<14}{b['overall']['success_rate']:>7.1%}{b['easy']['success_rate']:>7.1%}"
-            f"{b['medium']['success_rate']:>8.1%}{b['hard']['success_rate']:>7.1%}"
-            f"{s['success_rate']:>7.1%}{s['spl']:>6.2f}"
+            f"{name:<14}{len(runs):>6}{np.mean(barn):>7.1%}"
+            f"{f'{min(barn):.1%}-{max(barn):.1%}':>14}{groups[0]:>7.1%}{groups[1]:>8.1%}"
+            f"{groups[2]:>7.1%}{mean(runs, lambda r: r['suite']['success_rate']):>7.1%}"
+            f"{mean(runs, lambda r: r['suite']['spl']):>6.2f}"
         )
 
 
