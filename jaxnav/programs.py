@@ -12,14 +12,17 @@ lookup in the persistent cache.
 The store is on with the compilation cache (`process.compile_cache`, which the commands call and
 `--no-compile-cache` turns off), for one device. A program that cannot be exported (an XLA custom
 call without a stability guarantee) is traced as before; a file that cannot be read back is traced
-again and written anew.
+again and written anew. The store keeps within MAX_BYTES: after a program is kept, those used
+longest ago go first (a program read back counts as used: its file's time is renewed).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.metadata
 import json
+import os
 import pickle
 import sys
 from pathlib import Path
@@ -52,6 +55,10 @@ LIBRARIES = (
 """The packages whose code a trace runs or lowers (their versions are in the key)."""
 
 TRACED = {"init": "init", "chunk": "run_chunk"}  # Trainer.parts' programs: their trace's name
+
+MAX_BYTES = 256 * 2**20
+"""The store's size at most: a goal run's two programs take about 0.7 MB (cpu preset), so this
+keeps the last few hundred configs and code versions."""
 
 _folder: Path | None = None
 
@@ -196,6 +203,8 @@ def _read(path: Path, name: str, run: str, args) -> Stored | None:
         stored = _load(name, run, entry["program"])
         if stored.in_tree != jax.tree_util.tree_structure(args):
             raise ValueError("its arguments differ")
+        with contextlib.suppress(OSError):  # used now: the last to go (`_prune`)
+            os.utime(path)
         return stored
     except FileNotFoundError:
         return None
@@ -230,7 +239,27 @@ def program(trainer, run: str, name: str, args) -> Stored | None:
         print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)
         return None
     _keep(path, entry)
+    _prune(_folder, spare=path)
     return _load(name, run, entry)
+
+
+def _prune(store: Path, spare: Path) -> None:
+    """Removes the programs of `store` used longest ago (by their file's time) until it holds
+    at most MAX_BYTES, never `spare` (the one just kept). A file another process removed or
+    holds is passed over."""
+    found = []
+    for path in store.glob("*.program"):
+        with contextlib.suppress(OSError):
+            info = path.stat()
+            found.append((info.st_mtime, info.st_size, path))
+    total = sum(size for _, size, _ in found)
+    for _, size, path in sorted(found):
+        if total <= MAX_BYTES:
+            return
+        if path != spare:
+            with contextlib.suppress(OSError):
+                path.unlink()
+                total -= size
 
 
 def with_init(trainer, config, env, key):

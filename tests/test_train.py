@@ -279,6 +279,44 @@ def test_the_program_store_keeps_reads_back_and_traces_a_damaged_file_again(tmp_
     assert programs.with_init(trainer, config, None, key) is trainer
 
 
+def test_the_program_store_keeps_within_its_size_removing_the_least_used_first(
+    tmp_path, monkeypatch
+):
+    """Past `MAX_BYTES` the programs used longest ago are removed, never the one just kept; a
+    program read back counts as used."""
+    import os
+
+    from jaxnav import programs
+    from jaxnav.ppo.train import Trainer
+    from jaxnav.training import build_config
+
+    def init(key):
+        return key * 2
+
+    trainer = Trainer(None, jax.jit(init), None, None, {"init": init})
+    key = jax.random.PRNGKey(0)
+    configs = [
+        build_config("cpu", seed=0, overrides={"ppo": {"total_steps": n * 8192}}) for n in (1, 2, 3)
+    ]
+    programs.use(tmp_path)
+    paths = []
+    for age, config in enumerate(configs[:2]):  # two programs, the first used longest ago
+        programs.with_init(trainer, config, None, key)
+        (new,) = set(tmp_path.iterdir()) - set(paths)
+        os.utime(new, (1000.0 + age, 1000.0 + age))
+        paths.append(new)
+    size = paths[0].stat().st_size
+    monkeypatch.setattr(programs, "MAX_BYTES", 2 * size + size // 2)  # room for two
+    programs.with_init(trainer, configs[0], None, key)  # read back: now the newest
+    assert paths[0].stat().st_mtime > 1001.0
+    programs.with_init(trainer, configs[2], None, key)  # a third: the least used goes
+    assert paths[0].exists() and not paths[1].exists() and len(list(tmp_path.iterdir())) == 2
+    monkeypatch.setattr(programs, "MAX_BYTES", 1)  # below one program: the one just kept stays
+    programs.with_init(trainer, configs[1], None, key)
+    assert len(list(tmp_path.iterdir())) == 1
+    programs.use(None)
+
+
 def test_the_program_store_keys_on_what_the_trace_depends_on(tmp_path):
     """The key of a run's stored programs is the same for equal configs and for configs that
     differ in their seed only (init's argument), and changes with the config (the step budget
