@@ -117,7 +117,7 @@ def test_export_and_robot_side_take_the_goal_observation(goal_run, tmp_path):
     arrays = dict(np.load(numpy_file))
     assert int(arrays["format_version"]) == MEMORY_FORMAT
     del arrays["memory_reach"]
-    with pytest.raises(ValueError, match="memory_bins without memory_steps, memory_reach"):
+    with pytest.raises(ValueError, match="^policy.npz: memory_bins without memory_reach$"):
         NumpyPolicy.from_arrays(arrays, "policy.npz")
 
 

@@ -3,17 +3,23 @@ robot's numpy code reading the same memory, and what it is for: an obstacle that
 view is still seen beside the robot."""
 
 import math
+import types
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import EXACT, start_in
+from test_robot_side import write_policy_npz
+from test_ros_node import odometry
 
 import jaxnav
 from jaxnav.core.sensors import SensorConfig
 from jaxnav.io.layouts import Cylinder, RoomLayout
 from jaxnav.robot_side.memory import Memory, MemorySpec, recall, sector_points
+from jaxnav.robot_side.observation import Controller
+from jaxnav.robot_side.policy import MEMORY_FORMAT, NumpyPolicy
+from jaxnav.robot_side.ros_node import ControlLoop, GoalInput, MessageReader, scan_msg_to_arrays
 
 
 def test_recall_by_hand():
@@ -53,7 +59,7 @@ def test_memory_spec_is_checked():
         MemorySpec(bins=8, steps=0, reach=1.0)
     with pytest.raises(ValueError, match="reach > 0"):
         MemorySpec(bins=8, steps=4, reach=0.0)
-    with pytest.raises(ValueError, match="GoalConfig.memory_bins: needs a camera"):
+    with pytest.raises(ValueError, match="GoalConfig.memory_bins: needs a camera .* 0"):
         jaxnav.make_env("goal", sensor=SensorConfig(model="lidar", fov=4.0), memory_bins=8)
 
 
@@ -90,3 +96,97 @@ def test_an_obstacle_that_left_the_view_stays_beside_the_robot():
     surface = math.hypot(x + 0.5, 0.45) - 0.15  # the pillar's nearest point, m
     assert abs(right - surface) < 0.08, (right, surface)
     assert (memory[8:] == spec.reach).all()  # nothing on the left
+
+
+def goal_memory_policy(path) -> NumpyPolicy:
+    """A small goal policy with a memory of 8 bins (no stacked frames), in the export format."""
+    size = 8 + 5 + 8  # sectors, the goal and the last command, the memory
+    rng = np.random.default_rng(0)
+    return NumpyPolicy.from_npz(
+        write_policy_npz(
+            path,
+            W0=rng.normal(size=(size, 16)).astype(np.float32),
+            obs_mean=np.zeros(size, np.float32),
+            obs_var=np.ones(size, np.float32),
+            obs_std=np.ones(size, np.float32),
+            extra_observations=np.int32(5),
+            command_scale=np.array([0.5, 1.5], np.float32),
+            success_radius=np.float64(0.3),
+            control_period=np.float64(0.1),
+            memory_bins=np.int32(8),
+            memory_steps=np.int32(20),
+            memory_reach=np.float64(1.5),
+            memory_forward=np.float64(-0.05),
+            format_version=np.int32(MEMORY_FORMAT),
+        )
+    )
+
+
+def scan(distance: float):
+    return types.SimpleNamespace(ranges=[distance] * 90, angle_min=-0.7, angle_increment=1.4 / 89)
+
+
+def test_the_control_loop_remembers_each_frame_once_and_forgets_when_it_must(tmp_path):
+    """The robot's loop: a sensor message is remembered once (a later tick on the same message
+    reads it back from the new pose), a short stop keeps the memory, a stop longer than the
+    memory's 2 s, a new goal or an odometry jump empties it; the observation is the robot
+    side's `Memory` fed the same frames."""
+    robot = goal_memory_policy(tmp_path / "policy.npz")
+    assert robot.observation_size == 21 and robot.memory.bins == 8
+    goal = GoalInput()
+    loop = ControlLoop(Controller(robot), MessageReader(scan=True), log=lambda _: None, goal=goal)
+    goal.on_goal(5.0, 0.0, "odom")
+    near = Controller(robot).scan_obs(*scan_msg_to_arrays(*vars(scan(1.0)).values()))
+    memory = Memory(robot.memory, robot.sensor.fov, robot.sensor.range_min, 8.0)
+
+    def tick(now, yaw=0.0, message=None):
+        goal.on_pose(0.0, 0.0, yaw, now, "odom")
+        if message is not None:
+            loop.on_observation(message, now)
+        loop.tick(now)
+        return None if loop.obs is None else loop.obs[-8:]
+
+    got = tick(0.0, message=scan(1.0))  # a wall 1 m ahead: the two bins ahead
+    np.testing.assert_allclose(got, memory(near, (0, 0, 0)))
+    assert (got[3:5] < 1.5).all() and (np.delete(got, [3, 4]) == 1.5).all()
+    got = tick(0.05, yaw=math.pi)  # turned round on the same message: the wall behind
+    np.testing.assert_allclose(got, memory(near, (0, 0, math.pi), remember=False))
+    assert (got[[0, -1]] < 1.5).all() and (got[1:-1] == 1.5).all()
+    far = tick(0.1, yaw=math.pi, message=scan(3.0))  # a new frame sees nothing near...
+    assert (far[[0, -1]] < 1.5).all()  # ...and the wall behind is remembered
+    assert tick(0.5, yaw=math.pi) is None and loop.state.startswith("no sensor message")
+    assert (tick(0.6, yaw=math.pi, message=scan(3.0))[[0, -1]] < 1.5).all()  # a short stop
+    assert tick(1.0, yaw=math.pi) is None
+    assert (tick(3.5, yaw=math.pi, message=scan(3.0)) == 1.5).all()  # 2.5 s stopped: forgotten
+    assert (tick(3.6, message=scan(1.0))[3:5] < 1.5).all()
+    assert (tick(3.62, yaw=math.pi, message=scan(3.0))[[0, -1]] < 1.5).all()  # behind now
+    goal.on_goal(-5.0, 0.0, "odom")  # a new goal: a new episode
+    assert (tick(3.65, yaw=math.pi) == 1.5).all()  # the wall, seen before it, is forgotten
+    assert (tick(3.7, message=scan(1.0))[3:5] < 1.5).all()
+    goal.on_odom_msg(odometry(0.0, 0.0, 0.0), 3.72)
+    goal.on_odom_msg(odometry(0.0, 0.0, math.pi / 3), 3.74)  # 60 deg in 0.02 s: a jump
+    for i in range(5):  # waited out
+        goal.on_odom_msg(odometry(0.0, 0.0, math.pi / 3), 3.76 + 0.02 * i)
+    assert goal.jump is None and goal.jumps == 1
+    loop.on_observation(scan(3.0), 3.9)
+    loop.tick(3.9)  # the wall 1 m ahead of the pose before the jump is forgotten
+    assert (loop.obs[-8:] == 1.5).all()
+
+
+def test_a_policy_file_with_a_bad_memory_is_refused_in_one_line(tmp_path):
+    """Memory entries without the goal inputs, a count that would allocate without bound, and
+    a missing entry are each one line naming the file and the entry."""
+    path = tmp_path / "policy.npz"
+    good = dict(np.load(write_policy_npz(path)))  # the paper's policy, no memory
+    memory = dict(memory_bins=np.int32(8), memory_steps=np.int32(20))
+    memory.update(memory_reach=np.float64(1.5), memory_forward=np.float64(0.0))
+    sized = {k: np.ones(16, np.float32) for k in ("obs_mean", "obs_var", "obs_std")}
+    sized["W0"] = np.ones((16, 16), np.float32)  # 8 sectors and 8 bins
+    for changes, message in (
+        ({**memory, **sized}, "memory_bins without the goal inputs"),
+        ({**memory, "memory_steps": np.int32(10**6)}, "memory_steps: must be in \\[0, 600\\]"),
+        ({"memory_bins": np.int32(8)}, "memory_bins without memory_steps, memory_reach, memory_"),
+    ):
+        with pytest.raises(ValueError, match=f"^policy.npz: {message}") as err:
+            NumpyPolicy.from_arrays({**good, **changes}, "policy.npz")
+        assert "\n" not in str(err.value)

@@ -90,7 +90,7 @@ class Memory:
         self._seen: np.ndarray | None = None  # [steps, S]
 
     def reset(self) -> None:
-        """Forget everything (a new goal, or the robot was moved)."""
+        """Forget everything (a new goal, an odometry jump, a stop longer than it remembers)."""
         self._points = self._seen = None
 
     def __call__(self, sectors, pose, remember: bool = True) -> np.ndarray:

@@ -194,17 +194,16 @@ class _Entries:
         """The file's `MemorySpec`; None where it has none."""
         if "memory_bins" not in self.arrays:
             return None
+        names = ("memory_steps", "memory_reach", "memory_forward")
+        if missing := [n for n in names if n not in self.arrays]:
+            raise ValueError(f"{self.source}: memory_bins without {', '.join(missing)}")
+        bins, steps = self.whole("memory_bins"), self.whole("memory_steps")
+        for name, value, top in (("memory_bins", bins, 360), ("memory_steps", steps, 600)):
+            if not 0 <= value <= top:  # a damaged count would allocate without bound
+                raise ValueError(f"{self.source}: {name}: must be in [0, {top}], got {value}")
+        reach, forward = self.number("memory_reach"), self.number("memory_forward")
         try:
-            return MemorySpec(
-                bins=self.whole("memory_bins"),
-                steps=self.whole("memory_steps"),
-                reach=self.number("memory_reach"),
-                camera_forward=self.number("memory_forward"),
-            )
-        except (KeyError, TypeError):
-            raise ValueError(
-                f"{self.source}: memory_bins without memory_steps, memory_reach and memory_forward"
-            ) from None
+            return MemorySpec(bins=bins, steps=steps, reach=reach, camera_forward=forward)
         except ValueError as err:  # MemorySpec's own checks: name the file too
             raise ValueError(f"{self.source}: {err}") from None
 
@@ -339,6 +338,8 @@ class NumpyPolicy:
             _check_pair(source, "command_scale", self.command_scale)
             if not (self.command_scale > 0).all():
                 raise ValueError(f"{source}: command_scale: must be > 0, got {self.command_scale}")
+        elif self.memory is not None:
+            raise ValueError(f"{source}: memory_bins without the goal inputs (extra_observations)")
 
     def _check_layers(self, source: str) -> None:
         """Every layer finite, and their sizes chain from the observation to the outputs."""

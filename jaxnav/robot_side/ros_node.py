@@ -372,6 +372,7 @@ class GoalInput:
         self.pose_received = -math.inf  # when it arrived (its stamp may not lead this)
         self.reached = False  # latched at the goal until a new goal comes
         self.jump: str | None = None  # the odometry jump waited out, until ODOM_RESUME steady
+        self.jumps = 0  # odometry jumps seen (a goal policy's memory forgets at each)
         self._steady = 0  # consistent odometry messages since the jump
 
     def on_goal(self, x: float, y: float, frame: str | None = None) -> None:
@@ -404,7 +405,7 @@ class GoalInput:
             return
         jump = odometry_jump(self.pose, pose, stamp - self.pose_stamp)
         if jump is not None:
-            self.jump, self._steady = jump, 0
+            self.jump, self._steady, self.jumps = jump, 0, self.jumps + 1
         elif self.jump is not None:
             self._steady += 1
             if self._steady >= ODOM_RESUME:
@@ -503,6 +504,8 @@ class ControlLoop:
             sensor = policy.sensor
             self._memory = Memory(spec, sensor.fov, sensor.range_min, sensor.range_max)
         self._remembered = None  # the stamp of the sensor message the memory took last
+        self._jumps = 0  # the odometry jumps the memory has been emptied for
+        self._stopped_at: float | None = None  # since when the robot is told to stop
         self._goal_seen = None  # the goal the stacked frames belong to
         self.obs: np.ndarray | None = None
         self.state = "no sensor message yet"
@@ -598,10 +601,18 @@ class ControlLoop:
 
     def tick(self, now: float) -> Twist:
         """The command to send at time `now` (s)."""
+        if self._memory is not None and self._stopped_at is not None:
+            period = getattr(self.controller.policy, "control_period", None) or 0.1
+            span = self._memory.spec.steps * period
+            if now - self._stopped_at > span:  # what it remembers is older than it may be
+                self._memory.reset()
         obs, twist, state = self._decide(now)
         if obs is None:  # the robot is told to stop: the goal task's last command is zero
             self._last = np.zeros(2, np.float32)  # and its next frame starts a fresh stack
-            self._forget()
+            self._frames.reset()
+            self._stopped_at = now if self._stopped_at is None else self._stopped_at
+        else:
+            self._stopped_at = None
         if state != self.state:
             self.log(f"{state}: {'driving' if obs is not None else 'sending zero velocity'}")
         self.obs, self.state = obs, state
@@ -716,8 +727,13 @@ class ControlLoop:
         policy = self.controller.policy
         given = (self.goal.goal, self.goal.goal_frame)  # not its drifting place in odom
         if given != self._goal_seen:  # a new goal: a new episode
-            self._forget()
+            self._frames.reset()
             self._goal_seen = given
+            if self._memory is not None:
+                self._memory.reset()
+        if self._memory is not None and self.goal.jumps != self._jumps:  # another odometry
+            self._memory.reset()
+            self._jumps = self.goal.jumps
         obs = self._frames(
             goal_observation(
                 sectors, self.goal.pose, self.goal.target, self._last, policy.command_scale
@@ -728,13 +744,6 @@ class ControlLoop:
             obs = np.concatenate([obs, self._memory(sectors, self.goal.pose, remember=new)])
         self._last = policy.command(obs)
         return obs
-
-    def _forget(self) -> None:
-        """A fresh start for the goal policy's stacked frames and memory."""
-        self._frames.reset()
-        if self._memory is not None:
-            self._memory.reset()
-            self._remembered = None
 
 
 def twist_msg(twist: Twist, msg_cls):

@@ -226,7 +226,10 @@ class GoalEnv(NavTask):
         self._memory = None
         if task.memory_bins:
             if self.sensor.model != "camera":
-                raise ValueError("GoalConfig.memory_bins: needs a camera (--sensor.model camera)")
+                raise ValueError(
+                    "GoalConfig.memory_bins: needs a camera (--sensor.model camera), or no "
+                    "memory (--task.memory-bins 0; the gpu preset has one)"
+                )
             self._memory = MemorySpec(
                 task.memory_bins, task.memory_steps, task.memory_reach, self.robot.camera_forward
             )
