@@ -34,9 +34,10 @@ camera_forward).
 Loading checks the whole file before anything runs, and any problem is a ValueError of one line
 naming the file and the entry: only a regular file of at most MAX_FILE_BYTES is read (a FIFO or a
 device is refused at once, never waited on); a damaged archive says so; format_version and the
-counts (num_sectors, extra_observations, history, memory_bins, memory_steps) must be whole numbers; every number must be
-finite (clip may be inf); every per-observation array must have one value per observation entry
-(obs_std > 0); and every command (commands, action_low, action_high) must lie within
+counts (num_sectors, extra_observations, history, memory_bins, memory_steps) must be whole
+numbers, the memory's at most 360 bins and 600 steps, and only with goal inputs; every number must
+be finite (clip may be inf); every per-observation array must have one value per observation
+entry (obs_std > 0); and every command (commands, action_low, action_high) must lie within
 +-MAX_FORWARD m/s and +-MAX_YAW_RATE rad/s.
 """
 
