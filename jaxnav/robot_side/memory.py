@@ -65,6 +65,14 @@ def sector_points(sectors, pose, fov: float, range_min: float, range_max: float,
     return xp.stack([x, y], -1), seen
 
 
+def remember_frame(kept, frame, xp=np):
+    """The memory `kept` = (points [steps, S, 2], seen [steps, S], newest first) with `frame`
+    = (points [S, 2], seen [S]) (`sector_points`) added first and the oldest frame let go."""
+    return tuple(
+        xp.concatenate([new[None], old[:-1]]) for new, old in zip(frame, kept, strict=True)
+    )
+
+
 def recall(points, seen, pose, bins: int, reach: float, xp=np):
     """[bins] the distance (m) from the robot at `pose` (x, y, yaw) to the nearest of `points`
     [N, 2] whose `seen` [N] is true in each direction bin (module docstring), `reach` where
@@ -100,14 +108,14 @@ class Memory:
         spec = self.spec
         sectors = np.asarray(sectors, np.float32)
         pose = np.asarray(pose, np.float32)
-        points, seen = sector_points(sectors, pose, *self._sensor, np.float32(spec.camera_forward))
         if self._points is None:
-            self._points = np.zeros((spec.steps, *points.shape), np.float32)
-            self._seen = np.zeros((spec.steps, *seen.shape), bool)
+            self._points = np.zeros((spec.steps, sectors.size, 2), np.float32)
+            self._seen = np.zeros((spec.steps, sectors.size), bool)
             remember = True
         if remember:
-            self._points = np.concatenate([points[None], self._points[:-1]])
-            self._seen = np.concatenate([seen[None], self._seen[:-1]])
+            forward = np.float32(spec.camera_forward)
+            frame = sector_points(sectors, pose, *self._sensor, forward)
+            self._points, self._seen = remember_frame((self._points, self._seen), frame)
         flat = self._points.reshape(-1, 2)
         out = recall(flat, self._seen.reshape(-1), pose, spec.bins, np.float32(spec.reach))
         return out.astype(np.float32)

@@ -503,6 +503,8 @@ class ControlLoop:
         if spec is not None:
             sensor = policy.sensor
             self._memory = Memory(spec, sensor.fov, sensor.range_min, sensor.range_max)
+            # the seconds it remembers: a longer stop leaves nothing it may keep
+            self._memory_span = spec.steps * (getattr(policy, "control_period", None) or 0.1)
         self._remembered = None  # the stamp of the sensor message the memory took last
         self._jumps = 0  # the odometry jumps the memory has been emptied for
         self._stopped_at: float | None = None  # since when the robot is told to stop
@@ -602,9 +604,7 @@ class ControlLoop:
     def tick(self, now: float) -> Twist:
         """The command to send at time `now` (s)."""
         if self._memory is not None and self._stopped_at is not None:
-            period = getattr(self.controller.policy, "control_period", None) or 0.1
-            span = self._memory.spec.steps * period
-            if now - self._stopped_at > span:  # what it remembers is older than it may be
+            if now - self._stopped_at > self._memory_span:  # older than it may be
                 self._memory.reset()
         obs, twist, state = self._decide(now)
         if obs is None:  # the robot is told to stop: the goal task's last command is zero

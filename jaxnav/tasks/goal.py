@@ -42,7 +42,7 @@ from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal, shortest_paths
 from jaxnav.core.randomize import LARGE_FAMILIES, family_weights
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
-from jaxnav.robot_side.memory import MemorySpec, recall, sector_points
+from jaxnav.robot_side.memory import MemorySpec, recall, remember_frame, sector_points
 from jaxnav.tasks.base import (
     Actuator,
     EvalMetric,
@@ -369,13 +369,9 @@ class GoalEnv(NavTask):
         if spec is None:
             return frame, info, jnp.zeros(0)
         sensor, pose = self.sensor, data.qpos[:3]
-        new, seen = sector_points(
+        new = sector_points(
             sectors, pose, sensor.fov, sensor.range_min, sensor.range_max, spec.camera_forward, jnp
         )
-        points, seens = info["memory"]  # [steps, S, 2], [steps, S], newest first
-        points = jnp.concatenate([new[None], points[:-1]])
-        seens = jnp.concatenate([seen[None], seens[:-1]])
-        recalled = recall(
-            points.reshape(-1, 2), seens.reshape(-1), pose, spec.bins, spec.reach, jnp
-        )
-        return frame, {**info, "memory": (points, seens)}, recalled.astype(jnp.float32)
+        points, seen = remember_frame(info["memory"], new, jnp)  # [steps, S, 2], [steps, S]
+        recalled = recall(points.reshape(-1, 2), seen.reshape(-1), pose, spec.bins, spec.reach, jnp)
+        return frame, {**info, "memory": (points, seen)}, recalled.astype(jnp.float32)
