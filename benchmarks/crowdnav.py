@@ -4,9 +4,9 @@
         --json benchmarks/results/crowdnav_goal.json
     python benchmarks/crowdnav.py --policy forward --episodes 10   # a baseline: straight ahead
 
-Runs `python -m jaxnav.evaluate --checkpoint RUN --layouts scenes/crowdnav/circle_crossing_K.json
---steps 250` for K = reactive and nonreactive (the rooms of `benchmarks/make_crowdnav.py`: 5
-people on a 4 m circle walking to the opposite point, the robot from (0, -4) to (0, 4)) and
+Evaluates as `python -m jaxnav.evaluate --checkpoint RUN --layouts
+scenes/crowdnav/circle_crossing_K.json --steps 250` does, for K = reactive and nonreactive (the
+rooms of `benchmarks/make_crowdnav.py`: 5 people on a 4 m circle walking to the opposite point, the robot from (0, -4) to (0, 4)) and
 reports what CrowdNav reports (Chen et al. 2019, "Crowd-Robot Interaction", Table I): the shares
 of episodes that reached the goal (success), collided (collision) and ran out of CrowdNav's 25 s
 (timeout; 250 control steps), and the mean time of the successful ones (time to goal, s; their
@@ -19,10 +19,6 @@ and writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
 
 from report import run_info, write_json
@@ -51,21 +47,17 @@ def crowdnav_metrics(overall: dict) -> dict:
     }
 
 
-def evaluate(policy: list[str], kind: str, episodes: int, seed: int) -> dict:
-    """`crowdnav_metrics` of `python -m jaxnav.evaluate` with the flags `policy` (a checkpoint or
-    a baseline) on the circle crossing of `kind`."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "eval.json"
-        command = [
-            *(sys.executable, "-m", "jaxnav.evaluate", *policy),
-            *("--layouts", str(SCENES / f"circle_crossing_{kind}.json")),
-            *("--episodes", str(episodes), "--steps", str(STEPS), "--seed", str(seed)),
-            *("--json", str(out), "--plots", tmp),
-        ]
-        done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
-        if done.returncode:
-            raise SystemExit(f"crowdnav: {' '.join(command)} failed:\n{done.stderr.strip()}")
-        return crowdnav_metrics(json.loads(out.read_text())["overall"])
+def circle_crossing(policy, kind: str, episodes: int, seed: int) -> dict:
+    """`crowdnav_metrics` of a goal `Policy` on the circle crossing of `kind`: the evaluation
+    `python -m jaxnav.evaluate --layouts scenes/crowdnav/circle_crossing_KIND.json --steps 250`
+    runs, in this process."""
+    from jaxnav.evaluation import evaluate, success_radius
+    from jaxnav.io.layouts import load_layouts
+
+    path = SCENES / f"circle_crossing_{kind}.json"
+    layouts = load_layouts([path], success_radius=success_radius(policy))
+    result = evaluate(policy, layouts, episodes=episodes, steps=STEPS, seed=seed)
+    return crowdnav_metrics(result["overall"])
 
 
 def format_table(results: dict) -> str:
@@ -90,11 +82,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=str(DEFAULT_JSON), help="write the results here")
     args = parser.parse_args()
+    import jaxnav
+    from jaxnav.evaluation import baseline
+
     if args.checkpoint:
-        policy = ["--checkpoint", args.checkpoint]
+        policy = jaxnav.load_policy(args.checkpoint)
     else:
-        policy = ["--policy", args.policy, "--env", "goal"]
-    results = {k: evaluate(policy, k, args.episodes, args.seed) for k in KINDS}
+        policy = baseline(args.policy, "goal")
+    results = {k: circle_crossing(policy, k, args.episodes, args.seed) for k in KINDS}
     print(format_table(results))
     result = {
         **run_info("device", "python", "jax"),

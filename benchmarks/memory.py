@@ -1,5 +1,6 @@
-"""The goal task's memory on BARN and the benchmark suite: goal policies trained with and without it,
-and with BARN-like dense fields in their room mix.
+"""The goal task's memory and training mix on BARN, the benchmark suite and CrowdNav's circle
+crossing: goal policies trained with and without the memory, with BARN-like dense fields or
+walkers in their room mix, and at the Kobuki's top speed.
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -7,10 +8,13 @@ and with BARN-like dense fields in their room mix.
 Each variant trains `python -m jaxnav.train --env goal --preset P --seed S --out RUNS/NAME FLAGS`
 (its flags below, given in full so that a row does not depend on the preset's defaults), then is
 evaluated on BARN's 300 worlds (`--suite barn`, `--barn-episodes` a world, 100 s, as
-`benchmarks/barn.py`) and on the 32 rooms of the benchmark suite (`--suite benchmark`, 20 episodes
-a room). Rows are kept per variant and seed: those already in the JSON file stay where this run
-does not measure them again, so variants and seeds may be run in several calls. Prints a table
-last: each variant's mean over its seeds, and the lowest and highest BARN success.
+`benchmarks/barn.py`), on the 32 rooms of the benchmark suite (`--suite benchmark`, 20 episodes
+a room) and on CrowdNav's circle crossing (`benchmarks/crowdnav.py`, `--crowd-episodes` a room;
+0 leaves it out, and rows measured before it was added have none). Rows are kept per variant and
+seed: those already in the JSON file stay where this run does not measure them again, so variants
+and seeds may be run in several calls. Prints a table last: each variant's mean over its seeds,
+the lowest and highest BARN success, and the circle crossing's success among reactive and
+non-reactive people.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from crowdnav import KINDS, circle_crossing
 from report import run_info, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -32,10 +37,16 @@ VARIANTS = {
     "plain_dense": ("--task.memory-bins", "0", "--randomize.families", "all,dense_field:3"),
     "memory": ("--task.memory-bins", "16", "--randomize.families", "all"),
     "memory_dense": ("--task.memory-bins", "16", "--randomize.families", "all,dense_field:3"),
+    "memory_crowd": ("--task.memory-bins", "16", "--randomize.families", "all,crowd:3"),
+    "memory_fast": ("--task.memory-bins", "16", "--randomize.families", "all")
+    + ("--task.forward-speed", "0.7"),
+    "memory_crowd_fast": ("--task.memory-bins", "16", "--randomize.families", "all,crowd:3")
+    + ("--task.forward-speed", "0.7"),
 }
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
+CROWD_KEYS = ("success", "collision", "timeout", "time_to_goal", "robot_collision")
 
 
 def train(preset: str, seed: int, out: Path, flags: list[str]) -> tuple[list[str], float]:
@@ -49,20 +60,25 @@ def train(preset: str, seed: int, out: Path, flags: list[str]) -> tuple[list[str
     return command, time.perf_counter() - tick
 
 
-def judge(run: Path, barn_episodes: int) -> dict:
-    """BARN's groups and the benchmark suite's families and overall for the policy in `run`."""
+def judge(run: Path, barn_episodes: int, crowd_episodes: int) -> dict:
+    """BARN's groups, the benchmark suite's families and overall, and (with `crowd_episodes` a
+    room) CrowdNav's circle crossing (`benchmarks/crowdnav.py`) for the policy in `run`."""
     import jaxnav
     from jaxnav.evaluation import evaluate
 
     policy = jaxnav.load_policy(run)
     barn = evaluate(policy, suite="barn", episodes=barn_episodes, steps=1000)
     suite = evaluate(policy, suite="benchmark", episodes=20)
+    people = (
+        {k: circle_crossing(policy, k, crowd_episodes, 0) for k in KINDS} if crowd_episodes else {}
+    )
     pick = lambda m, keys: {k: round(float(m[k]), 4) for k in keys}  # noqa: E731
     groups = {**barn["families"], "overall": barn["overall"]}  # easy, medium, hard, overall
     return {
         "barn": {g: pick(m, BARN_KEYS) for g, m in groups.items()},
         "suite": pick(suite["overall"], SUITE_KEYS),
         "suite_families": {f: pick(m, SUITE_KEYS) for f, m in suite["families"].items()},
+        **({"crowdnav": {k: pick(m, CROWD_KEYS) for k, m in people.items()}} if people else {}),
     }
 
 
@@ -78,6 +94,7 @@ def main() -> None:
     p.add_argument("--variants", default=",".join(VARIANTS), help=", ".join(VARIANTS))
     p.add_argument("--runs", type=Path, default=Path("runs/memory"), help="the runs' folder")
     p.add_argument("--barn-episodes", type=int, default=2, help="per BARN world (default 2)")
+    p.add_argument("--crowd-episodes", type=int, default=10, help="per circle-crossing room")
     p.add_argument("--extra", default="", help="more training flags for every variant, quoted")
     p.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "memory.json")
     args = p.parse_args()
@@ -96,22 +113,25 @@ def main() -> None:
             "training": " ".join(command).replace(str(run), f"runs/{name}-{args.seed}"),
             "train_wall_s": round(wall, 1),
             **run_info("commit", "dirty", "device", "jax", "date"),
-            **judge(run, args.barn_episodes),
+            **judge(run, args.barn_episodes, args.crowd_episodes),
         }
         print(f"{name}: trained in {wall:.0f} s", file=sys.stderr)
         info = {**run_info("command", "python"), "barn_episodes": args.barn_episodes}
+        info["crowd_episodes"] = args.crowd_episodes
         write_json(args.json, {**info, "rows": rows})  # after each: a later failure keeps it
-    head = f"{'variant':<14}{'seeds':>6}{'BARN':>7}{'min-max':>14}{'easy':>7}{'medium':>8}"
-    print(head + f"{'hard':>7}{'suite':>7}{'SPL':>6}")
+    head = f"{'variant':<18}{'seeds':>6}{'BARN':>7}{'min-max':>14}{'easy':>7}{'medium':>8}"
+    print(head + f"{'hard':>7}{'suite':>7}{'SPL':>6}{'crowd r/n':>12}")
     for name, seeds in rows.items():
         runs = list(seeds.values())
         barn = [r["barn"]["overall"]["success_rate"] for r in runs]
         groups = [mean(runs, lambda r, g=g: r["barn"][g]["success_rate"]) for g in GROUPS]
+        seen = [r["crowdnav"] for r in runs if "crowdnav" in r]
+        crowd = "/".join(f"{np.mean([c[k]['success'] for c in seen]):.0%}" for k in KINDS)
         print(
-            f"{name:<14}{len(runs):>6}{np.mean(barn):>7.1%}"
+            f"{name:<18}{len(runs):>6}{np.mean(barn):>7.1%}"
             f"{f'{min(barn):.1%}-{max(barn):.1%}':>14}{groups[0]:>7.1%}{groups[1]:>8.1%}"
             f"{groups[2]:>7.1%}{mean(runs, lambda r: r['suite']['success_rate']):>7.1%}"
-            f"{mean(runs, lambda r: r['suite']['spl']):>6.2f}"
+            f"{mean(runs, lambda r: r['suite']['spl']):>6.2f}{crowd if seen else '-':>12}"
         )
 
 
