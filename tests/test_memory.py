@@ -173,6 +173,49 @@ def test_the_control_loop_remembers_each_frame_once_and_forgets_when_it_must(tmp
     assert (loop.obs[-8:] == 1.5).all()
 
 
+def test_odometry_poses_between_messages_are_interpolated():
+    """`GoalInput.pose_at`: between two odometry poses, the straight mix of their positions and
+    the shorter turn between their headings (across +-pi too); the oldest kept before them, the
+    newest after; nothing across an odometry jump."""
+    goal = GoalInput()
+    assert goal.pose_at(1.0) is None
+    goal.on_odom_msg(odometry(0.0, 0.0, math.pi - 0.1), 1.00)
+    goal.on_odom_msg(odometry(0.01, 0.02, -math.pi + 0.1), 1.02)  # 0.2 rad left, past +pi
+    x, y, yaw = goal.pose_at(1.015)
+    assert (x, y) == pytest.approx((0.0075, 0.015)) and yaw == pytest.approx(math.pi + 0.05)
+    assert goal.pose_at(0.5) == pytest.approx((0.0, 0.0, math.pi - 0.1))
+    assert goal.pose_at(2.0) == goal.pose
+    goal.on_odom_msg(odometry(3.0, 0.0, 0.0), 1.04)  # 3 m in 0.02 s: a jump
+    assert goal.jumps == 1 and goal.pose_at(1.01) == goal.pose
+
+
+def test_the_control_loop_places_a_frame_at_the_pose_it_was_taken_from(tmp_path):
+    """A frame that arrives while the robot drives is remembered at the odometry pose of its
+    time (with `header_stamps`, its header stamp), not at the pose of the tick that reads it: a
+    wall 1 m ahead when the frame was taken reads 6-7 cm nearer 0.15 s later."""
+    robot = goal_memory_policy(tmp_path / "policy.npz")
+    goal = GoalInput()
+    loop = ControlLoop(
+        Controller(robot), MessageReader(scan=True), log=lambda _: None, goal=goal,
+        header_stamps=True,
+    )  # fmt: skip
+    goal.on_goal(5.0, 0.0, "odom")
+    for i in range(11):  # 0.5 m/s ahead, turning left at 1.5 rad/s, odometry at 50 Hz
+        goal.on_odom_msg(odometry(0.01 * i, 0.0, 0.03 * i), 0.02 * i)
+    message = scan(1.0)
+    message.header = types.SimpleNamespace(stamp=types.SimpleNamespace(sec=0, nanosec=50_000_000))
+    loop.on_observation(message, 0.2)  # taken at 0.05 s, read at 0.2 s
+    loop.tick(0.2)
+    near = Controller(robot).scan_obs(*scan_msg_to_arrays(*vars(scan(1.0)).values()))
+    memory = Memory(robot.memory, robot.sensor.fov, robot.sensor.range_min, 8.0)
+    expected = memory(near, goal.pose, taken_at=(0.025, 0.0, 0.075))
+    np.testing.assert_allclose(loop.obs[-8:], expected, rtol=1e-5)
+    memory.reset()
+    at_tick = memory(near, goal.pose)  # what placing it at the tick's pose would read
+    ahead = [3, 4]  # the bins of the wall; the others read the reach either way
+    assert (at_tick - expected)[ahead].min() > 0.06, (at_tick, expected)
+
+
 def test_a_policy_file_with_a_bad_memory_is_refused_in_one_line(tmp_path):
     """Memory entries without the goal inputs, a count that would allocate without bound, and
     a missing entry are each one line naming the file and the entry."""

@@ -101,10 +101,11 @@ class Memory:
         """Forget everything (a new goal, an odometry jump, a stop longer than it remembers)."""
         self._points = self._seen = None
 
-    def __call__(self, sectors, pose, remember: bool = True) -> np.ndarray:
+    def __call__(self, sectors, pose, remember: bool = True, taken_at=None) -> np.ndarray:
         """[bins] float32 read back at `pose` (x, y, yaw) after remembering `sectors` [S] (m)
-        as read there; `remember` False: a frame already remembered (the camera sent no newer
-        one this step), read back from the new pose without adding it again."""
+        as read from `taken_at` (the pose the frame was taken at; default `pose`); `remember`
+        False: a frame already remembered (the camera sent no newer one this step), read back
+        from the new pose without adding it again."""
         spec = self.spec
         sectors = np.asarray(sectors, np.float32)
         pose = np.asarray(pose, np.float32)
@@ -113,8 +114,9 @@ class Memory:
             self._seen = np.zeros((spec.steps, sectors.size), bool)
             remember = True
         if remember:
+            seen_from = pose if taken_at is None else np.asarray(taken_at, np.float32)
             forward = np.float32(spec.camera_forward)
-            frame = sector_points(sectors, pose, *self._sensor, forward)
+            frame = sector_points(sectors, seen_from, *self._sensor, forward)
             self._points, self._seen = remember_frame((self._points, self._seen), frame)
         flat = self._points.reshape(-1, 2)
         out = recall(flat, self._seen.reshape(-1), pose, spec.bins, np.float32(spec.reach))

@@ -72,7 +72,9 @@ jump (a step farther or a turn wider than the robot can make, `odometry_jump`) u
 has been consistent for `ODOM_RESUME` messages, and once the robot is within the policy's success
 radius of the goal, until a new goal comes (the goal stays reached if the robot drifts out again).
 Each tick it publishes the goal's status on `goal_status_topic` (std_msgs/String, default
-`goal_status`): "no goal", "driving", "reached", "odometry jump" or "stopped: <why>".
+`goal_status`): "no goal", "driving", "reached", "odometry jump" or "stopped: <why>". A goal
+policy with a memory (`robot_side.memory`) remembers each depth frame at the odometry pose of the
+frame's time, interpolated between the poses of the last POSE_TRACK odometry messages.
 
 Depth images may be 32FC1 (metres) or 16UC1 (millimetres). Their column angles and ray rows come
 from the camera's calibration, the K of sensor_msgs/CameraInfo on `camera_info_topic` (default:
@@ -90,6 +92,8 @@ those the `rosbags` library deserialises both work.
 from __future__ import annotations
 
 import argparse
+import bisect
+import collections
 import dataclasses
 import math
 import signal
@@ -127,6 +131,9 @@ ASTRA_VFOV_DEG = 49.5  # Orbbec Astra vertical field of view (the simulator has 
 # s a header stamp may lead its own arrival: one clock, or clocks kept within milliseconds by
 # NTP; a stamp further ahead would keep a stalled sensor's last message fresh that much longer.
 MAX_AHEAD = 0.05
+# odometry poses kept to place a depth frame at the pose it was taken from (a goal policy's
+# memory): 2.5 s of the Kobuki's 50 Hz odometry, more than a frame may age (`max_age`)
+POSE_TRACK = 128
 OTHER_CLOCK = " (by header.stamp: another clock? header_stamps:=false ages by arrival)"
 CMD_FRAME = "base_link"  # the frame of TwistStamped commands (Nav2's robot_base_frame)
 # Loop states of a fault (`ControlLoop.diagnosis`: ERROR), as opposed to waiting (WARN).
@@ -374,6 +381,7 @@ class GoalInput:
         self.jump: str | None = None  # the odometry jump waited out, until ODOM_RESUME steady
         self.jumps = 0  # odometry jumps seen (a goal policy's memory forgets at each)
         self._steady = 0  # consistent odometry messages since the jump
+        self._track: collections.deque = collections.deque(maxlen=POSE_TRACK)  # (stamp, pose)
 
     def on_goal(self, x: float, y: float, frame: str | None = None) -> None:
         """A new goal position (m) in `frame`: to be driven to, even where it equals the last."""
@@ -384,6 +392,24 @@ class GoalInput:
         `received` (default: stamp). Taken as it is: `on_odom_msg` checks for jumps."""
         self.pose, self.pose_frame, self.pose_stamp = (float(x), float(y), float(yaw)), frame, stamp
         self.pose_received = stamp if received is None else received
+        if self._track and stamp <= self._track[-1][0]:  # out of order, or a clock set back
+            self._track.clear()
+        self._track.append((stamp, self.pose))
+
+    def pose_at(self, stamp: float) -> tuple[float, float, float] | None:
+        """The odometry pose at `stamp` (s): interpolated between the two kept poses measured
+        around it (the last POSE_TRACK, since the last jump); the oldest kept before them, the
+        newest after."""
+        track = self._track
+        if not track or stamp >= track[-1][0]:
+            return self.pose
+        i = bisect.bisect_right([t for t, _ in track], stamp)
+        if i == 0:
+            return track[0][1]
+        (t0, a), (t1, b) = track[i - 1], track[i]
+        w = (stamp - t0) / (t1 - t0)
+        turn = (b[2] - a[2] + math.pi) % (2 * math.pi) - math.pi  # the shorter way round
+        return (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * turn)
 
     def on_goal_msg(self, msg) -> None:
         """A geometry_msgs/PoseStamped goal (its position; the orientation is not used) or
@@ -406,6 +432,7 @@ class GoalInput:
         jump = odometry_jump(self.pose, pose, stamp - self.pose_stamp)
         if jump is not None:
             self.jump, self._steady, self.jumps = jump, 0, self.jumps + 1
+            self._track.clear()  # no pose is interpolated across the jump
         elif self.jump is not None:
             self._steady += 1
             if self._steady >= ODOM_RESUME:
@@ -739,9 +766,11 @@ class ControlLoop:
                 sectors, self.goal.pose, self.goal.target, self._last, policy.command_scale
             )
         )
-        if self._memory is not None:  # a message is remembered once, at the first tick's pose
+        if self._memory is not None:  # a message is remembered once, at the pose it was taken at
             new, self._remembered = self._stamp != self._remembered, self._stamp
-            obs = np.concatenate([obs, self._memory(sectors, self.goal.pose, remember=new)])
+            taken_at = self.goal.pose_at(self._stamp)
+            recalled = self._memory(sectors, self.goal.pose, remember=new, taken_at=taken_at)
+            obs = np.concatenate([obs, recalled])
         self._last = policy.command(obs)
         return obs
 
