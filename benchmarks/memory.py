@@ -1,6 +1,7 @@
 """The goal task's memory and training mix on BARN, the benchmark suite and CrowdNav's circle
 crossing: goal policies trained with and without the memory, with BARN-like dense fields or
-walkers in their room mix, and at the Kobuki's top speed.
+walkers in their room mix, weighted as the cpu preset weighs its families, and at the Kobuki's
+top speed.
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -31,12 +32,15 @@ import numpy as np
 from crowdnav import KINDS, circle_crossing
 from report import run_info, write_json
 
+from jaxnav.tasks.presets import GOAL_CPU_FAMILIES
+
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = {
     "plain": ("--task.memory-bins", "0", "--randomize.families", "all"),
     "plain_dense": ("--task.memory-bins", "0", "--randomize.families", "all,dense_field:3"),
     "memory": ("--task.memory-bins", "16", "--randomize.families", "all"),
     "memory_dense": ("--task.memory-bins", "16", "--randomize.families", "all,dense_field:3"),
+    "memory_weighted": ("--task.memory-bins", "16", "--randomize.families", GOAL_CPU_FAMILIES),
     "memory_crowd": ("--task.memory-bins", "16", "--randomize.families", "all,crowd:3"),
     "memory_fast": ("--task.memory-bins", "16", "--randomize.families", "all")
     + ("--task.forward-speed", "0.7"),
