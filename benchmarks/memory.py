@@ -130,12 +130,14 @@ def main() -> None:
         barn = [r["barn"]["overall"]["success_rate"] for r in runs]
         groups = [mean(runs, lambda r, g=g: r["barn"][g]["success_rate"]) for g in GROUPS]
         seen = [r["crowdnav"] for r in runs if "crowdnav" in r]
-        crowd = "/".join(f"{np.mean([c[k]['success'] for c in seen]):.0%}" for k in KINDS)
+        crowd = "/".join(
+            f"{np.mean([c[k]['success'] for c in seen]):.0%}" for k in (KINDS if seen else ())
+        )
         print(
             f"{name:<18}{len(runs):>6}{np.mean(barn):>7.1%}"
             f"{f'{min(barn):.1%}-{max(barn):.1%}':>14}{groups[0]:>7.1%}{groups[1]:>8.1%}"
             f"{groups[2]:>7.1%}{mean(runs, lambda r: r['suite']['success_rate']):>7.1%}"
-            f"{mean(runs, lambda r: r['suite']['spl']):>6.2f}{crowd if seen else '-':>12}"
+            f"{mean(runs, lambda r: r['suite']['spl']):>6.2f}{crowd or '-':>12}"
         )
 
 
