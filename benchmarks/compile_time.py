@@ -25,7 +25,9 @@ after pair measured back to back.
 `--xla-flags A,B,...`: per task and per `XLA_FLAGS` value (an empty one: jaxnav's own compiler
 options, `jaxnav.core.xla`), `python -m jaxnav.train --no-compile-cache` for `--chunks` chunks: the
 seconds to its first chunk's end and the training pace after it (env steps per second, from the
-run's metrics.csv), so that a faster compile is seen not to cost speed.
+run's metrics.csv), so that a faster compile is seen not to cost speed. `--train-flags A,B,...`:
+the same, with each entry as more flags of the command line instead (e.g. `--threefry-kernel
+false`).
 """
 
 from __future__ import annotations
@@ -260,16 +262,18 @@ runpy.run_module("jaxnav.train", run_name="__main__", alter_sys=True)
 """
 
 
-def flag_runs(env: str, preset: str, flags: list[str], chunks: int) -> dict:
-    """{XLA_FLAGS: {first_chunk_s, steps_per_s after it, wall_s}} of `chunks`-chunk runs."""
+def flag_runs(env: str, preset: str, flags: list[str], chunks: int, train: bool = False) -> dict:
+    """{flags: {first_chunk_s, steps_per_s after it, wall_s}} of `chunks`-chunk runs, each with
+    one entry of `flags` as its XLA_FLAGS, or (`train`) as more flags of its command line."""
     from jaxnav.training import build_config
 
     cfg = build_config(preset, env=env).ppo
     out = {}
     for flag in flags:
         run = Path(tempfile.mkdtemp(prefix="jaxnav-run-")) / "run"
-        environ = {**os.environ, "XLA_FLAGS": flag}
+        environ = os.environ if train else {**os.environ, "XLA_FLAGS": flag}
         cmd = [sys.executable, "-m", "jaxnav.train", "--env", env, "--preset", preset]
+        cmd += flag.split() if train else []
         cmd += ["--out", str(run), "--no-progress", "--no-compile-cache"]
         cmd += ["--total-steps", str(chunks * cfg.updates_per_chunk * cfg.batch_size)]
         tick = time.perf_counter()
@@ -305,6 +309,7 @@ def main() -> None:
     p.add_argument("--only", default="", help="with --pieces: these pieces only (comma list)")
     p.add_argument("--repeats", type=int, default=3, help="with --pieces: fresh jits per piece")
     p.add_argument("--xla-flags", default=None, help="comma list of XLA_FLAGS (module doc)")
+    p.add_argument("--train-flags", default=None, help="comma list of training flags (doc)")
     p.add_argument("--chunks", type=int, default=3, help="with --xla-flags: chunks per run")
     p.add_argument("--checkout", type=Path, help="command-line runs of the jaxnav there only")
     args = p.parse_args()
@@ -319,14 +324,17 @@ def main() -> None:
                 f"{env:<6} cold {r['cold']['first_chunk_s']} s, warm {r['warm']['first_chunk_s']} s"
             )
         return
-    if args.xla_flags is not None:
-        flags = args.xla_flags.split(",")
+    if args.xla_flags is not None or args.train_flags is not None:
+        train = args.xla_flags is None
+        flags = (args.train_flags if train else args.xla_flags).split(",")
         rows = {
-            env: flag_runs(env, args.preset, flags, args.chunks) for env in args.envs.split(",")
+            env: flag_runs(env, args.preset, flags, args.chunks, train)
+            for env in args.envs.split(",")
         }
         info = run_info("command", "device", "jax", "mujoco", "date")
         write_json(args.json, {**info, "preset": args.preset, "chunks": args.chunks, "rows": rows})
-        print(f"{'env':<6} {'XLA_FLAGS':<44} {'first chunk s':>13} {'steps/s after':>13}")
+        what = "training flags" if train else "XLA_FLAGS"
+        print(f"{'env':<6} {what:<44} {'first chunk s':>13} {'steps/s after':>13}")
         for env, table in rows.items():
             for flag, r in table.items():
                 print(f"{env:<6} {flag:<44} {r['first_chunk_s']!s:>13} {r['steps_per_s']!s:>13}")

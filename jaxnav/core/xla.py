@@ -5,6 +5,10 @@ every room family's sampler) and each kernel runs briefly, so -O2 compiles the t
 about three quarters of the time and trains as fast (`benchmarks/compile_time.py --opt-levels`,
 docs/results.md). Other backends keep XLA's defaults, and so does a user's own
 `--xla_backend_optimization_level` in `XLA_FLAGS`.
+
+On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry, and a goal reset
+draws dozens of them: `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits),
+which halves the goal task's first compile (`PPOConfig.threefry_kernel`).
 """
 
 from __future__ import annotations
@@ -23,3 +27,15 @@ def compiler_options(backend: str | None = None) -> dict[str, int] | None:
     if OPTION in os.environ.get("XLA_FLAGS", ""):
         return None
     return {OPTION: CPU_OPT_LEVEL} if (backend or jax.default_backend()) == "cpu" else None
+
+
+THREEFRY_KERNEL = "jax_threefry_gpu_kernel_lowering"
+
+
+def threefry_kernel(on: bool, backend: str | None = None) -> None:
+    """On a GPU `backend` (default: JAX's default backend), programs lowered from now on in this
+    process call jax.random's threefry as one CUDA kernel (`on`) or inline its rounds (JAX's
+    default); the random bits are the same either way. Other backends have no such kernel, and
+    their setting is left as it is (it is part of every jit's cache key)."""
+    if (backend or jax.default_backend()) == "gpu":
+        jax.config.update(THREEFRY_KERNEL, bool(on))

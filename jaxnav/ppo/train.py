@@ -17,7 +17,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.core.types import ContinuousActions
-from jaxnav.core.xla import compiler_options
+from jaxnav.core.xla import compiler_options, threefry_kernel
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
@@ -144,7 +144,8 @@ def block_count(cfg: PPOConfig, devices=None) -> int:
 def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     """Builds the jitted PPO functions for `env` (any object with vmappable reset/step).
 
-    The robots are sharded over `devices` (default: every device of every process).
+    The robots are sharded over `devices` (default: every device of every process). On a GPU it
+    sets how this process lowers jax.random from now on (`cfg.threefry_kernel`).
     """
     network = make_network(cfg, env.action_spec, critic_inputs(cfg, env))
     dist = make_distribution(env.action_spec)
@@ -305,6 +306,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         "init": init,
         "chunk": run_chunk,
     }
-    options = compiler_options(list(devices or jax.devices())[0].platform)
+    platform = list(devices or jax.devices())[0].platform
+    options = compiler_options(platform)
+    threefry_kernel(cfg.threefry_kernel, platform)
     jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
     return Trainer(network, jit(init), jit(run_chunk, donate_argnums=0), jit(train), parts)
