@@ -8,7 +8,7 @@ docs/results.md). Other backends keep XLA's defaults, and so does a user's own
 
 On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry, and a goal reset
 draws dozens of them: `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits),
-which halves the goal task's first compile (`PPOConfig.threefry_kernel`).
+which nearly halves the goal task's first compile (`PPOConfig.threefry_kernel`).
 """
 
 from __future__ import annotations
