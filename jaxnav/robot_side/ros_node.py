@@ -768,7 +768,7 @@ class ControlLoop:
         )
         if self._memory is not None:  # a message is remembered once, at the pose it was taken at
             new, self._remembered = self._stamp != self._remembered, self._stamp
-            taken_at = self.goal.pose_at(self._stamp)
+            taken_at = self.goal.pose_at(self._stamp) if new else None
             recalled = self._memory(sectors, self.goal.pose, remember=new, taken_at=taken_at)
             obs = np.concatenate([obs, recalled])
         self._last = policy.command(obs)
