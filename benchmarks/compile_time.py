@@ -324,6 +324,8 @@ def main() -> None:
                 f"{env:<6} cold {r['cold']['first_chunk_s']} s, warm {r['warm']['first_chunk_s']} s"
             )
         return
+    if args.xla_flags is not None and args.train_flags is not None:
+        p.error("--xla-flags and --train-flags: give one of them")
     if args.xla_flags is not None or args.train_flags is not None:
         train = args.xla_flags is None
         flags = (args.train_flags if train else args.xla_flags).split(",")

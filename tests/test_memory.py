@@ -176,7 +176,7 @@ def test_the_control_loop_remembers_each_frame_once_and_forgets_when_it_must(tmp
 def test_odometry_poses_between_messages_are_interpolated():
     """`GoalInput.pose_at`: between two odometry poses, the straight mix of their positions and
     the shorter turn between their headings (across +-pi too); the oldest kept before them, the
-    newest after; nothing across an odometry jump."""
+    newest after; a pose of the same stamp replaces the last; nothing across an odometry jump."""
     goal = GoalInput()
     assert goal.pose_at(1.0) is None
     goal.on_odom_msg(odometry(0.0, 0.0, math.pi - 0.1), 1.00)
@@ -185,6 +185,8 @@ def test_odometry_poses_between_messages_are_interpolated():
     assert (x, y) == pytest.approx((0.0075, 0.015)) and yaw == pytest.approx(math.pi + 0.05)
     assert goal.pose_at(0.5) == pytest.approx((0.0, 0.0, math.pi - 0.1))
     assert goal.pose_at(2.0) == goal.pose
+    goal.on_pose(0.02, 0.04, -math.pi + 0.1, 1.02, "odom")  # the same stamp again: it stands
+    assert goal.pose_at(1.015)[:2] == pytest.approx((0.015, 0.03))  # for it; the track stays
     goal.on_odom_msg(odometry(3.0, 0.0, 0.0), 1.04)  # 3 m in 0.02 s: a jump
     assert goal.jumps == 1 and goal.pose_at(1.01) == goal.pose
 

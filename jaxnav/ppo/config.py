@@ -73,11 +73,11 @@ class PPOConfig:
     between old and new state for every robot: the same result bit for bit (tested; see
     `jaxnav.wrappers.AutoReset`), less memory traffic per step."""
     threefry_kernel: bool = False
-    """On a GPU, call jax.random's threefry as JAX's CUDA kernel instead of inlining its rounds
+    """On one GPU, call jax.random's threefry as JAX's CUDA kernel instead of inlining its rounds
     (`jaxnav.core.xla.threefry_kernel`, set by `make_train` for the process): the same random
-    bits in a smaller program. The goal task's default: on an H100 its first chunk took 40.6 s
-    against 73.9 s, for 3 % of its pace; `avoid`, which draws its episodes at every step, would
-    lose 43 % of its pace (docs/results.md)."""
+    bits in a smaller program. The goal task's default, where it nearly halves the first
+    compile for a few per cent of pace; `avoid`, which draws its episodes at every step, would
+    lose far more pace (docs/results.md, "The random numbers on the GPU")."""
     groups: int = 0
     """Independent blocks the robots are split into (0: one per device). Each block draws its own
     new episodes (`jaxnav.wrappers.AutoReset`) and each minibatch takes the same share of every

@@ -144,7 +144,7 @@ def block_count(cfg: PPOConfig, devices=None) -> int:
 def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     """Builds the jitted PPO functions for `env` (any object with vmappable reset/step).
 
-    The robots are sharded over `devices` (default: every device of every process). On a GPU it
+    The robots are sharded over `devices` (default: every device of every process). On one GPU it
     sets how this process lowers jax.random from now on (`cfg.threefry_kernel`).
     """
     network = make_network(cfg, env.action_spec, critic_inputs(cfg, env))
@@ -306,8 +306,11 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         "init": init,
         "chunk": run_chunk,
     }
-    platform = list(devices or jax.devices())[0].platform
+    devices_used = list(devices or jax.devices())
+    platform = devices_used[0].platform
     options = compiler_options(platform)
-    threefry_kernel(cfg.threefry_kernel, platform)
+    # On one device only: XLA cannot split the kernel's call over the devices the robots are
+    # sharded over, and several GPUs are not measured with it.
+    threefry_kernel(cfg.threefry_kernel and len(devices_used) == 1, platform)
     jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
     return Trainer(network, jit(init), jit(run_chunk, donate_argnums=0), jit(train), parts)

@@ -392,8 +392,11 @@ class GoalInput:
         `received` (default: stamp). Taken as it is: `on_odom_msg` checks for jumps."""
         self.pose, self.pose_frame, self.pose_stamp = (float(x), float(y), float(yaw)), frame, stamp
         self.pose_received = stamp if received is None else received
-        if self._track and stamp <= self._track[-1][0]:  # out of order, or a clock set back
-            self._track.clear()
+        if self._track and stamp <= self._track[-1][0]:
+            if stamp < self._track[-1][0]:  # out of order, or a clock set back
+                self._track.clear()
+            else:  # the same stamp again: the newer pose stands for it
+                self._track.pop()
         self._track.append((stamp, self.pose))
 
     def pose_at(self, stamp: float) -> tuple[float, float, float] | None:
@@ -768,7 +771,7 @@ class ControlLoop:
         )
         if self._memory is not None:  # a message is remembered once, at the pose it was taken at
             new, self._remembered = self._stamp != self._remembered, self._stamp
-            taken_at = self.goal.pose_at(self._stamp) if new else None
+            taken_at = self.goal.pose_at(self._stamp)  # also for a frame after a reset
             recalled = self._memory(sectors, self.goal.pose, remember=new, taken_at=taken_at)
             obs = np.concatenate([obs, recalled])
         self._last = policy.command(obs)
