@@ -406,12 +406,12 @@ class GoalInput:
         track = self._track
         if not track or stamp >= track[-1][0]:
             return self.pose
-        i = bisect.bisect_right([t for t, _ in track], stamp)
+        i = bisect.bisect_right(track, stamp, key=lambda kept: kept[0])
         if i == 0:
             return track[0][1]
         (t0, a), (t1, b) = track[i - 1], track[i]
         w = (stamp - t0) / (t1 - t0)
-        turn = (b[2] - a[2] + math.pi) % (2 * math.pi) - math.pi  # the shorter way round
+        turn = math.remainder(b[2] - a[2], math.tau)  # the shorter way round, as odometry_jump
         return (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * turn)
 
     def on_goal_msg(self, msg) -> None:
