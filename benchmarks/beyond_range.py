@@ -18,8 +18,9 @@ sector; the truth is the nearest non-floor surface the sector's rays meet (noise
 The dangerous error is a sector whose surface lies in the blind zone (< 0.6 m) read as 1 m or more
 (`blind_read_far`); the one the rule is for is a sector with nothing within 8 m read near
 (`far_read_near`); blind-zone sectors are also split by whether their surface is an overhang's
-(which the floor rays pass under). `--grid` also measures the goal task's traced grid at the
-hall's size (30 m halls: 15.25 m half extent).
+(which the floor rays pass under). `--grid` also measures the goal task's traced grid: the
+square one of the other families, the one laid along the halls (30 x 12 m), and a square one
+that would cover 30 m.
 
     python benchmarks/beyond_range.py --json benchmarks/results/beyond_range_cpu.json
 """
@@ -36,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from report import write_json
 
-from jaxnav.core import episode, goals
+from jaxnav.core import episode, families, goals
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.randomize import FIDELITY, RandomizeConfig, make_bank
 from jaxnav.core.robot import RobotSpec
@@ -165,16 +166,17 @@ def measure(name: str, params, key, poses: int) -> dict:
     return out
 
 
-def grid_cost(half_extent: float, envs: int) -> dict:
+def grid_cost(extent: tuple[float, float], envs: int) -> dict:
     """Cells, bytes of the per-env distance field and the time of the goal task's traced grid
-    (one `goals.sample_goal` per env, `envs` envs of `long_hall` rooms) at `half_extent`."""
+    (one `goals.sample_goal` per env, `envs` envs of `long_hall` rooms) covering half extents
+    `extent` (long, short)."""
     cfg = RandomizeConfig(sampled_room_prob=1.0, families="long_hall")
     layouts = load_layout(SUITE / "open.json")
     params = _episodes(jax.random.PRNGKey(1), cfg, layouts, envs)
     cells = goals.make_goal_cells(layouts)
     draw = jax.jit(
         jax.vmap(
-            lambda k, p: goals.sample_goal(k, p, half_extent, cells, ROBOT.radius, 0.3, 2.0, 0.1)[2]
+            lambda k, p: goals.sample_goal(k, p, extent, cells, ROBOT.radius, 0.3, 2.0, 0.1)[2]
         )
     )
     keys = jax.random.split(jax.random.PRNGKey(2), envs)
@@ -183,11 +185,11 @@ def grid_cost(half_extent: float, envs: int) -> dict:
     first = time.perf_counter() - start
     start = time.perf_counter()
     field = jax.block_until_ready(draw(keys, params))
-    n = field.shape[-1]
+    cells = field.shape[-1] * field.shape[-2]
     return {
-        "half_extent_m": half_extent,
-        "cells": n * n,
-        "field_bytes_per_env": n * n * 4,
+        "half_extent_m": list(extent),
+        "cells": cells,
+        "field_bytes_per_env": cells * 4,
         "first_call_s": round(first, 2),
         "per_env_ms": round(1000 * (time.perf_counter() - start) / envs, 3),
     }
@@ -210,7 +212,8 @@ def main(argv=None) -> dict:
         "long_hall": measure("long_hall", _episodes(key, hall, suite, args.halls), key, args.poses),
     }
     if args.grid:
-        result["goal_grid"] = [grid_cost(h, 256) for h in (goals.GRID_HALF, 15.25)]
+        square, hall = (goals.GRID_HALF, goals.GRID_HALF), families.LARGE_EXTENTS["long_hall"]
+        result["goal_grid"] = [grid_cost(e, 256) for e in (square, hall, (15.25, 15.25))]
         print("goal grid", result["goal_grid"])
     if args.json:
         write_json(args.json, result)

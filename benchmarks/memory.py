@@ -1,7 +1,7 @@
-"""The goal task's memory and training mix on BARN, the benchmark suite and CrowdNav's circle
-crossing: goal policies trained with and without the memory, with BARN-like dense fields or
-walkers in their room mix, weighted as the cpu preset weighs its families, and at the Kobuki's
-top speed.
+"""The goal task's memory and training mix on BARN, the benchmark suites, CrowdNav's circle
+crossing and a 25 m hall: goal policies trained with and without the memory, with BARN-like dense
+fields, walkers or long halls in their room mix, weighted as the cpu preset weighs its families,
+and at the Kobuki's top speed.
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -10,8 +10,10 @@ Each variant trains `python -m jaxnav.train --env goal --preset P --seed S --out
 (its flags below, given in full so that a row does not depend on the preset's defaults), then is
 evaluated on BARN's 300 worlds (`--suite barn`, `--barn-episodes` a world, 100 s, as
 `benchmarks/barn.py`), on the 32 rooms of the benchmark suite (`--suite benchmark`, 20 episodes
-a room) and on CrowdNav's circle crossing (`benchmarks/crowdnav.py`, `--crowd-episodes` a room;
-0 leaves it out, and rows measured before it was added have none). Rows are kept per variant and
+a room), on CrowdNav's circle crossing (`benchmarks/crowdnav.py`, `--crowd-episodes` a room;
+0 leaves it out), on the hard suite (`--suite hard`: dense fields, long halls and people, 20
+episodes a room) and on `scenes/halls/hall_25m.json`, whose goal is 20 m down the hall (20
+episodes; rows measured before these were added have none). Rows are kept per variant and
 seed: those already in the JSON file stay where this run does not measure them again, so variants
 and seeds may be run in several calls. Prints a table last: each variant's mean over its seeds,
 the lowest and highest BARN success, and the circle crossing's success among reactive and
@@ -46,10 +48,15 @@ VARIANTS = {
     + ("--task.forward-speed", "0.7"),
     "memory_crowd_fast": ("--task.memory-bins", "16", "--randomize.families", "all,crowd:3")
     + ("--task.forward-speed", "0.7"),
+    "memory_hall": ("--task.memory-bins", "16", "--randomize.families", "all,long_hall:1"),
+    "memory_hard": ("--task.memory-bins", "16", "--randomize.families")
+    + ("all,dense_field:1,long_hall:1,crowd:1",),
 }
+HALL = ROOT / "scenes" / "halls" / "hall_25m.json"
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
+HARD_FAMILIES = ("crowd", "dense_field", "long_hall")  # the hard suite's, in its file order
 CROWD_KEYS = ("success", "collision", "timeout", "time_to_goal", "robot_collision")
 
 
@@ -65,14 +72,17 @@ def train(preset: str, seed: int, out: Path, flags: list[str]) -> tuple[list[str
 
 
 def judge(run: Path, barn_episodes: int, crowd_episodes: int) -> dict:
-    """BARN's groups, the benchmark suite's families and overall, and (with `crowd_episodes` a
-    room) CrowdNav's circle crossing (`benchmarks/crowdnav.py`) for the policy in `run`."""
+    """BARN's groups, both suites' families and overall, the 25 m hall and (with
+    `crowd_episodes` a room) CrowdNav's circle crossing (`benchmarks/crowdnav.py`) for the
+    policy in `run`."""
     import jaxnav
     from jaxnav.evaluation import evaluate
 
     policy = jaxnav.load_policy(run)
     barn = evaluate(policy, suite="barn", episodes=barn_episodes, steps=1000)
     suite = evaluate(policy, suite="benchmark", episodes=20)
+    hard = evaluate(policy, suite="hard", episodes=20)
+    hall = evaluate(policy, jaxnav.load_layout(HALL), episodes=20, steps=1000)
     people = (
         {k: circle_crossing(policy, k, crowd_episodes, 0) for k in KINDS} if crowd_episodes else {}
     )
@@ -82,6 +92,9 @@ def judge(run: Path, barn_episodes: int, crowd_episodes: int) -> dict:
         "barn": {g: pick(m, BARN_KEYS) for g, m in groups.items()},
         "suite": pick(suite["overall"], SUITE_KEYS),
         "suite_families": {f: pick(m, SUITE_KEYS) for f, m in suite["families"].items()},
+        "hard": pick(hard["overall"], SUITE_KEYS),
+        "hard_families": {f: pick(m, SUITE_KEYS) for f, m in hard["families"].items()},
+        "hall_25m": pick(hall["overall"], (*SUITE_KEYS, "time_to_goal")),
         **({"crowdnav": {k: pick(m, CROWD_KEYS) for k, m in people.items()}} if people else {}),
     }
 
@@ -124,7 +137,8 @@ def main() -> None:
         info["crowd_episodes"] = args.crowd_episodes
         write_json(args.json, {**info, "rows": rows})  # after each: a later failure keeps it
     head = f"{'variant':<18}{'seeds':>6}{'BARN':>7}{'min-max':>14}{'easy':>7}{'medium':>8}"
-    print(head + f"{'hard':>7}{'suite':>7}{'SPL':>6}{'crowd r/n':>12}")
+    head += f"{'hard':>7}{'suite':>7}{'SPL':>6}{'crowd r/n':>12}"
+    print(head + "".join(f"{f:>13}" for f in HARD_FAMILIES) + f"{'hall 20 m':>10}")
     for name, seeds in rows.items():
         runs = list(seeds.values())
         barn = [r["barn"]["overall"]["success_rate"] for r in runs]
@@ -137,8 +151,18 @@ def main() -> None:
             f"{name:<18}{len(runs):>6}{np.mean(barn):>7.1%}"
             f"{f'{min(barn):.1%}-{max(barn):.1%}':>14}{groups[0]:>7.1%}{groups[1]:>8.1%}"
             f"{groups[2]:>7.1%}{mean(runs, lambda r: r['suite']['success_rate']):>7.1%}"
-            f"{mean(runs, lambda r: r['suite']['spl']):>6.2f}{crowd or '-':>12}"
+            f"{mean(runs, lambda r: r['suite']['spl']):>6.2f}{crowd or '-':>12}" + _later(runs)
         )
+
+
+def _later(runs: list[dict]) -> str:
+    """The table's columns of the hard suite's families and the hall, '-' where rows lack them."""
+    seen = [r for r in runs if "hard" in r]
+    if not seen:
+        return "".join(f"{'-':>13}" for _ in HARD_FAMILIES) + f"{'-':>10}"
+    get = lambda f: mean(seen, lambda r: r["hard_families"][f]["success_rate"])  # noqa: E731
+    hall = mean(seen, lambda r: r["hall_25m"]["success_rate"])
+    return "".join(f"{get(f):>13.1%}" for f in HARD_FAMILIES) + f"{hall:>10.0%}"
 
 
 if __name__ == "__main__":

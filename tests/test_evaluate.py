@@ -20,10 +20,12 @@ import pytest
 import jaxnav
 import jaxnav.cli.evaluate as evaluate_module
 from jaxnav.cli.evaluate import main
+from jaxnav.core import goals
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.evaluation import (
     MAX_FILE_STEM,
     METRIC_KEYS,
+    default_steps,
     eval_randomize,
     evaluate,
     file_stems,
@@ -32,7 +34,9 @@ from jaxnav.evaluation import (
     make_rollout,
     metrics,
     strip_private,
+    suite_meta,
 )
+from jaxnav.io.layouts import Grid
 from jaxnav.policy import Policy, forward_policy, random_policy
 from jaxnav.tasks.avoid import AvoidEnv
 from jaxnav.tasks.base import EvalMetric
@@ -205,6 +209,28 @@ def test_benchmark_suite_loads():
     assert len(suite) >= 8 and sum(len(rooms) for rooms in suite.values()) >= 30
     for family, rooms in suite.items():
         assert all(r.name.startswith(family) and r.robot_pos is not None for r in rooms)
+
+
+def test_hard_suite_holds_the_families_all_leaves_out():
+    """`--suite hard`: BARN-like fields on a grid, halls beyond the camera's range and rooms
+    people cross, some giving way to the robot; every spawn on its room's main free component,
+    and a time limit a 30 m hall fits in."""
+    suite = load_suite("hard")
+    assert list(suite) == ["crowd", "dense_field", "long_hall"]
+    for family, rooms in suite.items():
+        assert len(rooms) == 4 and all(r.name.startswith(family) for r in rooms)
+        for room in rooms:
+            main, _ = goals.main_component(room)  # [rows, cols] the spawn's free component
+            span = max(np.ptp(np.nonzero(main)[axis]) / main.shape[axis] for axis in (0, 1))
+            assert span > 0.7, room.name  # it reaches across the room
+    assert all(any(isinstance(o, Grid) for o in r.obstacles) for r in suite["dense_field"])
+    assert max(max(r.size) for r in suite["long_hall"]) > 16.0  # twice the camera's range
+    walkers = [o.motion for r in suite["crowd"] for o in r.cylinders if o.motion is not None]
+    assert all(len([o for o in r.cylinders if o.motion]) >= 3 for r in suite["crowd"])
+    assert {m.reactive for m in walkers} == {True, False}
+    assert all(0.3 <= m.speed <= 1.4 and m.goal is not None and m.repeat for m in walkers)
+    assert suite_meta("hard") == {"time_limit_s": 100.0}
+    assert default_steps("hard", forward_policy()) == 1000
 
 
 def _cautious():

@@ -437,15 +437,15 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     )
 
     def draw(key, params):
-        half = goals.GRID_HALF
-        room, goal, field = goals.sample_goal(key, params, half, cells, R, 0.3, 1.5, 0.15)
-        return room, goal, field, goals.goal_field(room, half, goal, R)
+        extent = (goals.GRID_HALF, goals.GRID_HALF)
+        room, goal, field = goals.sample_goal(key, params, extent, cells, R, 0.3, 1.5, 0.15)
+        return room, goal, field, goals.goal_field(room, extent, goal, R)
 
     keys = jax.random.split(jax.random.PRNGKey(0), len(rooms))
     shared = jax.jit(jax.vmap(draw))(keys, params)
 
-    def whole(params, half_extent, radius):  # the whole grid in one computation
-        gap = signed_distance(params, goals._grid(half_extent)) - radius
+    def whole(params, extent, radius):  # the whole grid in one computation
+        gap = signed_distance(params, goals._grid(extent)) - radius
         return gap, gap >= 0.5 * GRID_CELL
 
     monkeypatch.setattr(goals, "_free", whole)

@@ -1,15 +1,17 @@
 """The `long_hall` family: halls and open floors beyond the camera's 8 m, passable end to end,
-drawn by name only (not by 'all'), and refused by the goal task, whose grid covers 10.5 m."""
+drawn by name only (not by 'all'); the goal task's traced grid grows to cover them, laid along
+each hall whichever its direction."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxnav
-from jaxnav.core import families
+from jaxnav.core import families, goals
 from jaxnav.core.assets import scenes_dir
 from jaxnav.core.randomize import RandomizeConfig, family_weights
-from jaxnav.io.layouts import load_layout
+from jaxnav.io.layouts import Box, RoomLayout, load_layout
 
 RADIUS = 0.177
 
@@ -45,10 +47,58 @@ def test_halls_are_passable_end_to_end(halls):
 def test_long_hall_is_drawn_by_name_only():
     assert "long_hall" not in family_weights("all")
     assert family_weights("random:3,long_hall:1")["long_hall"] == pytest.approx(0.25)
-    with pytest.raises(ValueError, match="RandomizeConfig.families: long_hall rooms are larger"):
-        jaxnav.make_env("goal", randomize=RandomizeConfig(families="long_hall"))
+
+
+def test_goal_task_draws_goals_down_long_halls():
+    """With `long_hall` in the mix the goal grid covers 30 x 12 m, laid along each hall: goals
+    beyond 10.8 m occur, and the flood from each goal reaches its spawn along the hall."""
+    mix = RandomizeConfig(sampled_room_prob=1.0, families="long_hall")
+    env = jaxnav.make_env("goal", randomize=mix)
+    assert env._grid_extent == families.LARGE_EXTENTS["long_hall"] == (15.0, 6.0)
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 32))
+    field, goal, params = states.info["field"], states.info["goal"], states.info["params"]
+    assert field.shape == (32, 60, 150)
+    spawn = states.data.qpos[:, :2]
+    straight = np.linalg.norm(np.asarray(goal - spawn), axis=-1)
+    to_go = jax.vmap(lambda f, g, x, h: goals.geodesic(f, g, x, jnp.inf, h))
+    geo = np.asarray(to_go(field, goal, spawn, params.room_half))
+    along_y = np.asarray(params.room_half[:, 1] > params.room_half[:, 0])
+    assert 0 < along_y.mean() < 1  # halls of both directions
+    assert straight.max() > 12.0  # beyond the square grid of the other families
+    assert np.isfinite(geo).all() and (geo >= straight - goals.GRID_CELL).all()
+    assert np.median(geo / straight) < 1.1  # along the hall, not round it
+
+
+def _hall(transposed: bool) -> RoomLayout:
+    """A 20 x 2 m hall with a cabinet, spawn at one end and the goal at the other."""
+    t = (lambda xy: (xy[1], xy[0])) if transposed else (lambda xy: xy)
+    cabinet = Box(pos=t((0.0, 0.7)), size=t((1.0, 0.6)), height=0.8)
+    return RoomLayout(
+        name=f"hall-{int(transposed)}",
+        size=t((20.0, 2.0)),
+        robot_pos=t((-9.0, 0.0)),
+        goal_pos=t((9.0, -0.3)),
+        obstacles=(cabinet,),
+    )
+
+
+def test_a_hall_and_its_transpose_have_one_geodesic():
+    """The grid lies on a hall along y transposed: the distance to go from the spawn is the
+    same in a hall and in the hall turned a quarter, and about the 18 m between the ends."""
+    env = jaxnav.make_env("goal", layouts=[_hall(False), _hall(True)])
+    assert env._grid_extent == (10.0, goals.GRID_HALF)
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 8))
+    ids = np.asarray(states.info["params"].layout_id)
+    assert set(ids) == {0, 1}
+    info = states.info
+    to_go = jax.vmap(lambda f, g, x, h: goals.geodesic(f, g, x, None, h))
+    geo = np.asarray(
+        to_go(info["field"], info["goal"], states.data.qpos[:, :2], info["params"].room_half)
+    )
+    assert np.ptp(geo) < 1e-4 and np.hypot(18.0, 0.3) <= geo[0] < 18.6
 
 
 def test_the_25m_hall_layout_loads():
     (hall,) = load_layout(scenes_dir() / "halls" / "hall_25m.json")
     assert hall.size == (25.0, 2.4) and hall.robot_pos == (-11.5, 0.0)
+    assert hall.goal_pos == (8.5, 0.0)  # the goal task's goal 20 m down the hall

@@ -44,6 +44,12 @@ COVER_REACH = 1.0  # m, the robot "covers" free space within this distance of it
 FIELD_CELLS = 40  # G, the grid side of `dense_field` in cells (rooms up to 40 x 0.2 = 8 m)
 FIELD_MARGIN = 0.2  # m, least gap between the robot's edge and a cell along `dense_field`'s path
 FIELD_WAYPOINTS = 4  # points of `dense_field`'s path, south wall to north wall
+HALL_LENGTH = (8.0, 30.0)  # m, range of `long_hall`'s length
+HALL_WIDTH = (MIN_CORRIDOR, 4.0)  # m, range of a hall's width
+FLOOR_WIDTH = (6.0, 12.0)  # m, range of the width of `long_hall`'s open floors (one in four)
+LARGE_EXTENTS = {"long_hall": (0.5 * HALL_LENGTH[1], 0.5 * FLOOR_WIDTH[1])}
+"""Half extents (long, short) m of the largest room of each family whose rooms do not fit a
+square of 2 x `goals.GRID_HALF` (`randomize.LARGE_FAMILIES`): what the goal task's grid covers."""
 
 
 @struct.dataclass
@@ -355,9 +361,9 @@ def long_hall(key, nb: int, nc: int, radius: float) -> SceneParams:
     4 cabinets along one side wall, so the far end often lies beyond the camera's 8 m."""
     ks = jax.random.split(key, 10)
     # Length uniform 8-30 m; width uniform 1.2-4 m, or (probability 1/4) 6-12 m.
-    length = _uniform(ks[0], 8.0, 30.0)
+    length = _uniform(ks[0], *HALL_LENGTH)
     wide = jax.random.bernoulli(ks[1], 0.25)
-    width = jnp.where(wide, _uniform(ks[2], 6.0, 12.0), _uniform(ks[2], MIN_CORRIDOR, 4.0))
+    width = jnp.where(wide, _uniform(ks[2], *FLOOR_WIDTH), _uniform(ks[2], *HALL_WIDTH))
     half = 0.5 * jnp.stack([length, width])
     n = min(4, nb)
     # Cabinets: 0-n (count uniform), along x uniform, 0.3-1.0 m long; all against one side wall
@@ -527,12 +533,14 @@ def mixture(key, nb: int, nc: int, radius: float) -> SceneParams:
 
 
 def to_layout(room: SceneParams, name: str) -> lay.RoomLayout:
-    """One room (no batch axis) as a `RoomLayout` with its spawn, active obstacles only.
+    """One room (no batch axis) as a `RoomLayout` with its spawn, active obstacles only; a
+    walker (`crowd.Walkers`) is its cylinder with a `"goal"` motion, walking back and forth.
 
     Positions are rounded to the millimetre, obstacle sizes down to it less 2 mm and the interior
     up to it, so a box that touches a wall in float32 stays inside it in the file.
     """
     r = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), room)
+    walkers = None if room.motion is None else r.motion.walkers
     mm = lambda v: [round(float(x), 3) for x in np.atleast_1d(v)]  # noqa: E731
     shrink = lambda v: [float(np.floor(x * 1000) / 1000 - 0.002) for x in np.atleast_1d(v)]  # noqa: E731
     obstacles = [
@@ -551,6 +559,7 @@ def to_layout(room: SceneParams, name: str) -> lay.RoomLayout:
             radius=shrink(r.cyl_radius[i])[0],
             height=round(float(r.cyl_height[i]), 3),
             bottom=round(float(r.cyl_bottom[i]), 3),
+            motion=_walking(walkers, i),
         )
         for i in np.flatnonzero(np.asarray(room.cyl_active))
     ]
@@ -564,6 +573,15 @@ def to_layout(room: SceneParams, name: str) -> lay.RoomLayout:
         robot_yaw=round(float(r.spawn[2]), 4),
         obstacles=tuple(obstacles),
     )
+
+
+def _walking(walkers, i: int) -> lay.Motion | None:
+    """The layout motion of cylinder slot `i` where `walkers` (numpy) has it walk, else None."""
+    if walkers is None or walkers.speed[i] <= 0:
+        return None
+    goal = [round(float(x), 3) for x in walkers.goal[i]]
+    speed, reactive = round(float(walkers.speed[i]), 3), bool(walkers.reactive[i])
+    return lay.Motion(goal=goal, speed=speed, reactive=reactive, repeat=True)
 
 
 def _grid_obstacle(grid) -> list:

@@ -12,14 +12,16 @@ two ways:
   the grid's resolution. A layout whose fixed spawn and goal lie in different components is refused.
 - Sampled rooms (`randomize.sample_room` and the room families): a traced grid of `GRID_CELL`
   cells, free where the robot's disc clears everything by half a cell (so the segment between two
-  free neighbours is clear: clearance is 1-Lipschitz). The goal is a uniform cell at least the
-  minimum distance from the spawn that keeps `clearance`; the grid is flooded from it once, by
-  `SWEEPS` rounds of four directional min-plus scans (`grid_steps`), and that flood is both the
-  reachability check and the goal's distance field (`geodesic`). A spawn the flood does not reach
-  (in a pocket) moves to a uniform reached cell as far from the goal. Corridors, doorways and
-  U-shapes keep their walls and the goal is often behind them. Where no cell is far enough (a
-  spawn boxed in), every obstacle that would block an L-shaped path spawn -> corner -> goal
-  (half-width robot radius + `path_clearance`) is removed instead.
+  free neighbours is clear: clearance is 1-Lipschitz). The grid covers half extents (long,
+  short), its columns along the long axis; where the two differ (a long hall in the mix), it lies
+  on a room longer in y than in x transposed, so halls of either direction fit. The goal is a
+  uniform cell at least the minimum distance from the spawn that keeps `clearance`; the grid is
+  flooded from it once, by `SWEEPS` rounds of four directional min-plus scans (`grid_steps`), and
+  that flood is both the reachability check and the goal's distance field (`geodesic`). A spawn
+  the flood does not reach (in a pocket) moves to a uniform reached cell as far from the goal.
+  Corridors, doorways and U-shapes keep their walls and the goal is often behind them. Where no
+  cell is far enough (a spawn boxed in), every obstacle that would block an L-shaped path spawn ->
+  corner -> goal (half-width robot radius + `path_clearance`) is removed instead.
 
 `shortest_paths` measures the geodesic distance for SPL on the same grid, 8-connected (diagonal
 steps only where both cells beside them are free, so no corner is cut).
@@ -46,7 +48,7 @@ CELL = families.CELL  # m, occupancy grid cell for goals and shortest paths
 TRIES = 32  # uniform candidates per draw of a spawn or a goal
 PATH_POINTS = 64  # points per leg of a sampled room's cleared L-shaped path
 GRID_CELL = 0.2  # m, cell of the traced reachability grid of sampled rooms
-GRID_HALF = 5.25  # m, half extent the traced grid covers at least (the largest family room)
+GRID_HALF = 5.25  # m, least half extent of the traced grid per axis (every family room but halls)
 SWEEPS = 8  # rounds of the traced flood; each follows a path through two turns, so 16 turns
 GRID_BLOCKS = 2  # blocks of rows of the traced grid whose clearance is computed in a loop
 
@@ -262,15 +264,44 @@ def _flood_rows(free: jax.Array, seed: jax.Array, sweeps: int) -> jax.Array:
     return jnp.moveaxis(steps, -1, 0).reshape(*lead, h, w)
 
 
-def _grid(half_extent: float):
-    """[n, n, 2] centres of the traced grid's cells covering +-half_extent m (n even)."""
-    n = 2 * int(np.ceil(half_extent / GRID_CELL))
-    axis = (np.arange(n) - 0.5 * (n - 1)) * GRID_CELL
-    return jnp.asarray(np.stack(np.meshgrid(axis, axis), -1), jnp.float32)
+def grid_shape(extent: tuple[float, float]) -> tuple[int, int]:
+    """(rows, columns) of the traced grid covering half extents `extent` = (long, short) m: an
+    even number of `GRID_CELL` cells along each axis, the columns along the long one."""
+    long, short = (2 * int(np.ceil(h / GRID_CELL)) for h in extent)
+    return short, long
 
 
-def grid_clearance(params: SceneParams, half_extent: float) -> jax.Array:
-    """[n, n] m from the centre of every cell of the traced grid (`_grid(half_extent)`) to the
+def _grid(extent: tuple[float, float]):
+    """[rows, cols, 2] centres of the traced grid's cells in its own frame (x along the
+    columns: the long axis)."""
+    rows, cols = grid_shape(extent)
+    axis = lambda n: (np.arange(n) - 0.5 * (n - 1)) * GRID_CELL  # noqa: E731
+    return jnp.asarray(np.stack(np.meshgrid(axis(cols), axis(rows)), -1), jnp.float32)
+
+
+def _transposed(shape: tuple[int, int], room_half: jax.Array | None):
+    """[] bool: the grid of `shape` lies on the room transposed (the room is longer in y than in
+    x); None for a square grid, which is never transposed."""
+    if shape[0] == shape[1]:
+        return None
+    if room_half is None:
+        raise ValueError(f"a traced grid of shape {shape} needs the room's half extents")
+    return room_half[1] > room_half[0]
+
+
+def _swap(xy: jax.Array, transposed) -> jax.Array:
+    """[..., 2] points between the room's frame and the grid's (the same map both ways)."""
+    return xy if transposed is None else jnp.where(transposed, xy[..., ::-1], xy)
+
+
+def _room_centres(extent: tuple[float, float], room_half: jax.Array) -> jax.Array:
+    """[rows, cols, 2] centres of the traced grid's cells in the frame of the room `room_half`."""
+    centres = _grid(extent)
+    return _swap(centres, _transposed(centres.shape[:2], room_half))
+
+
+def grid_clearance(params: SceneParams, extent: tuple[float, float]) -> jax.Array:
+    """[rows, cols] m from the centre of every cell of the traced grid (`_room_centres`) to the
     nearest wall or active obstacle of the room `params` (`geometry.signed_distance`).
 
     Computed in `GRID_BLOCKS` blocks of rows, in a loop: a loop's operands are computed once,
@@ -278,58 +309,64 @@ def grid_clearance(params: SceneParams, half_extent: float) -> jax.Array:
     per-cell computation and repeats it for every cell (docs/results.md, "A goal reset and
     a sensor the CPU computes once").
     """
-    centres = _grid(half_extent)
-    blocks = centres.reshape(GRID_BLOCKS, -1, *centres.shape[1:])  # [B, n/B, n, 2]
+    centres = _room_centres(extent, params.room_half)
+    blocks = centres.reshape(GRID_BLOCKS, -1, *centres.shape[1:])  # [B, rows/B, cols, 2]
     per_block = jax.lax.map(lambda c: signed_distance(params, c), blocks)
     return per_block.reshape(centres.shape[:2])
 
 
-def _free(params: SceneParams, half_extent: float, radius: float):
-    """([n, n] clearance beyond the robot m, [n, n] bool free) of the room `params` on the
-    traced grid: a cell is free where the robot clears everything by half a cell (module doc)."""
-    gap = grid_clearance(params, half_extent) - radius
+def _free(params: SceneParams, extent: tuple[float, float], radius: float):
+    """([rows, cols] clearance beyond the robot m, [rows, cols] bool free) of the room `params`
+    on the traced grid: a cell is free where the robot clears everything by half a cell (module
+    doc)."""
+    gap = grid_clearance(params, extent) - radius
     return gap, gap >= 0.5 * GRID_CELL
 
 
 def _uniform(key, ok: jax.Array) -> jax.Array:
-    """Flat index of a uniform True cell of `ok` [n, n] (arbitrary where none is), from one
+    """Flat index of a uniform True cell of `ok` [rows, cols] (arbitrary where none is), from one
     random number rather than one per cell."""
-    count = jnp.cumsum(ok.ravel())  # [n * n]
+    count = jnp.cumsum(ok.ravel())  # [rows * cols]
     return jnp.argmax(count > jax.random.randint(key, (), 0, jnp.maximum(count[-1], 1)))
 
 
-def _grid_cell(n: int, xy: jax.Array) -> jax.Array:
-    """[2] int32 (col, row) of the traced grid's cell (`_grid`, n x n) containing `xy` [2]
-    (outside 0..n-1 beyond the grid)."""
-    half = 0.5 * n * GRID_CELL  # the grid's half extent
-    return jnp.round((xy + half) / GRID_CELL - 0.5).astype(jnp.int32)
+def _grid_cell(shape: tuple[int, int], xy: jax.Array, transposed) -> jax.Array:
+    """[2] int32 (col, row) of the cell of the traced grid of `shape` containing the room's point
+    `xy` [2] (outside the grid's range beyond it)."""
+    half = 0.5 * np.array(shape[::-1]) * GRID_CELL  # [2] the grid's half extents
+    return jnp.round((_swap(xy, transposed) + half) / GRID_CELL - 0.5).astype(jnp.int32)
 
 
 def _flood(free: jax.Array, centres: jax.Array, goal: jax.Array) -> jax.Array:
-    """[n, n] grid steps from the cell nearest `goal` to every `free` cell (`grid_steps`)."""
+    """[rows, cols] grid steps from the cell nearest `goal` to every `free` cell (`grid_steps`)."""
     straight = planar_distance(centres, goal)
     return grid_steps(free, straight == straight.min())
 
 
-def goal_field(params: SceneParams, half_extent: float, goal: jax.Array, radius: float):
-    """[n, n] float32 grid steps from every cell of the traced grid (`_grid(half_extent)`) to
-    the goal's cell (inf where the robot cannot reach it): the geodesic distance `geodesic`
+def goal_field(params: SceneParams, extent: tuple[float, float], goal: jax.Array, radius: float):
+    """[rows, cols] float32 grid steps from every cell of the traced grid (`grid_shape(extent)`)
+    to the goal's cell (inf where the robot cannot reach it): the geodesic distance `geodesic`
     reads."""
-    return _flood(_free(params, half_extent, radius)[1], _grid(half_extent), goal)
+    centres = _room_centres(extent, params.room_half)
+    return _flood(_free(params, extent, radius)[1], centres, goal)
 
 
-def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array, blocked=None) -> jax.Array:
+def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array, blocked=None, room_half=None):
     """[] m from `xy` [2] to the goal along the grid of `goal_field`: the least of (a cell's
     steps x GRID_CELL + the straight line to its centre) over the 3 x 3 cells around `xy`;
     where none of them reaches the goal (a robot pressed against a wall, a point inside one),
-    `blocked` [], or by default the straight line."""
-    n = field.shape[0]
-    half = 0.5 * n * GRID_CELL  # the grid's half extent (`_grid`)
-    ij = _grid_cell(n, xy)  # [2] col, row
+    `blocked` [], or by default the straight line. `room_half` [2]: the room's half extents,
+    needed where the grid is not square (it may lie on the room transposed)."""
+    shape = field.shape
+    transposed = _transposed(shape, room_half)
+    half = 0.5 * np.array(shape[::-1]) * GRID_CELL  # [2] the grid's half extents
+    ij = _grid_cell(shape, xy, transposed)  # [2] col, row
     offsets = jnp.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])  # [9, 2]
-    cells = jnp.clip(ij + offsets, 0, n - 1)  # [9, 2]
-    centres = (cells + 0.5) * GRID_CELL - half
-    via = field[cells[:, 1], cells[:, 0]] * GRID_CELL + jnp.linalg.norm(centres - xy, axis=-1)
+    cells = jnp.clip(ij + offsets, 0, np.array(shape[::-1]) - 1)  # [9, 2]
+    centres = (cells + 0.5) * GRID_CELL - half  # [9, 2] in the grid's frame
+    via = field[cells[:, 1], cells[:, 0]] * GRID_CELL + jnp.linalg.norm(
+        centres - _swap(xy, transposed), axis=-1
+    )
     best = via.min()
     fallback = jnp.linalg.norm(goal - xy) if blocked is None else blocked
     return jnp.where(jnp.isfinite(best), best, fallback)
@@ -364,16 +401,17 @@ def _clear_path(key, params: SceneParams, goal, radius, path_clearance) -> Scene
 def sample_goal(
     key: jax.Array,
     params: SceneParams,
-    half_extent: float,
+    extent: tuple[float, float],
     goals: GoalCells,
     radius: float,
     clearance: float,
     min_distance: float,
     path_clearance: float,
 ) -> tuple[SceneParams, jax.Array, jax.Array]:
-    """(the episode's params, [2] goal m, [n, n] its `goal_field`) for the room `params` drew
-    (`episode.sample`), with one flood of the traced grid (`_grid(half_extent)`, half_extent
-    static: at least half the largest sampled room).
+    """(the episode's params, [2] goal m, [rows, cols] its `goal_field`) for the room `params`
+    drew (`episode.sample`), with one flood of the traced grid (`grid_shape(extent)`; `extent`
+    static: half extents (long, short) that cover every room, the room's long axis along the long
+    one).
 
     Layout rooms (layout_id >= 0) take their goal from `goals` (`_layout_goal`). Sampled rooms:
     the goal is a uniform cell at least `min_distance` from the spawn that keeps `clearance` from
@@ -385,13 +423,14 @@ def sample_goal(
     `geodesic` takes the straight line elsewhere.
     """
     k_layout, k_goal, k_spawn, k_room, k_path = jax.random.split(key, 5)
-    centres, spawn = _grid(half_extent), params.spawn[:2]  # [n, n, 2], [2]
+    centres = _room_centres(extent, params.room_half)  # [rows, cols, 2] in the room's frame
+    spawn = params.spawn[:2]  # [2]
     pick = lambda k, ok: centres.reshape(-1, 2)[_uniform(k, ok)]  # noqa: E731
     where = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
     # Sampled rooms: the goal is a uniform far cell that keeps `clearance`, else (none is far
     # enough) a point of the interior, the path to it cleared before the flood.
-    gap, free = _free(params, half_extent, radius)
-    roomy = free & (gap >= clearance)  # [n, n] cells a goal or a moved spawn may take
+    gap, free = _free(params, extent, radius)
+    roomy = free & (gap >= clearance)  # [rows, cols] cells a goal or a moved spawn may take
     far = roomy & (planar_distance(centres, spawn) >= min_distance)
     found = far.any()
     interior = _interior_goal(k_room, params, radius, clearance, min_distance)
@@ -403,12 +442,13 @@ def sample_goal(
     sampled = params.layout_id < 0
     room = where(sampled, where(found, params, cleared), layout_room)
     goal = jnp.where(sampled, room_goal, layout_goal)
-    field = _flood(_free(room, half_extent, radius)[1], centres, goal)  # [n, n]: the one flood
+    field = _flood(_free(room, extent, radius)[1], centres, goal)  # [rows, cols]: the one flood
     # A sampled spawn the flood does not reach moves to a reached cell far from the goal that
     # keeps `clearance`; where there is none (rare), the path is cleared after the flood.
     reached = jnp.isfinite(field)
-    n = centres.shape[0]
-    col, row = jnp.clip(_grid_cell(n, spawn), 0, n - 1)
+    shape = centres.shape[:2]
+    cell = _grid_cell(shape, spawn, _transposed(shape, params.room_half))
+    col, row = jnp.clip(cell, 0, np.array(shape[::-1]) - 1)
     spots = reached & roomy & (planar_distance(centres, goal) >= min_distance)
     move = sampled & found & ~reached[row, col]
     moved = room.spawn.at[:2].set(pick(k_spawn, spots))

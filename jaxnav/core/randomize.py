@@ -67,8 +67,9 @@ FAMILY_NAMES = (
 )
 """Names of `RandomizeConfig.families`: 'random' and the room families of `jaxnav.core.families`."""
 LARGE_FAMILIES = ("long_hall",)
-"""Families of rooms over 10 m that 'all' leaves out (by name only): the goal task's traced grid
-covers 10.5 m (`goals.GRID_HALF`), and 'all' stays the benchmark suite's families."""
+"""Families of rooms over 10 m that 'all' leaves out (by name only): with one in the mix the goal
+task's traced grid grows from 10.8 m square to cover them (`families.LARGE_EXTENTS`), which every
+room of the batch pays, and 'all' stays the benchmark suite's families."""
 GRID_FAMILIES = ("dense_field",)
 """Families on an occupancy grid (`jaxnav.core.families.GRID_FAMILIES`) that 'all' leaves out
 (by name only): a grid layer costs every room of the batch, and 'all' stays the suite's families."""

@@ -38,8 +38,9 @@ import numpy as np
 
 from jaxnav.core.checks import require_finite
 from jaxnav.core.episode import sample
+from jaxnav.core.families import LARGE_EXTENTS
 from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal, shortest_paths
-from jaxnav.core.randomize import LARGE_FAMILIES, family_weights
+from jaxnav.core.randomize import family_weights
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
 from jaxnav.robot_side.memory import MemorySpec, recall, remember_frame, sector_points
@@ -234,15 +235,17 @@ class GoalEnv(NavTask):
                 task.memory_bins, task.memory_steps, task.memory_reach, self.robot.camera_forward
             )
         self._command_scale = jnp.array([task.forward_speed, task.turn_rate])
-        # The traced goal grid covers the largest room (the families fit in GRID_HALF).
+        self._grid_extent = self._cover(bank)
+
+    def _cover(self, bank) -> tuple[float, float]:
+        """Half extents (long, short) m of the traced goal grid: at least `GRID_HALF`, and every
+        room the episodes may use, with its long axis along the grid's (`goals.grid_shape`)."""
         mix = family_weights(self.randomize.families) if self.randomize.families else {}
-        if large := set(LARGE_FAMILIES) & set(mix):
-            raise ValueError(
-                f"RandomizeConfig.families: {', '.join(sorted(large))} rooms are larger than "
-                f"the goal task's grid ({2 * GRID_HALF:g} m)"
-            )
-        largest = [0.5 * max(self.randomize.room_size_max), float(bank.rooms.room_half.max())]
-        self._grid_half = max(GRID_HALF, *largest)
+        large = [LARGE_EXTENTS[name] for name in mix if name in LARGE_EXTENTS]
+        halves = np.sort(np.asarray(bank.rooms.room_half, np.float64).reshape(-1, 2), axis=-1)
+        sampled = 0.5 * np.sort(np.asarray(self.randomize.room_size_max, np.float64))
+        rooms = [(long, short) for short, long in [*halves, sampled]] + large
+        return tuple(max(GRID_HALF, *(room[i] for room in rooms)) for i in (0, 1))
 
     def reset(self, key: jax.Array) -> EnvState:
         """A new episode: fresh room, spawn, goal and parameters drawn from the randomisation."""
@@ -253,7 +256,7 @@ class GoalEnv(NavTask):
         params, goal, field = sample_goal(
             k_goal,
             params,
-            self._grid_half,
+            self._grid_extent,
             self.bank.goals,
             radius,
             clearance,
@@ -262,7 +265,7 @@ class GoalEnv(NavTask):
         )
         info = {"goal": goal, "steps": jnp.int32(0), "key": key}
         if t.progress == "geodesic":  # the still room's: movers do not stay where they start
-            info["field"] = field  # [n, n]
+            info["field"] = field  # [rows, cols]
         params = self.with_movers(k_scene, params, goal)
         data = self.place(params)
         command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
@@ -339,7 +342,7 @@ class GoalEnv(NavTask):
         """[] m from `xy` to the goal, as `GoalConfig.progress` measures it (`blocked`: the
         geodesic's value where `xy` is walled in, see `jaxnav.core.goals.geodesic`)."""
         if self.task.progress == "geodesic":
-            return geodesic(info["field"], info["goal"], xy, blocked)
+            return geodesic(info["field"], info["goal"], xy, blocked, info["params"].room_half)
         return jnp.linalg.norm(info["goal"] - xy)
 
     def _critic_features(self, info, qpos, here, steps) -> jax.Array:
