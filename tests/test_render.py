@@ -13,7 +13,9 @@ from PIL import Image
 
 import jaxnav
 import jaxnav.cli.evaluate
+from jaxnav.core.randomize import layout_grid_size, make_bank
 from jaxnav.core.scene import SCENES_DIR
+from jaxnav.evaluation import load_suite
 from jaxnav.policy import forward_policy
 from jaxnav.viz import plots, render
 
@@ -52,6 +54,20 @@ def test_room_shapes_are_the_same_from_a_layout_and_from_its_scene_params(room, 
         expected = getattr(from_layout, field)
         np.testing.assert_allclose(getattr(from_params, field), expected, atol=1e-5, err_msg=field)
     np.testing.assert_allclose(from_layout.outer_half, [2.6, 3.6])  # 5 x 7 m room, 0.1 m walls
+
+
+def test_grid_cells_are_drawn_as_boxes():
+    """A dense field's occupied cells are boxes of the picture, the same from the layout and from
+    its scene params (`grid.cell_boxes`)."""
+    (field,) = [r for r in load_suite("hard")["dense_field"] if r.name == "dense_field-2"]
+    bank = make_bank([field], 4, 4, grid=layout_grid_size([field]))
+    params = jax.tree_util.tree_map(lambda x: x[0], bank.rooms)
+    from_layout, from_params = plots.room_shapes(field), plots.room_shapes(params)
+    occupied = sum(row.count("#") for row in field.grid.rows)
+    assert occupied > 100 and from_layout.boxes.shape == (occupied, 4, 2)
+    np.testing.assert_allclose(from_params.boxes, from_layout.boxes, atol=1e-5)
+    side = from_layout.boxes[:, 2] - from_layout.boxes[:, 0]  # [N, 2] each cell's diagonal
+    np.testing.assert_allclose(side, field.grid.cell, atol=1e-6)
 
 
 def test_draw_room_takes_a_layout_or_scene_params(room, episode):

@@ -20,6 +20,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
+from jaxnav.core import grid
 from jaxnav.core.randomize import SceneParams
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.io.layouts import Box, Cylinder, RoomLayout, box_corners
@@ -53,10 +54,13 @@ class RoomShapes:
 
 
 def room_shapes(room: RoomLayout | SceneParams) -> RoomShapes:
-    """The shapes of a layout, or of one env's `SceneParams` (active obstacle slots only)."""
+    """The shapes of a layout, or of one env's `SceneParams` (active obstacle slots only); the
+    occupied cells of a grid obstacle are boxes."""
     if isinstance(room, RoomLayout):
         spawn = None if room.robot_pos is None else np.array([*room.robot_pos, room.robot_yaw])
-        return _shapes(0.5 * np.asarray(room.size), room.boxes, room.cylinders, spawn)
+        cells = room.grid.cell_boxes() if room.grid is not None else (np.zeros((0, 2)),) * 2
+        boxes = [*room.boxes, *(Box(c, size) for c, size in zip(*cells, strict=True))]
+        return _shapes(0.5 * np.asarray(room.size), boxes, room.cylinders, spawn)
     if not isinstance(room, SceneParams):
         raise TypeError(f"room: must be a RoomLayout or SceneParams, got {type(room).__name__}")
     p = jax.device_get(room)
@@ -69,6 +73,8 @@ def room_shapes(room: RoomLayout | SceneParams) -> RoomShapes:
         for pos, half, yaw, on in zip(p.box_pos, p.box_half, p.box_yaw, p.box_active, strict=True)
         if on
     ]
+    if p.grid is not None:
+        boxes += [Box(c, 2 * half) for c, half in zip(*grid.cell_boxes(p.grid), strict=True)]
     cylinders = [
         Cylinder(pos, radius)
         for pos, radius, on in zip(p.cyl_pos, p.cyl_radius, p.cyl_active, strict=True)
