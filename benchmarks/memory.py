@@ -30,11 +30,12 @@ import sys
 import time
 from pathlib import Path
 
+import hard_suite
 import numpy as np
 from crowdnav import KINDS, circle_crossing
 from report import run_info, write_json
 
-from jaxnav.tasks.presets import GOAL_CPU_FAMILIES
+from jaxnav.tasks.presets import GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES
 
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = {
@@ -48,11 +49,10 @@ VARIANTS = {
     + ("--task.forward-speed", "0.7"),
     "memory_crowd_fast": ("--task.memory-bins", "16", "--randomize.families", "all,crowd:3")
     + ("--task.forward-speed", "0.7"),
-    "memory_hall": ("--task.memory-bins", "16", "--randomize.families", "all,long_hall:1"),
+    "memory_hall": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES),
     "memory_hard": ("--task.memory-bins", "16", "--randomize.families")
     + ("all,dense_field:1,long_hall:1,crowd:1",),
 }
-HALL = ROOT / "scenes" / "halls" / "hall_25m.json"
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
@@ -81,8 +81,6 @@ def judge(run: Path, barn_episodes: int, crowd_episodes: int) -> dict:
     policy = jaxnav.load_policy(run)
     barn = evaluate(policy, suite="barn", episodes=barn_episodes, steps=1000)
     suite = evaluate(policy, suite="benchmark", episodes=20)
-    hard = evaluate(policy, suite="hard", episodes=20)
-    hall = evaluate(policy, jaxnav.load_layout(HALL), episodes=20, steps=1000)
     people = (
         {k: circle_crossing(policy, k, crowd_episodes, 0) for k in KINDS} if crowd_episodes else {}
     )
@@ -92,9 +90,7 @@ def judge(run: Path, barn_episodes: int, crowd_episodes: int) -> dict:
         "barn": {g: pick(m, BARN_KEYS) for g, m in groups.items()},
         "suite": pick(suite["overall"], SUITE_KEYS),
         "suite_families": {f: pick(m, SUITE_KEYS) for f, m in suite["families"].items()},
-        "hard": pick(hard["overall"], SUITE_KEYS),
-        "hard_families": {f: pick(m, SUITE_KEYS) for f, m in hard["families"].items()},
-        "hall_25m": pick(hall["overall"], (*SUITE_KEYS, "time_to_goal")),
+        **hard_suite.measure(policy, 20),
         **({"crowdnav": {k: pick(m, CROWD_KEYS) for k, m in people.items()}} if people else {}),
     }
 
@@ -137,8 +133,8 @@ def main() -> None:
         info["crowd_episodes"] = args.crowd_episodes
         write_json(args.json, {**info, "rows": rows})  # after each: a later failure keeps it
     head = f"{'variant':<18}{'seeds':>6}{'BARN':>7}{'min-max':>14}{'easy':>7}{'medium':>8}"
-    head += f"{'hard':>7}{'suite':>7}{'SPL':>6}{'crowd r/n':>12}"
-    print(head + "".join(f"{f:>13}" for f in HARD_FAMILIES) + f"{'hall 20 m':>10}")
+    head += f"{'hard':>7}{'suite':>7}{'SPL':>6}{'crowd r/n':>12}{'hard suite':>11}"
+    print(head + "".join(f"{f:>13}" for f in HARD_FAMILIES) + f"{'hall_25m':>10}")
     for name, seeds in rows.items():
         runs = list(seeds.values())
         barn = [r["barn"]["overall"]["success_rate"] for r in runs]
@@ -159,10 +155,11 @@ def _later(runs: list[dict]) -> str:
     """The table's columns of the hard suite's families and the hall, '-' where rows lack them."""
     seen = [r for r in runs if "hard" in r]
     if not seen:
-        return "".join(f"{'-':>13}" for _ in HARD_FAMILIES) + f"{'-':>10}"
+        return f"{'-':>11}" + "".join(f"{'-':>13}" for _ in HARD_FAMILIES) + f"{'-':>10}"
     get = lambda f: mean(seen, lambda r: r["hard_families"][f]["success_rate"])  # noqa: E731
+    hard = mean(seen, lambda r: r["hard"]["success_rate"])
     hall = mean(seen, lambda r: r["hall_25m"]["success_rate"])
-    return "".join(f"{get(f):>13.1%}" for f in HARD_FAMILIES) + f"{hall:>10.0%}"
+    return f"{hard:>11.1%}" + "".join(f"{get(f):>13.1%}" for f in HARD_FAMILIES) + f"{hall:>10.0%}"
 
 
 if __name__ == "__main__":

@@ -467,15 +467,16 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
 
 def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_hard_ones():
     """The goal task's training distribution is `TRAINING` with its sampled rooms drawn from the
-    room families and the 'random' rooms alike, and on the cpu preset from the families only,
-    corridors and clutter most often; in runs and in `make_env` without layouts, under the
-    user's settings; `avoid` keeps `TRAINING` as it is."""
-    from jaxnav.tasks.presets import GOAL_CPU_FAMILIES
+    room families and the 'random' rooms alike, on the cpu preset from the families only,
+    corridors and clutter most often, and on the gpu preset with long halls too; in runs and in
+    `make_env` without layouts, under the user's settings; `avoid` keeps `TRAINING` as it is."""
+    from jaxnav.tasks.presets import GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES
     from jaxnav.tasks.registry import training_randomize
     from jaxnav.training import build_config
 
     cpu, gpu = (build_config(p, env="goal").randomize for p in ("cpu", "gpu"))
-    assert (cpu.families, gpu.families) == (GOAL_CPU_FAMILIES, "all")
+    assert (cpu.families, gpu.families) == (GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES)
+    assert family_weights(gpu.families)["long_hall"] == pytest.approx(0.1)
     for r in (cpu, gpu):
         assert dataclasses.replace(r, families="") == TRAINING  # only the families differ
     w = family_weights(cpu.families)
@@ -486,7 +487,8 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
         assert build_config(name, env="avoid").randomize == TRAINING
     told = build_config(env="goal", overrides={"randomize": {"families": "random"}}).randomize
     assert told.families == "random"
-    assert jaxnav.make_env("goal").randomize == training_randomize("goal") == gpu
+    everywhere = dataclasses.replace(gpu, families="all")
+    assert jaxnav.make_env("goal").randomize == training_randomize("goal") == everywhere
     assert jaxnav.make_env("avoid").randomize == TRAINING
     room = RoomLayout(name="r", size=(4.0, 4.0), robot_pos=(0.0, 0.0), robot_yaw=0.0)
     assert jaxnav.make_env("goal", layouts=[room]).randomize == RandomizeConfig()
