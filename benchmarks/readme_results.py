@@ -53,7 +53,7 @@ GATHERED = (
         "the gpu preset: training time to the suite's bar",
     ),
     (
-        "barn_h100.json",
+        "barn_h200.json",
         "python -m jaxnav.train --env goal --preset gpu && python benchmarks/barn.py "
         "--checkpoint RUN --episodes 5",
         "the gpu preset's goal policy on BARN's 300 worlds (never trained on), 5 episodes a world",
