@@ -173,10 +173,10 @@ def grid_cost(extent: tuple[float, float], envs: int) -> dict:
     cfg = RandomizeConfig(sampled_room_prob=1.0, families="long_hall")
     layouts = load_layout(SUITE / "open.json")
     params = _episodes(jax.random.PRNGKey(1), cfg, layouts, envs)
-    cells = goals.make_goal_cells(layouts)
+    goal_cells = goals.make_goal_cells(layouts)
     draw = jax.jit(
         jax.vmap(
-            lambda k, p: goals.sample_goal(k, p, extent, cells, ROBOT.radius, 0.3, 2.0, 0.1)[2]
+            lambda k, p: goals.sample_goal(k, p, extent, goal_cells, ROBOT.radius, 0.3, 2.0, 0.1)[2]
         )
     )
     keys = jax.random.split(jax.random.PRNGKey(2), envs)

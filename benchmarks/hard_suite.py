@@ -6,7 +6,7 @@ hall, a goal policy driving to the goal 20 m down it?
         --json benchmarks/results/hard_suite_cpu.json
 
 Each run's policy is evaluated (`jaxnav.evaluation.evaluate`, as `python -m jaxnav.evaluate`
-does) on `--suite hard` (`--episodes` a room, the suite's 100 s an episode) and in
+does) on `--suite hard` (`--episodes` a room, 60 s an episode) and in
 `scenes/halls/hall_25m.json` (`--episodes`, 100 s; `avoid` drives the hall, `goal` drives to the
 hall's goal). Prints a table last: per run, each family's collision-free rate and speed, and for
 goal policies the success rate.

@@ -15,7 +15,6 @@ and are written with `save_layouts`. Evaluate a policy on them with `python -m j
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import jax
@@ -25,15 +24,14 @@ import jaxnav
 from jaxnav.core import families
 from jaxnav.core.randomize import RandomizeConfig, family_weights
 from jaxnav.core.robot import TURTLEBOT2I
-from jaxnav.io.files import write_atomic
 from jaxnav.io.layouts import save_layouts
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 HARD = ("dense_field", "long_hall", "crowd")  # the families of the `hard` suite
-HARD_TIME_LIMIT = 100.0  # s per episode in the `hard` suite (BARN's): a 30 m hall takes 60 s
 
 
 def _one(rooms, j: int):
+    """Room `j` of a batch of rooms."""
     return jax.tree_util.tree_map(lambda x: x[j], rooms)
 
 
@@ -83,8 +81,6 @@ def main() -> None:
             f"{name:<14} {len(rooms)} rooms, up to {max(len(r.obstacles) for r in rooms)} "
             f"obstacles -> {out / name}.json"
         )
-    if args.suite == "hard":
-        write_atomic(out / "suite.json", json.dumps({"time_limit_s": HARD_TIME_LIMIT}) + "\n")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """The goal task's memory and training mix on BARN, the benchmark suites, CrowdNav's circle
 crossing and a 25 m hall: goal policies trained with and without the memory, with BARN-like dense
 fields, walkers or long halls in their room mix, weighted as the cpu preset weighs its families,
-and at the Kobuki's top speed.
+at the Kobuki's top speed, and trained twice as long (`memory_hall_long`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -11,13 +11,13 @@ Each variant trains `python -m jaxnav.train --env goal --preset P --seed S --out
 evaluated on BARN's 300 worlds (`--suite barn`, `--barn-episodes` a world, 100 s, as
 `benchmarks/barn.py`), on the 32 rooms of the benchmark suite (`--suite benchmark`, 20 episodes
 a room), on CrowdNav's circle crossing (`benchmarks/crowdnav.py`, `--crowd-episodes` a room;
-0 leaves it out), on the hard suite (`--suite hard`: dense fields, long halls and people, 20
-episodes a room) and on `scenes/halls/hall_25m.json`, whose goal is 20 m down the hall (20
-episodes; rows measured before these were added have none). Rows are kept per variant and
+0 leaves it out), and by `hard_suite.py` on the hard suite (`--suite hard`: dense fields, long
+halls and people, 20 episodes a room, 60 s) and in `scenes/halls/hall_25m.json`, whose goal is
+20 m down the hall (20 episodes, 100 s; rows measured before these were added have none). Rows are kept per variant and
 seed: those already in the JSON file stay where this run does not measure them again, so variants
 and seeds may be run in several calls. Prints a table last: each variant's mean over its seeds,
-the lowest and highest BARN success, and the circle crossing's success among reactive and
-non-reactive people.
+the lowest and highest BARN success, the circle crossing's success among reactive and
+non-reactive people, the hard suite's (overall and per family) and the hall's.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from pathlib import Path
 import hard_suite
 import numpy as np
 from crowdnav import KINDS, circle_crossing
+from make_suite import HARD
 from report import run_info, write_json
 
 from jaxnav.tasks.presets import GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES
@@ -50,13 +51,15 @@ VARIANTS = {
     "memory_crowd_fast": ("--task.memory-bins", "16", "--randomize.families", "all,crowd:3")
     + ("--task.forward-speed", "0.7"),
     "memory_hall": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES),
+    "memory_hall_long": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES)
+    + ("--total-steps", "200000000"),
     "memory_hard": ("--task.memory-bins", "16", "--randomize.families")
     + ("all,dense_field:1,long_hall:1,crowd:1",),
 }
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
-HARD_FAMILIES = ("crowd", "dense_field", "long_hall")  # the hard suite's, in its file order
+HARD_FAMILIES = tuple(sorted(HARD))  # the hard suite's families, in its file order
 CROWD_KEYS = ("success", "collision", "timeout", "time_to_goal", "robot_collision")
 
 

@@ -464,7 +464,7 @@ def evaluate(
     *,
     suite: str | None = None,
     episodes: int = 100,
-    steps: int = 600,
+    steps: int | None = None,
     seed: int = 0,
     spawn: str = "layout",
     stochastic_env: bool = True,
@@ -472,8 +472,9 @@ def evaluate(
     moving: dict | None = None,
     coupled_smoother: bool = False,
 ) -> dict:
-    """Runs `episodes` episodes of at most `steps` control steps in each layout (or each room of
-    `suite`, see `load_suite`), all rooms in one compiled batch.
+    """Runs `episodes` episodes of at most `steps` control steps (None: `default_steps`, the
+    suite's time limit or 600) in each layout (or each room of `suite`, see `load_suite`), all
+    rooms in one compiled batch.
 
     Returns `{"layouts": {name: metrics}, "overall": metrics, "policy", "steps", "seed",
     "_trajectories": {name: {"paths": [[T_i + 1, 2] arrays], "collided": [bool], "qpos",
@@ -490,6 +491,7 @@ def evaluate(
     then give them under `"moving"`. `coupled_smoother`: the Kobuki's smoother rule
     (`eval_randomize`), named under `"smoother"` in the results.
     """
+    steps = default_steps(suite, policy) if steps is None else steps
     for name, value in (("episodes", episodes), ("steps", steps)):
         if not 1 <= value <= MAX_COUNT:
             raise ValueError(f"{name}: must be 1 to {MAX_COUNT:,}, got {value:,}")

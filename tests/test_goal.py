@@ -284,6 +284,15 @@ def test_traced_flood_matches_breadth_first_search():
     # Fewer rounds never claim a path that is not there, nor a shorter one.
     few = np.asarray(grid_steps(jnp.asarray(free[0]), jnp.asarray(seed[0]), sweeps=2))
     assert (few >= want[0]).all() and np.isinf(few).sum() > np.isinf(want[0]).sum()
+    # Grids longer than wide (a long hall's), through both floods.
+    wide = rng.random((3, 12, 40)) > 0.3
+    wide[:, 2, 30] = True
+    start = np.zeros_like(wide)
+    start[:, 2, 30] = True
+    want = np.stack([_bfs(f, (2, 30)) for f in wide])
+    got = np.asarray(jax.vmap(lambda f, s: grid_steps(f, s, sweeps=40))(wide, start))
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(np.asarray(goals._flood_scans(wide, start, 40)), want)
 
 
 @pytest.mark.slow
@@ -460,7 +469,7 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     assert np.abs(spawn[1]).max() > 0.7  # out of the ring
     for e in range(len(rooms)):  # the flood from the goal reaches the spawn
         assert float(goals.geodesic(field[e], goal[e], spawn[e])) < 20.0
-        col, row = np.floor(spawn[e] / GRID_CELL + 0.5 * field.shape[1]).astype(int)
+        col, row = np.asarray(goals._grid_cell(field.shape[1:], spawn[e], None))
         assert np.isfinite(field[e, row, col])
     assert np.linalg.norm(goal[:2] - spawn[:2], axis=-1).min() >= 1.5
 

@@ -10,7 +10,7 @@ import pytest
 import jaxnav
 from jaxnav.core import families, goals
 from jaxnav.core.assets import scenes_dir
-from jaxnav.core.randomize import RandomizeConfig, family_weights
+from jaxnav.core.randomize import LARGE_FAMILIES, RandomizeConfig, family_weights
 from jaxnav.io.layouts import Box, RoomLayout, load_layout
 
 RADIUS = 0.177
@@ -47,11 +47,14 @@ def test_halls_are_passable_end_to_end(halls):
 def test_long_hall_is_drawn_by_name_only():
     assert "long_hall" not in family_weights("all")
     assert family_weights("random:3,long_hall:1")["long_hall"] == pytest.approx(0.25)
+    assert set(LARGE_FAMILIES) == set(families.LARGE_EXTENTS)  # the goal grid covers each
 
 
+@pytest.mark.slow
 def test_goal_task_draws_goals_down_long_halls():
     """With `long_hall` in the mix the goal grid covers 30 x 12 m, laid along each hall: goals
-    beyond 10.8 m occur, and the flood from each goal reaches its spawn along the hall."""
+    beyond 10.8 m occur, and the flood from each goal reaches its spawn along the hall. Slow: it
+    compiles a goal env's reset."""
     mix = RandomizeConfig(sampled_room_prob=1.0, families="long_hall")
     env = jaxnav.make_env("goal", randomize=mix)
     assert env._grid_extent == families.LARGE_EXTENTS["long_hall"] == (15.0, 6.0)
@@ -82,10 +85,14 @@ def _hall(transposed: bool) -> RoomLayout:
     )
 
 
+@pytest.mark.slow
 def test_a_hall_and_its_transpose_have_one_geodesic():
     """The grid lies on a hall along y transposed: the distance to go from the spawn is the
-    same in a hall and in the hall turned a quarter, and about the 18 m between the ends."""
-    env = jaxnav.make_env("goal", layouts=[_hall(False), _hall(True)])
+    same in a hall and in the hall turned a quarter, and about the 18 m between the ends; drawn
+    as sampled rooms, neither spawn is taken for one the flood missed (and moved). Slow: it
+    compiles a goal env's reset."""
+    halls = [_hall(False), _hall(True)]
+    env = jaxnav.make_env("goal", layouts=halls)
     assert env._grid_extent == (10.0, goals.GRID_HALF)
     states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 8))
     ids = np.asarray(states.info["params"].layout_id)
@@ -96,6 +103,12 @@ def test_a_hall_and_its_transpose_have_one_geodesic():
         to_go(info["field"], info["goal"], states.data.qpos[:, :2], info["params"].room_half)
     )
     assert np.ptp(geo) < 1e-4 and np.hypot(18.0, 0.3) <= geo[0] < 18.6
+    sampled = env.bank.rooms.replace(layout_id=jnp.array([-1, -1]))
+    draw = lambda k, p: goals.sample_goal(
+        k, p, env._grid_extent, env.bank.goals, RADIUS, 0.3, 1.5, 0.15
+    )  # noqa: E731
+    rooms, _, _ = jax.vmap(draw)(jax.random.split(jax.random.PRNGKey(1), 2), sampled)
+    np.testing.assert_array_equal(rooms.spawn, sampled.spawn)
 
 
 def test_the_25m_hall_layout_loads():

@@ -290,7 +290,8 @@ def _transposed(shape: tuple[int, int], room_half: jax.Array | None):
 
 
 def _swap(xy: jax.Array, transposed) -> jax.Array:
-    """[..., 2] points between the room's frame and the grid's (the same map both ways)."""
+    """[..., 2] points between the room's frame and the grid's (the same map both ways);
+    `transposed`: `_transposed`'s [] bool, or None (a square grid: `xy` as it is)."""
     return xy if transposed is None else jnp.where(transposed, xy[..., ::-1], xy)
 
 
@@ -351,7 +352,9 @@ def goal_field(params: SceneParams, extent: tuple[float, float], goal: jax.Array
     return _flood(_free(params, extent, radius)[1], centres, goal)
 
 
-def geodesic(field: jax.Array, goal: jax.Array, xy: jax.Array, blocked=None, room_half=None):
+def geodesic(
+    field: jax.Array, goal: jax.Array, xy: jax.Array, blocked=None, room_half=None
+) -> jax.Array:
     """[] m from `xy` [2] to the goal along the grid of `goal_field`: the least of (a cell's
     steps x GRID_CELL + the straight line to its centre) over the 3 x 3 cells around `xy`;
     where none of them reaches the goal (a robot pressed against a wall, a point inside one),
