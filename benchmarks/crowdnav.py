@@ -10,10 +10,10 @@ rooms of `benchmarks/make_crowdnav.py`: 5 people on a 4 m circle walking to the 
 the robot from (0, -4) to (0, 4)) and reports what CrowdNav reports (Chen et al. 2019,
 "Crowd-Robot Interaction", Table I): the shares of episodes that reached the goal (success),
 collided (collision) and ran out of CrowdNav's 25 s (timeout; 250 control steps), and the mean
-time of the successful ones (time to goal, s; their "navigation time"). Beside them: the collisions the robot caused, and the episodes in which a
-non-reactive person ran into the robot while it stood (`walker_hit`). Success is the goal task's
-(its centre within `success_radius`, 0.3 m by default: CrowdNav's robot radius). Prints a table
-and writes JSON.
+time of the successful ones (time to goal, s; their "navigation time"). Beside them: the
+collisions the robot caused, and the episodes in which a non-reactive person ran into the robot
+while it stood (`walker_hit`). Success is the goal task's (its centre within `success_radius`,
+0.3 m by default: CrowdNav's robot radius). Prints a table and writes JSON.
 """
 
 from __future__ import annotations

@@ -15,15 +15,14 @@ goal policies the success rate.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
+from long_hall import HALL
 from report import run_info, write_json
 
 from jaxnav.evaluation import evaluate
 from jaxnav.io.layouts import load_layout
 from jaxnav.runs import load_policy
 
-HALL = Path(__file__).resolve().parent.parent / "scenes" / "halls" / "hall_25m.json"
 HALL_STEPS = 1000  # 100 s at the control period of 0.1 s
 KEYS = (
     "collision_free_rate",

@@ -263,13 +263,19 @@ def _bfs(free: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
     return steps
 
 
+def _grids(rng, shape: tuple[int, int, int], cell: tuple[int, int]):
+    """([B, H, W] random free masks with `cell` free, [B, H, W] seed masks at `cell`, [B, H, W]
+    breadth-first steps from it)."""
+    free = rng.random(shape) > 0.3
+    free[:, cell[0], cell[1]] = True
+    seed = np.zeros_like(free)
+    seed[:, cell[0], cell[1]] = True
+    return free, seed, np.stack([_bfs(f, cell) for f in free])
+
+
 def test_traced_flood_matches_breadth_first_search():
     rng = np.random.default_rng(0)
-    free = rng.random((6, 30, 30)) > 0.3
-    free[:, 5, 5] = True
-    seed = np.zeros_like(free)
-    seed[:, 5, 5] = True
-    want = np.stack([_bfs(f, (5, 5)) for f in free])
+    free, seed, want = _grids(rng, (6, 30, 30), (5, 5))
     got = np.asarray(jax.vmap(lambda f, s: grid_steps(f, s, sweeps=40))(free, seed))
     np.testing.assert_array_equal(got, want)
     # Nested vmaps, a seed shared by the batch, and both floods (the CPU's loop over rows, the
@@ -285,11 +291,7 @@ def test_traced_flood_matches_breadth_first_search():
     few = np.asarray(grid_steps(jnp.asarray(free[0]), jnp.asarray(seed[0]), sweeps=2))
     assert (few >= want[0]).all() and np.isinf(few).sum() > np.isinf(want[0]).sum()
     # Grids longer than wide (a long hall's), through both floods.
-    wide = rng.random((3, 12, 40)) > 0.3
-    wide[:, 2, 30] = True
-    start = np.zeros_like(wide)
-    start[:, 2, 30] = True
-    want = np.stack([_bfs(f, (2, 30)) for f in wide])
+    wide, start, want = _grids(rng, (3, 12, 40), (2, 30))
     got = np.asarray(jax.vmap(lambda f, s: grid_steps(f, s, sweeps=40))(wide, start))
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(np.asarray(goals._flood_scans(wide, start, 40)), want)

@@ -331,10 +331,15 @@ def _uniform(key, ok: jax.Array) -> jax.Array:
     return jnp.argmax(count > jax.random.randint(key, (), 0, jnp.maximum(count[-1], 1)))
 
 
+def _half_extents(shape: tuple[int, int]) -> np.ndarray:
+    """[2] m, the half extents (x, y) of the traced grid of `shape` (rows, cols), in its frame."""
+    return 0.5 * np.array(shape[::-1]) * GRID_CELL
+
+
 def _grid_cell(shape: tuple[int, int], xy: jax.Array, transposed) -> jax.Array:
     """[2] int32 (col, row) of the cell of the traced grid of `shape` containing the room's point
     `xy` [2] (outside the grid's range beyond it)."""
-    half = 0.5 * np.array(shape[::-1]) * GRID_CELL  # [2] the grid's half extents
+    half = _half_extents(shape)
     return jnp.round((_swap(xy, transposed) + half) / GRID_CELL - 0.5).astype(jnp.int32)
 
 
@@ -362,11 +367,10 @@ def geodesic(
     needed where the grid is not square (it may lie on the room transposed)."""
     shape = field.shape
     transposed = _transposed(shape, room_half)
-    half = 0.5 * np.array(shape[::-1]) * GRID_CELL  # [2] the grid's half extents
     ij = _grid_cell(shape, xy, transposed)  # [2] col, row
     offsets = jnp.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])  # [9, 2]
     cells = jnp.clip(ij + offsets, 0, np.array(shape[::-1]) - 1)  # [9, 2]
-    centres = (cells + 0.5) * GRID_CELL - half  # [9, 2] in the grid's frame
+    centres = (cells + 0.5) * GRID_CELL - _half_extents(shape)  # [9, 2] in the grid's frame
     via = field[cells[:, 1], cells[:, 0]] * GRID_CELL + jnp.linalg.norm(
         centres - _swap(xy, transposed), axis=-1
     )
