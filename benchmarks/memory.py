@@ -55,6 +55,12 @@ VARIANTS = {
     + ("--total-steps", "200000000"),
     "memory_hard": ("--task.memory-bins", "16", "--randomize.families")
     + ("all,dense_field:1,long_hall:1,crowd:1",),
+    "memory_hall_stop": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES)
+    + ("--task.actions", "discrete_stop"),
+    "memory_hall_clear10": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES)
+    + ("--task.clearance", "0.1"),
+    "memory_hall_clear20": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES)
+    + ("--task.clearance", "0.2"),
 }
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")

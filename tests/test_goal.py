@@ -182,6 +182,46 @@ def test_continuous_actions_respect_the_limits():
     np.testing.assert_allclose(rewards[1], 0.5 * (rewards[0] + rewards[2]), rtol=1e-5)
 
 
+@pytest.mark.slow
+def test_stop_action_holds_still_and_clearance_costs_near_walls():
+    """`discrete_stop` adds a fourth action, stop (0, 0), that leaves the robot where it stands;
+    `clearance` costs clearance_reward x (1 - gap / clearance) a step, the gap measured here from
+    the wall's position. Slow: the env compiles a program of its own."""
+    near_wall = RoomLayout(
+        name="near", size=(4.0, 4.0), robot_pos=(1.7, 0.0), robot_yaw=np.pi, goal_pos=(-1.5, 0.0)
+    )
+    env = jaxnav.make_env(
+        "goal",
+        layouts=[near_wall],
+        randomize=EXACT,
+        actions="discrete_stop",
+        clearance=0.3,
+        progress="straight",  # progress measured here too: the straight line to the goal
+    )
+    spec, t = env.action_spec, env.task
+    assert spec.names == ("forward", "left", "right", "stop")
+    np.testing.assert_array_equal(spec.table()[3], [0.0, 0.0])
+    step = jax.jit(env.step)
+    state = start = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    to_go = lambda s: float(np.hypot(*(np.asarray(s.data.qpos[:2]) - (-1.5, 0.0))))  # noqa: E731
+    for action, steps in ((3, 5), (0, 15)):  # stop by the wall, then drive away from it
+        for _ in range(steps):
+            before, state = to_go(state), step(state, jnp.int32(action))
+            gap = 2.0 - float(state.data.qpos[0]) - env.scene.bumper_radius  # east wall, x = 2
+            cost = t.clearance_reward * max(0.0, 1 - gap / t.clearance)
+            expected = t.time_reward + t.progress_reward * (before - to_go(state)) + cost
+            np.testing.assert_allclose(float(state.reward), expected, atol=1e-4)
+        if action == 3:
+            assert 0.0 < gap < 0.3 and cost < -0.02
+            moved = np.asarray(state.data.qpos[:3] - start.data.qpos[:3])
+            np.testing.assert_allclose(moved, 0.0, atol=1e-4)
+    assert gap > 0.3  # out of the clearance: no cost beyond the paper's terms
+    with pytest.raises(ValueError, match="AvoidConfig.actions: 'discrete_stop' is for the goal"):
+        jaxnav.make_env("avoid", actions="discrete_stop")
+    with pytest.raises(ValueError, match="GoalConfig.clearance: must be >= 0 m"):
+        jaxnav.make_env("goal", clearance=-0.1)
+
+
 def test_gaussian_policy_log_prob_and_entropy():
     from scipy.stats import norm
 

@@ -60,6 +60,11 @@ class AvoidConfig:
             raise ValueError(
                 f"AvoidConfig.actions: must be one of {', '.join(ACTIONS)}, got {self.actions!r}"
             )
+        if self.actions == "discrete_stop":
+            raise ValueError(
+                "AvoidConfig.actions: 'discrete_stop' is for the goal task; Table I has no "
+                "reward for standing still (it would pay a stop as a turn)"
+            )
 
     @property
     def action_spec(self) -> ActionSpec:

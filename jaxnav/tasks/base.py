@@ -35,18 +35,20 @@ from jaxnav.core.types import ActionSpec, ContinuousActions, DiscreteActions
 
 GRAVITY = 9.81  # m/s^2, for the wheels' traction limit
 MAX_LATENCY = 4  # control steps of command history kept for the episode's latency
-ACTIONS = ("discrete", "continuous")  # the tasks' `actions` options (`velocity_actions`)
+ACTIONS = ("discrete", "discrete_stop", "continuous")  # the `actions` options (`velocity_actions`)
 
 
 def velocity_actions(actions: str, forward_speed: float, turn_rate: float) -> ActionSpec:
-    """The paper's three commands (forward, turn left or right in place) or, with `actions` =
+    """The paper's three commands (forward, turn left or right in place); with `actions` =
+    "discrete_stop" a fourth, stop (0, 0), to wait with the view kept where it looks; with
     "continuous", any (forward m/s, yaw rad/s) in [0, forward_speed] x [-turn_rate, turn_rate]
     (no reversing: the camera looks ahead)."""
     if actions == "continuous":
         return ContinuousActions(low=(0.0, -turn_rate), high=(forward_speed, turn_rate))
+    stop = actions == "discrete_stop"
     return DiscreteActions(
-        names=("forward", "left", "right"),
-        commands=((forward_speed, 0.0), (0.0, turn_rate), (0.0, -turn_rate)),
+        names=("forward", "left", "right") + ("stop",) * stop,
+        commands=((forward_speed, 0.0), (0.0, turn_rate), (0.0, -turn_rate)) + ((0.0, 0.0),) * stop,
     )
 
 
@@ -239,10 +241,15 @@ class NavTask:
         """[num_sectors] float32 sector minima of the depth sensor, with the episode's noise."""
         return observe(params, data.qpos, key, self.sensor, self.robot)
 
+    def gap(self, params: SceneParams, data: mjx.Data) -> jax.Array:
+        """[] m between the robot's collision volume and the nearest wall or obstacle (moving
+        ones included); < 0 where they overlap."""
+        z = tuple(jnp.float32(v) for v in self.scene.bumper_z)
+        return signed_distance(params, data.qpos[:2], z) - self.scene.bumper_radius
+
     def touching(self, params: SceneParams, data: mjx.Data) -> jax.Array:
         """[] bool: the robot's collision volume touches a wall or an obstacle."""
-        z = tuple(jnp.float32(v) for v in self.scene.bumper_z)
-        return signed_distance(params, data.qpos[:2], z) < self.scene.bumper_radius
+        return self.gap(params, data) < 0
 
     def actuate(self, params: SceneParams, act: Actuator, target: jax.Array):
         """What reaches the motors this step for the policy's command `target` [2] (m/s, rad/s):

@@ -14,9 +14,10 @@ on the robot): the distance to the nearest point the camera saw in the last `mem
 each of that many directions round the robot, so an obstacle that left the 60 degree view, or came
 nearer than the camera's range_min, is still seen (docs/results.md, "BARN").
 
-Actions: the paper's three (default) or continuous (forward m/s, yaw rad/s), see `GoalConfig`.
-Reward per step (`GoalConfig`): progress_reward x (metres closer to the goal) + time_reward, plus
-success_reward on the step that reaches it or collision_reward on the step that collides. Closer
+Actions: the paper's three (default), those and a stop, or continuous (forward m/s, yaw rad/s),
+see `GoalConfig`. Reward per step (`GoalConfig`): progress_reward x (metres closer to the goal) +
+time_reward, plus success_reward on the step that reaches it or collision_reward on the step that
+collides, and (with `clearance`) a cost for passing nearer than that to anything. Closer
 is measured along the room's free space by default (`progress="geodesic"`: the traced grid of
 `jaxnav.core.goals.goal_field`), so a detour around a wall is not punished; a potential-based
 term, it sums to the geodesic distance covered whatever the path. The
@@ -64,8 +65,8 @@ class GoalConfig:
     """The task: actions, goal placement, reward terms, episode length."""
 
     actions: str = "discrete"
-    """'discrete': the paper's forward / left / right; 'continuous': (forward m/s, yaw rad/s) in
-    [0, forward_speed] x [-turn_rate, turn_rate]."""
+    """'discrete': the paper's forward / left / right; 'discrete_stop': those and stop (0, 0);
+    'continuous': (forward m/s, yaw rad/s) in [0, forward_speed] x [-turn_rate, turn_rate]."""
     forward_speed: float = 0.5
     """Forward speed of the `forward` action (the top of the continuous range), m/s (Kobuki 0.7)."""
     turn_rate: float = 1.5
@@ -89,6 +90,12 @@ class GoalConfig:
     """Added on the step that collides; the episode ends."""
     time_reward: float = -0.01
     """Added on every step (a small cost of time)."""
+    clearance: float = 0.0
+    """m; a step that ends with the robot's collision volume nearer than this to a wall, an
+    obstacle or a person adds clearance_reward x (1 - gap / clearance): the full term at contact,
+    none at this gap (training only: the gap is the simulator's, no sensor's). 0 = none."""
+    clearance_reward: float = -0.05
+    """The clearance term at contact (see `clearance`)."""
     max_steps: int = 500
     """Time limit in control steps (500 = 50 s at 10 Hz); ends the episode without penalty."""
     history: int = 16
@@ -108,6 +115,8 @@ class GoalConfig:
         for name in ("success_radius", "goal_min_distance"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"GoalConfig.{name}: must be > 0 m, got {getattr(self, name)}")
+        if self.clearance < 0:
+            raise ValueError(f"GoalConfig.clearance: must be >= 0 m, got {self.clearance}")
         if self.path_clearance < 0:
             raise ValueError(
                 f"GoalConfig.path_clearance: must be >= 0 m, got {self.path_clearance}"
@@ -128,7 +137,7 @@ class GoalConfig:
 
     @property
     def action_spec(self) -> ActionSpec:
-        """The paper's three actions, or continuous commands within the same speeds."""
+        """The paper's three actions (and a stop), or continuous commands within the same speeds."""
         return velocity_actions(self.actions, self.forward_speed, self.turn_rate)
 
     def check_robot(self, robot: RobotSpec) -> None:
@@ -307,6 +316,8 @@ class GoalEnv(NavTask):
         reward += jnp.where(success, t.success_reward, 0.0) + jnp.where(
             hit, t.collision_reward, 0.0
         )
+        if t.clearance > 0:
+            reward += t.clearance_reward * jnp.clip(1 - self.gap(params, data) / t.clearance, 0, 1)
         key, k_obs = jax.random.split(info["key"])
         moved = jnp.linalg.norm(data.qpos[:2] - state.data.qpos[:2])
         f32 = lambda x: x.astype(jnp.float32)  # noqa: E731
