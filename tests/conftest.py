@@ -94,15 +94,19 @@ def corridor(obstacle, size=(8.0, 3.0)) -> RoomLayout:
     )
 
 
-@pytest.fixture(scope="session")
-def probe_env():
-    """An env whose layout bank holds the probe rooms used by the sensor and collision tests."""
-    layouts = [
+def probe_layouts() -> list[RoomLayout]:
+    """The probe rooms: a box and a cylinder ahead in a corridor, and an empty 3 m room."""
+    return [
         corridor(Box(pos=(2.0, 0.0), size=(0.4, 0.8))),  # face at x = 1.8
         corridor(Cylinder(pos=(1.5, 0.0), radius=0.2)),  # surface at x = 1.3
         RoomLayout(name="wall", size=(3.0, 3.0), robot_pos=(0.0, 0.0), robot_yaw=0.0),
     ]
-    env = jaxnav.make_env("avoid", layouts=layouts, randomize=EXACT)
+
+
+@pytest.fixture(scope="session")
+def probe_env():
+    """An env whose layout bank holds the probe rooms used by the sensor and collision tests."""
+    env = jaxnav.make_env("avoid", layouts=probe_layouts(), randomize=EXACT)
     return env, jax.jit(env.reset), jax.jit(env.step)
 
 

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import start_in, traced_once
+from conftest import EXACT, probe_layouts, start_in, traced_once
 
 import jaxnav
 from jaxnav.core.episode import sample
@@ -92,6 +92,34 @@ def test_table_one_rewards(probe_env):
     closest = float(np.min(state.obs))
     assert float(step(state, jnp.int32(0)).reward) == pytest.approx(0.4 - 0.2 / closest, rel=1e-5)
     assert float(step(state, jnp.int32(1)).reward) == pytest.approx(0.6 - 0.2 / closest, rel=1e-5)
+
+
+@pytest.mark.slow
+def test_history_stacks_frames_and_table_one_reads_the_newest(probe_env):
+    """With `history`, avoid's observation is the newest frame, then the earlier ones, as the
+    robot side's `FrameStack` stacks them; each step is the paper's step (the probe env's, on
+    the same state with the newest frame only): the same reward, frame and motion. Slow: the
+    env compiles a program of its own."""
+    from jaxnav.robot_side.policy import FrameStack
+
+    _, _, paper_step = probe_env
+    env = jaxnav.make_env("avoid", layouts=probe_layouts(), randomize=EXACT, history=2)
+    assert env.observation_size == 3 * 8
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    state = start_in(env, reset, 2)  # the empty 3 m room, facing a wall 1.5 m away
+    stack = FrameStack(2)
+    np.testing.assert_array_equal(stack(state.obs[:8]), state.obs)  # the first frame, tiled
+    for action in (0, 0, 1, 0, 2, 0, 0):
+        nxt = step(state, jnp.int32(action))
+        want = paper_step(state.replace(obs=state.obs[:8]), jnp.int32(action))
+        assert float(nxt.reward) == float(want.reward)
+        np.testing.assert_array_equal(nxt.obs[:8], want.obs)
+        np.testing.assert_array_equal(nxt.data.qpos, want.data.qpos)
+        np.testing.assert_array_equal(stack(nxt.obs[:8]), nxt.obs)  # newest frame first
+        state = nxt
+    assert not np.array_equal(state.obs[:8], state.obs[16:])  # the frames differ as it drove
+    with pytest.raises(ValueError, match="AvoidConfig.history: must be >= 0"):
+        jaxnav.make_env("avoid", history=-1)
 
 
 def test_spawn_never_overlaps(mixed_env):

@@ -168,6 +168,36 @@ def test_loop_acts_on_the_newest_message_at_its_own_rate(policy):
     assert log == ["policy: driving"]
 
 
+def test_avoid_policy_with_history_sees_stacked_frames(tmp_path):
+    """An avoid policy with `history` 2 gets the newest sectors, then the two frames before them
+    (the first frame standing in for them at the start and after a stop), as the simulator
+    stacks them."""
+    rng = np.random.default_rng(3)
+    stacked = NumpyPolicy.from_npz(
+        write_policy_npz(
+            tmp_path / "stacked.npz",
+            W0=rng.normal(size=(24, 16)).astype(np.float32),
+            obs_mean=np.full(24, 3.0, np.float32),
+            obs_var=np.full(24, 4.0, np.float32),
+            obs_std=np.full(24, 2.0, np.float32),
+            history=np.int32(2),
+        )
+    )
+    loop = ControlLoop(Controller(stacked), MessageReader(), max_age=0.25, log=lambda _: None)
+    frames = [scene(0.9 + 0.4 * i, 3.0 + 0.3 * i) for i in range(4)]
+    seen = []
+    for i, frame in enumerate(frames):
+        loop.on_observation(image_msg(frame), 0.1 * i)
+        loop.tick(0.1 * i)
+        seen.append(loop.obs[:8].copy())
+        assert loop.obs.shape == (24,)
+    np.testing.assert_array_equal(loop.obs, np.concatenate(seen[:0:-1]))  # 3, 2, 1: newest first
+    assert loop.tick(1.0) == STOP  # no frame for 0.7 s: stopped, the stack starts afresh
+    loop.on_observation(image_msg(frames[0]), 1.0)
+    loop.tick(1.0)
+    np.testing.assert_array_equal(loop.obs, np.tile(seen[0], 3))
+
+
 def test_watchdog_stops_on_stale_data(policy):
     log = []
     loop = ControlLoop(Controller(policy), MessageReader(), max_age=0.25, log=log.append)

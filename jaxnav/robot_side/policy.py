@@ -261,7 +261,7 @@ class NumpyPolicy:
     success_radius: float | None = None
     """m: the goal task's goal counts as reached within this distance."""
     history: int = 0
-    """Earlier observations the goal task stacks after the newest (`FrameStack`); 0 = none."""
+    """Earlier observations the policy stacks after the newest (`FrameStack`); 0 = none."""
     memory: MemorySpec | None = None
     """What the observation's last `memory.bins` entries remember (`jaxnav_robot.memory`);
     None: no memory."""
@@ -410,7 +410,7 @@ class NumpyPolicy:
 class FrameStack:
     """The stacked observation of a policy with `history` > 0: the newest frame, then the
     `history` frames before it, newest first; the first frame after `reset` stands in for the
-    earlier ones (the simulator's `GoalEnv` does the same at an episode's start)."""
+    earlier ones (the simulator's tasks do the same at an episode's start)."""
 
     def __init__(self, history: int):
         self.history = history

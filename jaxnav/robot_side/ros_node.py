@@ -726,8 +726,8 @@ class ControlLoop:
     def _act(self, msg, now: float):
         try:
             obs, state = self._sectors(msg, now)
-            if self.goal is not None:
-                obs = self._goal_obs(obs)
+            # The goal policy's inputs; an avoid policy's stacked frames (with no history: obs).
+            obs = self._goal_obs(obs) if self.goal is not None else self._frames(obs)
             return obs, self.controller.act(obs), state
         except BlindFrame as err:
             return None, STOP, f"sensor blind: {err}"

@@ -1,7 +1,8 @@
 """`avoid`: the paper's task. Drive around a room full of obstacles without touching any.
 
-Observation: the 8 shortest depth-camera distances (m). Actions: 0 forward, 1 turn left, 2 turn right,
-held for one control period; or (`actions="continuous"`) any command (forward m/s, yaw rad/s) within
+Observation: the 8 shortest depth-camera distances (m); with `history`, the frames before them
+follow, newest first (stacked frames: what moved, e.g. a person walking into the robot's way).
+Actions: 0 forward, 1 turn left, 2 turn right, held for one control period; or (`actions="continuous"`) any command (forward m/s, yaw rad/s) within
 [0, forward_speed] x [-turn_rate, turn_rate]. Reward: the paper's Table I (see `AvoidConfig`). A
 collision ends the episode with `collision_reward`; so does the time limit, without penalty.
 Metric: `collision`.
@@ -48,6 +49,9 @@ class AvoidConfig:
     """Table I: reward of the step that collides; the episode ends."""
     max_steps: int = 600
     """Time limit in control steps (600 = 60 s at 10 Hz); ends the episode without penalty."""
+    history: int = 0
+    """Earlier observations appended to the current one, newest first (stacked frames, as the
+    goal task's); 0 = the paper's observation. Table I reads the newest frame only."""
 
     def __post_init__(self):
         require_finite(self)
@@ -56,6 +60,8 @@ class AvoidConfig:
                 raise ValueError(f"AvoidConfig.{name}: must be > 0, got {getattr(self, name)}")
         if self.max_steps < 1:
             raise ValueError(f"AvoidConfig.max_steps: must be >= 1, got {self.max_steps}")
+        if self.history < 0:
+            raise ValueError(f"AvoidConfig.history: must be >= 0, got {self.history}")
         if self.actions not in ACTIONS:
             raise ValueError(
                 f"AvoidConfig.actions: must be one of {', '.join(ACTIONS)}, got {self.actions!r}"
@@ -86,7 +92,7 @@ class AvoidEnv(NavTask):
         super().__init__(bank, task, **specs)
         task.check_robot(self.robot)
         self.action_spec = task.action_spec
-        self.observation_size = self.sensor.num_sectors
+        self.observation_size = self.sensor.num_sectors * (1 + task.history)
 
     def reset(self, key: jax.Array) -> EnvState:
         """A new episode: fresh room, spawn and parameters drawn from the randomisation."""
@@ -95,7 +101,7 @@ class AvoidEnv(NavTask):
         f0, b0 = jnp.float32(0), jnp.bool_(False)
         return EnvState(
             data=data,
-            obs=self.sense(params, data, k_obs),
+            obs=jnp.tile(self.sense(params, data, k_obs), 1 + self.task.history),
             reward=f0,
             done=b0,
             truncated=b0,
@@ -112,10 +118,11 @@ class AvoidEnv(NavTask):
         steps = state.info["steps"] + 1
         truncated = (steps >= self.task.max_steps) & ~hit
         key, k_obs = jax.random.split(state.info["key"])
+        frame, sectors = self.sense(params, data, k_obs), self.sensor.num_sectors
         return EnvState(
             data=data,
-            obs=self.sense(params, data, k_obs),
-            reward=self._reward(state.obs, action, target, hit),
+            obs=jnp.concatenate([frame, state.obs[: self.observation_size - sectors]]),
+            reward=self._reward(state.obs[:sectors], action, target, hit),
             done=hit | truncated,
             truncated=truncated,
             metrics={"collision": hit.astype(jnp.float32), **self.walker_hit(params, data, hit)},
@@ -123,8 +130,8 @@ class AvoidEnv(NavTask):
         )
 
     def _reward(self, obs, action, target, hit) -> jax.Array:
-        """Table I of the paper, from the observation the action was chosen on; continuous
-        commands interpolate between its forward and turn entries by v / forward_speed."""
+        """Table I of the paper, from the observation (its newest frame) the action was chosen on;
+        continuous commands interpolate between its forward and turn entries by v / forward_speed."""
         t = self.task
         closest = jnp.min(obs)
         near = closest < t.near_threshold
