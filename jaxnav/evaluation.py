@@ -377,12 +377,17 @@ def suite_meta(name: str) -> dict:
 
 def default_steps(suite: str | None, policy: Policy) -> int:
     """Control steps per episode when none are given: the suite's time limit (`SUITE_META`'s
-    `time_limit_s`), else 600 (60 s)."""
-    limit = suite_meta(suite).get("time_limit_s") if suite else None
-    if limit is None:
-        return 600
+    `time_limit_s`) at the policy's control period, else 600 (60 s)."""
     period = (policy.env_kwargs.get("scene") or SceneConfig()).control_period
-    return round(limit / period)
+    return suite_steps(suite, period)
+
+
+def suite_steps(suite: str | None, period: float, default: int = 600) -> int:
+    """Control steps of `period` s in `suite`'s time limit (`SUITE_META`'s `time_limit_s`);
+    `default` where it has none (or no suite is named). The simulator's evaluation and the
+    twin both take their default episode length from here."""
+    limit = suite_meta(suite).get("time_limit_s") if suite else None
+    return default if limit is None else round(limit / period)
 
 
 def barn_scores(

@@ -185,6 +185,15 @@ def test_a_suite_folder_keeps_its_own_data_beside_its_rooms(tmp_path, monkeypatc
     assert list(ev.load_suite("mine")) == ["easy"]
     policy = types_policy()
     assert ev.default_steps("mine", policy) == 420 and ev.default_steps(None, policy) == 600
+    # The twin takes its episode length from the same limit, at its policy file's 20 Hz.
+    import types
+
+    from jaxnav.cli import twin
+
+    flags = dict(steps=None, episodes=1, seed=0, width=64, height=48, every_frame=False)
+    fast = types.SimpleNamespace(control_period=0.05)
+    assert twin._config(types.SimpleNamespace(suite="mine", **flags), fast).steps == 840
+    assert twin._config(types.SimpleNamespace(suite=None, **flags), fast).steps == 600
 
 
 def types_policy():

@@ -73,12 +73,11 @@ def _rooms(args, policy: NumpyPolicy) -> tuple[list[RoomLayout] | None, str | No
 
 def _config(args, policy: NumpyPolicy) -> TwinConfig:
     """The settings of the flags; --steps defaults to the suite's time limit, else 600."""
-    from jaxnav.evaluation import suite_meta
+    from jaxnav.evaluation import suite_steps
 
     steps = args.steps
     if steps is None:
-        limit = suite_meta(args.suite).get("time_limit_s") if args.suite else None
-        steps = TwinConfig.steps if limit is None else round(limit * control_rate(policy))
+        steps = suite_steps(args.suite, 1.0 / control_rate(policy), TwinConfig.steps)
     flags = dict(episodes=args.episodes, steps=steps, seed=args.seed, width=args.width)
     try:
         return TwinConfig(**flags, height=args.height, every_frame=args.every_frame)
