@@ -1,10 +1,9 @@
-"""A training run's programs (`init` and the chunk, and the chunk's draws where a program of
-their own draws them), traced once and kept on disk.
+"""A training run's two programs (`init` and the chunk), traced once and kept on disk.
 
 Before XLA compiles anything, a start traces the task's reset and step (under `vmap`, in a scan)
 and lowers them to StableHLO: several seconds of Python on every start (7-9 s for the goal task's
 chunk), which JAX's persistent compilation cache cannot keep, since it keeps XLA's side only. So a
-run on one device exports its programs with `jax.export` (StableHLO and the pytree structure of
+run on one device exports its two programs with `jax.export` (StableHLO and the pytree structure of
 their arguments and results) into the `programs/` folder of the compilation cache, under a key of
 everything the trace depends on (`run_key`). A repeated run reads them back and hands them to
 `jax.jit`, whose program (a call of the stored one) the first run compiled too, so XLA's side is a
@@ -36,9 +35,8 @@ from jax import export
 from jaxnav.core.assets import scenes_dir
 from jaxnav.core.xla import compiler_options
 from jaxnav.io import files
-from jaxnav.ppo.train import DrawnChunk, reset_keys
 
-FORMAT = 2
+FORMAT = 1
 """The store's own format, part of the key: a change of it keys every run anew."""
 
 LIBRARIES = (
@@ -56,8 +54,7 @@ LIBRARIES = (
 )
 """The packages whose code a trace runs or lowers (their versions are in the key)."""
 
-# Trainer.parts' programs: their trace's name
-TRACED = {"init": "init", "chunk": "run_chunk", "draw": "draw_chunk"}
+TRACED = {"init": "init", "chunk": "run_chunk"}  # Trainer.parts' programs: their trace's name
 
 MAX_BYTES = 256 * 2**20
 """The store's size at most: a goal run's two programs take about 0.7 MB (cpu preset), so this
@@ -139,8 +136,7 @@ class Stored:
             return exported.call(*leaves)
 
         call.__name__ = call.__qualname__ = f"stored_{name}"
-        # `donate`: the first argument's buffers (the TrainState) are the result's to reuse.
-        donated = tuple(range(in_tree.children()[0].num_leaves)) if donate else ()
+        donated = tuple(range(len(exported.in_avals))) if donate else ()
         options = compiler_options(jax.devices()[0].platform)
         self._jitted = jax.jit(call, donate_argnums=donated, compiler_options=options)
 
@@ -279,14 +275,6 @@ def with_init(trainer, config, env, key):
 
 def with_chunk(trainer, run: str, shapes):
     """`trainer` with its chunk stored for the run of key `run` (that of its stored init,
-    `with_init`), on init's result `shapes`, and its draws where a program of their own draws
-    them (`DrawnChunk`); or as it is."""
-    if "draw" not in trainer.parts:
-        chunk = program(trainer, run, "chunk", (shapes,))
-        return trainer if chunk is None else trainer._replace(run_chunk=chunk)
-    keys = reset_keys(shapes)
-    draw = program(trainer, run, "draw", (keys,))
-    if draw is None:
-        return trainer
-    chunk = program(trainer, run, "chunk", (shapes, jax.eval_shape(draw, keys)))
-    return trainer if chunk is None else trainer._replace(run_chunk=DrawnChunk(draw, chunk))
+    `with_init`), on init's result `shapes`; or as it is."""
+    chunk = program(trainer, run, "chunk", (shapes,))
+    return trainer if chunk is None else trainer._replace(run_chunk=chunk)

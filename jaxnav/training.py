@@ -106,10 +106,6 @@ def memory_check(config: RunConfig, env, trainer) -> None:
     step = 4 * (2 * env.observation_size + 8 + len(env.metric_names))
     # The state, the next one and its auto-reset draw; the rollout and its shuffled copy.
     per_robot = 3 * state + 2 * cfg.rollout_length * step + width
-    if "draw" in (trainer.parts or {}):  # a chunk's draws, all drawn ahead of it (`DrawnChunk`)
-        per_robot += (
-            state * cfg.updates_per_chunk * cfg.rollout_length * cfg.reset_pool / cfg.num_envs
-        )
     # `share`: robots per memory = num_envs / share. The CPU's devices share this process's memory
     # (one process per host); an accelerator holds its own device's robots.
     if devices[0].platform == "cpu":

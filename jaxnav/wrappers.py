@@ -103,44 +103,24 @@ class AutoReset(Wrapper):
         """[G, P/G, 2]: the keys of one step's draws, each block's from its first envs' keys."""
         return _blocks(k_reset, self.groups)[:, : self.draws_per_block(k_reset.shape[0])]
 
-    def draw(
-        self, state: EnvState, steps: int, drawn: EnvState | None = None
-    ) -> tuple[EnvState, EnvState]:
+    def draw(self, state: EnvState, steps: int) -> tuple[EnvState, EnvState]:
         """(state with its keys advanced, the new episodes of the next `steps` steps: leaves
-        [steps, G, P/G, ...]), for `step(..., fresh=draws[t])`. `drawn`: those episodes, drawn
-        already from the same keys (`draw_ahead`); the keys advance as when drawing them."""
+        [steps, G, P/G, ...]), for `step(..., fresh=draws[t])`."""
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
-        fresh = self._draws(k_reset, steps) if drawn is None else drawn
-        return state.replace(info={**state.info, RESET_KEY: keys}), fresh
-
-    def draw_ahead(self, keys: jax.Array, rollouts: int, steps: int) -> EnvState:
-        """The draws of `rollouts` rollouts of `steps` steps (leaves [rollouts, steps, G, P/G,
-        ...]) from the envs' keys [N, 2] before the first: what `draw` draws at the start of
-        each (the keys advance there only: a `step` given its draws leaves them). A program of
-        its own can so draw a chunk's episodes ahead of it."""
-
-        def rollout(keys, _):
-            keys, k_reset = _split(keys)
-            return keys, self._draws(k_reset, steps)
-
-        return jax.lax.scan(rollout, keys, None, rollouts)[1]
-
-    def _draws(self, k_reset: jax.Array, steps: int) -> EnvState:
-        """[steps, G, P/G] new episodes from the split-off keys `k_reset` [N, 2]."""
         first = self._pool_keys(k_reset)  # [G, P/G, 2]
         per_step = jax.vmap(lambda t: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, t)))(first))
-        return jax.vmap(jax.vmap(jax.vmap(self.env.reset)))(per_step(jnp.arange(steps)))
+        fresh = jax.vmap(jax.vmap(jax.vmap(self.env.reset)))(per_step(jnp.arange(steps)))
+        return state.replace(info={**state.info, RESET_KEY: keys}), fresh
 
     def step(self, state: EnvState, action: jax.Array, fresh: EnvState | None = None) -> EnvState:
         """One step of every env; `fresh` (leaves [G, P/G, ...], one step of `draw`) are the new
-        episodes (the keys stay as `draw` left them), else this step draws its own."""
-        keys = state.info[RESET_KEY]  # [N, 2]
+        episodes, else this step draws its own."""
+        keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
         info = {k: v for k, v in state.info.items() if k != RESET_KEY}
         nxt = jax.vmap(self.env.step)(state.replace(info=info), action)
         g, total = self.groups, action.shape[0]
         pool = self.draws_per_block(total)
         if fresh is None:
-            keys, k_reset = _split(keys)  # [N, 2] each
             fresh = jax.vmap(jax.vmap(self.env.reset))(self._pool_keys(k_reset))  # [G, P/G]
         # What a new episode replaces: physics, observation and info, except the finished
         # episode's statistics, which carry over.

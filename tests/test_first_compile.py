@@ -98,41 +98,6 @@ def test_chunk_compiled_beside_init_trains_the_same_and_compiles_once(tmp_path, 
     ]
 
 
-@pytest.mark.slow
-def test_goal_chunk_drawn_apart_is_the_chunk_that_draws_inside(tmp_path):
-    """The goal task draws a chunk's new episodes in a program of their own (`DrawnChunk`): the
-    chunk that follows is the one that draws in each rollout, bit for bit (the same episodes
-    from the same keys, the keys advancing alike), from jitted programs and from the program
-    store, which keeps and reads back both. Slow: goal programs compile, three times."""
-    flags = [f for f in TINY_FLAGS if f != "--task.near-threshold" and f != "0.8"]
-    more = ["--total-steps", str(16 * 16 * 3), "--randomize.families", "open"]  # compiles sooner
-    args = train_cli.parse_args(["--env", "goal", *flags, *more])
-    config = train_module.build_config("cpu", 3, None, train_cli.overrides_from_args(args), "goal")
-    env = train_module.make_run_env(config)
-    trainer = ppo_train.make_train(config.ppo, env)
-    assert isinstance(trainer.run_chunk, ppo_train.DrawnChunk) and config.ppo.reset_ahead
-    ts = trainer.init(jax.random.PRNGKey(3))
-    copy = lambda tree: jax.tree_util.tree_map(np.array, tree)  # noqa: E731 (chunks donate)
-    device = lambda tree: jax.tree_util.tree_map(jax.numpy.asarray, tree)  # noqa: E731
-    inside = jax.jit(trainer.parts["chunk"])  # each rollout draws its own episodes
-    want = copy(inside(copy(ts)))
-    want_next = copy(inside(device(want[0])))  # of its two updates, the second past the budget
-    assert np.asarray(want_next[1]["live"]).tolist() == [True, False]
-    shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(3))
-    programs.use(tmp_path)
-    try:
-        stored = programs.with_chunk(trainer, "tiny", shapes).run_chunk
-    finally:
-        programs.use(None)
-    assert isinstance(stored.draw, programs.Stored) and isinstance(stored.chunk, programs.Stored)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny-chunk.program", "tiny-draw.program"]
-    for chunk in (trainer.run_chunk, stored):
-        got = copy(chunk(copy(ts)))
-        jax.tree_util.tree_map(np.testing.assert_array_equal, got, want)
-        got_next = copy(chunk(device(got[0])))
-        jax.tree_util.tree_map(np.testing.assert_array_equal, got_next, want_next)
-
-
 def test_cpu_programs_compile_at_jaxnav_level(monkeypatch):
     """On the CPU, jaxnav's programs take `core.xla`'s options (LLVM at -O2); other backends and a
     user's own level in XLA_FLAGS keep XLA's defaults."""

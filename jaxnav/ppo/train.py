@@ -7,7 +7,6 @@ draw and checkpoint between chunks; `train` runs everything in one jitted call.
 
 from __future__ import annotations
 
-import concurrent.futures
 from typing import NamedTuple
 
 import jax
@@ -23,7 +22,7 @@ from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
 from jaxnav.ppo.networks import ActorCritic, RunningStats, init_stats, normalize, update_stats
-from jaxnav.wrappers import EPISODE, RESET_KEY, AutoReset, EpisodeStats
+from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
 
 
 @struct.dataclass
@@ -54,50 +53,13 @@ class Transition(NamedTuple):
 class Trainer(NamedTuple):
     network: ActorCritic
     init: callable  # key -> TrainState
-    run_chunk: callable  # TrainState -> (TrainState, metrics [updates_per_chunk]); `.lower`
+    run_chunk: callable  # TrainState -> (TrainState, metrics [updates_per_chunk])
     train: callable  # key -> (TrainState, metrics [num_updates // updates_per_chunk * chunk])
     # The pieces of one update, not jitted (benchmarks/compile_time.py times each): "rollout":
     # ts -> (env_state, key, traj); "learn": (ts, env_state, key, traj) -> (ts, metrics); "update":
-    # ts -> (ts, metrics), the two in turn; and "init", "chunk": `init` and `run_chunk` unjitted,
-    # and "draw" where a program of its own draws the chunk's episodes (`DrawnChunk`): what
-    # `jaxnav.programs` exports.
+    # ts -> (ts, metrics), the two in turn; and "init", "chunk": `init` and `run_chunk` unjitted
+    # (what `jaxnav.programs` exports).
     parts: dict | None = None
-
-
-def reset_keys(ts: TrainState) -> jax.Array:
-    """[N, 2] the robots' keys that `AutoReset` draws their new episodes from."""
-    return ts.env_state.info[RESET_KEY]
-
-
-class DrawnChunk:
-    """A chunk whose new episodes a program of their own draws: `draw(reset_keys(ts))`, then
-    `chunk(ts, drawn)`: the same updates from the same episodes as a chunk that draws inside
-    (`PPOConfig.reset_ahead`). Called, lowered and compiled like the one jitted chunk; XLA
-    compiles the two programs at once, and neither holds the task's reset twice over.
-    `draw` and `chunk` are jitted functions or stored programs (`jaxnav.programs`)."""
-
-    def __init__(self, draw, chunk):
-        self.draw, self.chunk = draw, chunk
-
-    def __call__(self, ts: TrainState):
-        return self.chunk(ts, self.draw(reset_keys(ts)))
-
-    def lower(self, ts):
-        keys = reset_keys(ts)
-        drawn = jax.eval_shape(self.draw, keys)
-        return _DrawnLowered(self.draw.lower(keys), self.chunk.lower(ts, drawn))
-
-
-class _DrawnLowered:
-    """A lowered `DrawnChunk`; `compile` compiles its two programs in two threads."""
-
-    def __init__(self, draw, chunk):
-        self._draw, self._chunk = draw, chunk
-
-    def compile(self):
-        with concurrent.futures.ThreadPoolExecutor(2) as pool:
-            draw, chunk = pool.map(lambda lowered: lowered.compile(), (self._draw, self._chunk))
-        return lambda ts: chunk(ts, draw(reset_keys(ts)))
 
 
 def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
@@ -213,7 +175,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             update=jnp.int32(0),
         )
 
-    def _rollout(ts: TrainState, drawn=None):
+    def _rollout(ts: TrainState):
         def _env_step(carry, fresh):
             env_state, key = carry
             key, k_act = jax.random.split(key)
@@ -237,8 +199,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             return (nxt, key), tr
 
         env_state, fresh = ts.env_state, None  # fresh: the rollout's new episodes, drawn ahead
-        if cfg.reset_ahead:  # (`drawn`: by the draw program, `draw_chunk`)
-            env_state, fresh = env.draw(env_state, cfg.rollout_length, drawn)
+        if cfg.reset_ahead:
+            env_state, fresh = env.draw(env_state, cfg.rollout_length)
             fresh = shard_draws(fresh)
         (env_state, key), traj = jax.lax.scan(
             _env_step, (env_state, ts.key), fresh, cfg.rollout_length
@@ -321,25 +283,18 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         }
         return ts, metrics
 
-    def _update(ts: TrainState, drawn=None) -> tuple[TrainState, dict]:
-        return _learn(ts, *_rollout(ts, drawn))
+    def _update(ts: TrainState) -> tuple[TrainState, dict]:
+        return _learn(ts, *_rollout(ts))
 
-    def _update_or_skip(ts: TrainState, drawn):
+    def _update_or_skip(ts: TrainState, _):
         # Chunks have a fixed length so they compile once; updates past the budget are no-ops.
         live = ts.update < cfg.num_updates
-        new, metrics = _update(ts, drawn)
+        new, metrics = _update(ts)
         ts = jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b), new, ts)
         return ts, {**metrics, "live": live}
 
-    def run_chunk(ts: TrainState, drawn=None):
-        """`updates_per_chunk` updates; `drawn`: their new episodes ([U, T, G, P/G, ...], from
-        `draw_chunk`), else each rollout draws its own."""
-        return jax.lax.scan(_update_or_skip, ts, drawn, cfg.updates_per_chunk)
-
-    def draw_chunk(keys: jax.Array):
-        """The new episodes of a chunk's rollouts from the robots' reset keys [N, 2] at its start
-        (`reset_keys`): those its updates would draw themselves, from the same keys."""
-        return env.draw_ahead(keys, cfg.updates_per_chunk, cfg.rollout_length)
+    def run_chunk(ts: TrainState):
+        return jax.lax.scan(_update_or_skip, ts, None, cfg.updates_per_chunk)
 
     def train(key: jax.Array):
         return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
@@ -358,8 +313,4 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     # sharded over, and several GPUs are not measured with it.
     threefry_kernel(cfg.threefry_kernel and len(devices_used) == 1, platform)
     jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
-    chunk = jit(run_chunk, donate_argnums=0)
-    if cfg.reset_ahead and len(devices_used) == 1:  # the draws in a program of their own
-        parts["draw"] = draw_chunk
-        chunk = DrawnChunk(jit(draw_chunk), jit(run_chunk, donate_argnums=0))
-    return Trainer(network, jit(init), chunk, jit(train), parts)
+    return Trainer(network, jit(init), jit(run_chunk, donate_argnums=0), jit(train), parts)
