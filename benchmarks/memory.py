@@ -1,7 +1,8 @@
 """The goal task's memory and training mix on BARN, the benchmark suites, CrowdNav's circle
 crossing and a 25 m hall: goal policies trained with and without the memory, with BARN-like dense
 fields, walkers or long halls in their room mix, weighted as the cpu preset weighs its families,
-at the Kobuki's top speed, and trained twice as long (`memory_hall_long`).
+at the Kobuki's top speed, trained twice as long (`memory_hall_long`), and the gpu preset with a
+clearance cost (`memory_hall_clear10`, `_clear20`) or a stop action (`memory_hall_stop`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -55,13 +56,10 @@ VARIANTS = {
     + ("--total-steps", "200000000"),
     "memory_hard": ("--task.memory-bins", "16", "--randomize.families")
     + ("all,dense_field:1,long_hall:1,crowd:1",),
-    "memory_hall_stop": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES)
-    + ("--task.actions", "discrete_stop"),
-    "memory_hall_clear10": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES)
-    + ("--task.clearance", "0.1"),
-    "memory_hall_clear20": ("--task.memory-bins", "16", "--randomize.families", GOAL_GPU_FAMILIES)
-    + ("--task.clearance", "0.2"),
 }
+VARIANTS["memory_hall_stop"] = VARIANTS["memory_hall"] + ("--task.actions", "discrete_stop")
+VARIANTS["memory_hall_clear10"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.1")
+VARIANTS["memory_hall_clear20"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.2")
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")

@@ -27,25 +27,27 @@ from jaxnav.runconfig import RunConfig
 from jaxnav.tasks.avoid import AvoidConfig
 
 
-def make_run(root: Path, ppo, seed: int):
+def make_run(root: Path, ppo, seed: int, task: AvoidConfig = AvoidConfig()):
     """A run folder with one checkpoint of a freshly initialised network, without training.
 
     The params come from the same `make_network(...).init` as `make_train`'s; the policy head is
     scaled up (its init gain of 0.01 makes all logits nearly equal) and the normaliser holds
-    non-trivial statistics, so that the parity checks below mean something.
+    non-trivial statistics, so that the parity checks below mean something. `task`'s stacked
+    frames set the observation's size (8 sectors a frame).
     """
-    network = make_network(ppo, AvoidConfig().action_spec)
-    params = jax.jit(network.init)(jax.random.PRNGKey(seed), jnp.zeros((1, 8)))
+    size = 8 * (1 + task.history)
+    network = make_network(ppo, task.action_spec)
+    params = jax.jit(network.init)(jax.random.PRNGKey(seed), jnp.zeros((1, size)))
     head = params["params"]["actor"]["Dense_2"]
     params["params"]["actor"]["Dense_2"] = {**head, "kernel": head["kernel"] * 200.0}
     keys = jax.random.split(jax.random.PRNGKey(seed + 1), 2)
     stats = RunningStats(
-        mean=jax.random.uniform(keys[0], (8,), minval=1.0, maxval=4.0),
-        var=jax.random.uniform(keys[1], (8,), minval=0.05, maxval=3.0),
+        mean=jax.random.uniform(keys[0], (size,), minval=1.0, maxval=4.0),
+        var=jax.random.uniform(keys[1], (size,), minval=0.05, maxval=3.0),
         count=jnp.float32(1e4),
     )
     ts = TrainState(params, (), stats, (), jax.random.PRNGKey(0), jnp.int32(3))
-    checkpoint.save(root, ts, RunConfig(ppo=ppo), {})
+    checkpoint.save(root, ts, RunConfig(ppo=ppo, task=task), {})
 
     def reference_logits(obs):
         x = normalize(stats, obs) if ppo.normalize_obs else obs
@@ -112,6 +114,22 @@ def test_numpy_export_matches_jax(run, tmp_path):
     assert policy.sensor.floor_margin == 0.02 and policy.sensor.camera_pitch == 0.0
     # The default task's speeds: 0.5 m/s forward, 1.5 rad/s turning in place.
     np.testing.assert_array_equal(policy.commands, [[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]])
+
+
+def test_an_avoid_policy_with_stacked_frames_exports_its_history(tmp_path):
+    """An avoid policy with `history` 2 exports as format 3 with its history, reads 24 entries
+    on the robot side, matches JAX there, and names a wrong-sized observation in one line."""
+    folder, reference = make_run(tmp_path / "run", preset("cpu"), 5, AvoidConfig(history=2))
+    policy = NumpyPolicy.from_npz(export.export(folder, "numpy", tmp_path / "policy.npz"))
+    with np.load(tmp_path / "policy.npz") as data:
+        assert int(data["format_version"]) == 3 and int(data["history"]) == 2
+        assert "extra_observations" not in data.files
+    assert (policy.history, policy.observation_size) == (2, 24)
+    obs = np.random.default_rng(0).uniform(0.0, 10.0, (1000, 24)).astype(np.float32)
+    logits, ref = policy.logits(obs), reference(obs)
+    np.testing.assert_allclose(logits, ref, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="reads 24 entries .with history: stack the frames"):
+        policy(obs[0, :8])
 
 
 def test_onnx_export_matches_jax(run, tmp_path):

@@ -220,6 +220,8 @@ def test_stop_action_holds_still_and_clearance_costs_near_walls():
         jaxnav.make_env("avoid", actions="discrete_stop")
     with pytest.raises(ValueError, match="GoalConfig.clearance: must be >= 0 m"):
         jaxnav.make_env("goal", clearance=-0.1)
+    with pytest.raises(ValueError, match="GoalConfig.clearance_reward: must be <= 0 .a cost."):
+        jaxnav.make_env("goal", clearance_reward=0.05)
 
 
 def test_gaussian_policy_log_prob_and_entropy():

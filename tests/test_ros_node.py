@@ -192,6 +192,8 @@ def test_avoid_policy_with_history_sees_stacked_frames(tmp_path):
         seen.append(loop.obs[:8].copy())
         assert loop.obs.shape == (24,)
     np.testing.assert_array_equal(loop.obs, np.concatenate(seen[:0:-1]))  # 3, 2, 1: newest first
+    loop.tick(0.35)  # a tick without a new frame stacks the newest again, as the simulator does
+    np.testing.assert_array_equal(loop.obs, np.concatenate([seen[3], seen[3], seen[2]]))
     assert loop.tick(1.0) == STOP  # no frame for 0.7 s: stopped, the stack starts afresh
     loop.on_observation(image_msg(frames[0]), 1.0)
     loop.tick(1.0)

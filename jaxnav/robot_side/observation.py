@@ -608,7 +608,8 @@ class Controller:
     """Sensor reading -> observation -> policy -> Twist, in one call."""
 
     policy: object
-    """A `NumpyPolicy`: callable obs [num_sectors] -> action int, with `.sensor` and `.commands`."""
+    """A `NumpyPolicy`: callable obs [D] -> action int, with `.sensor` and `.commands` (D: the
+    sectors, or what the control loop builds of them: stacked frames, the goal's inputs)."""
     speed_calibration: float = 1.0
     """Multiplies both speeds of every command (see `action_to_twist`)."""
     blind_fraction: float = BLIND_FRACTION

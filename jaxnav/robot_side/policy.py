@@ -21,10 +21,10 @@ floor_margin_slope (m/m) and far_reads_max (0/1; absent: 0).
 Format 3 (FORMAT_VERSION; written only for policies a format-2 reader would misuse) may add:
 action_low, action_high float32 [2] (continuous actions: the actor's A = 2 outputs are means in
 half-ranges, the command is centre + half * mean clipped to the bounds; action_names are then the
-two dimensions and commands is [2, 2] of the bounds), and goal inputs: extra_observations (5: the
-observation is the sectors, then `goal_features` [3], then the last command / command_scale [2]),
-command_scale float32 [2], success_radius (m) and history (int: that many earlier observations
-follow the newest, newest first; `FrameStack`).
+two dimensions and commands is [2, 2] of the bounds); history (int: that many earlier
+observations follow the newest, newest first; `FrameStack`; either task); and goal inputs:
+extra_observations (5: the observation is the sectors, then `goal_features` [3], then the last
+command / command_scale [2]), command_scale float32 [2] and success_radius (m).
 
 Format 4 (MEMORY_FORMAT; written only for policies with a memory) adds memory_bins, memory_steps,
 memory_reach (m) and memory_forward (m): the observation ends with the memory's `memory_bins`
@@ -381,8 +381,15 @@ class NumpyPolicy:
     def logits(self, obs) -> np.ndarray:
         """The actor's output: obs [..., D] -> [..., A] float32 (action scores, or a continuous
         policy's means in half-ranges)."""
+        obs = np.asarray(obs, np.float32)
+        if obs.shape[-1:] != (self.observation_size,):
+            stack = " (with history: stack the frames, FrameStack)" if self.history else ""
+            raise ValueError(
+                f"observation of shape {obs.shape}: the policy reads {self.observation_size} "
+                f"entries{stack}"
+            )
         # Same arithmetic and order as jaxnav.ppo.networks.normalize, so results match in float32.
-        x = (np.asarray(obs, np.float32) - self.obs_mean) / self.obs_std
+        x = (obs - self.obs_mean) / self.obs_std
         x = np.minimum(np.maximum(x, -self.clip), self.clip)  # np.clip is twice as slow on [8]
         for w, b in self.layers[:-1]:
             x = x @ w + b

@@ -699,6 +699,8 @@ class ControlLoop:
             radius = self.controller.policy.success_radius
             why = self.goal.problem(now, self.max_age, radius)
             return (None, STOP, why) if why else self._act(self._msg, now)
+        if self._frames.history:  # stacked frames: one a tick, as the simulator stacks them
+            return self._act(self._msg, now)
         if self._result is None:
             self._result = self._act(self._msg, now)
         return self._result

@@ -2,8 +2,9 @@
 
 Observation: the 8 shortest depth-camera distances (m); with `history`, the frames before them
 follow, newest first (stacked frames: what moved, e.g. a person walking into the robot's way).
-Actions: 0 forward, 1 turn left, 2 turn right, held for one control period; or (`actions="continuous"`) any command (forward m/s, yaw rad/s) within
-[0, forward_speed] x [-turn_rate, turn_rate]. Reward: the paper's Table I (see `AvoidConfig`). A
+Actions: 0 forward, 1 turn left, 2 turn right, held for one control period; or
+(`actions="continuous"`) any command (forward m/s, yaw rad/s) within [0, forward_speed] x
+[-turn_rate, turn_rate]. Reward: the paper's Table I (see `AvoidConfig`). A
 collision ends the episode with `collision_reward`; so does the time limit, without penalty.
 Metric: `collision`.
 """
@@ -18,17 +19,26 @@ import jax.numpy as jnp
 from jaxnav.core.checks import require_finite
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
-from jaxnav.tasks.base import ACTIONS, Actuator, NavTask, check_velocity_config, velocity_actions
+from jaxnav.tasks.base import (
+    ACTIONS,
+    Actuator,
+    NavTask,
+    check_velocity_config,
+    stack_frames,
+    velocity_actions,
+)
 
 
 @dataclasses.dataclass(frozen=True)
 class AvoidConfig:
-    """The task: speeds of the three actions, the paper's reward table, episode length."""
+    """The task: speeds of the three actions, the paper's reward table, episode length, and the
+    stacked frames of the observation."""
 
     actions: str = "discrete"
     """'discrete': the paper's forward / left / right; 'continuous': (forward m/s, yaw rad/s) in
     [0, forward_speed] x [-turn_rate, turn_rate], its reward Table I interpolated by the forward
-    share v / forward_speed (1: the forward entries, 0: the turn entries)."""
+    share v / forward_speed (1: the forward entries, 0: the turn entries). ('discrete_stop', the
+    goal task's, is refused: Table I has no entry for standing still.)"""
     forward_speed: float = 0.5
     """Commanded speed of the `forward` action, m/s (Kobuki top speed 0.7)."""
     turn_rate: float = 1.5
@@ -121,7 +131,7 @@ class AvoidEnv(NavTask):
         frame, sectors = self.sense(params, data, k_obs), self.sensor.num_sectors
         return EnvState(
             data=data,
-            obs=jnp.concatenate([frame, state.obs[: self.observation_size - sectors]]),
+            obs=stack_frames(frame, state.obs, self.observation_size),
             reward=self._reward(state.obs[:sectors], action, target, hit),
             done=hit | truncated,
             truncated=truncated,

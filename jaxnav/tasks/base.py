@@ -52,6 +52,12 @@ def velocity_actions(actions: str, forward_speed: float, turn_rate: float) -> Ac
     )
 
 
+def stack_frames(frame: jax.Array, obs: jax.Array, size: int) -> jax.Array:
+    """[size] stacked frames: `frame` [F], then the newest size - F entries of the stacked `obs`
+    (newest first), as the robot side's `FrameStack` stacks them."""
+    return jnp.concatenate([frame, obs[: size - frame.shape[0]]])
+
+
 def check_velocity_config(cfg, robot: RobotSpec) -> None:
     """`cfg.actions` is known and its forward_speed / turn_rate are within the robot's limits."""
     name = type(cfg).__name__

@@ -50,6 +50,7 @@ from jaxnav.tasks.base import (
     EvalMetric,
     NavTask,
     check_velocity_config,
+    stack_frames,
     velocity_actions,
 )
 
@@ -93,9 +94,11 @@ class GoalConfig:
     clearance: float = 0.0
     """m; a step that ends with the robot's collision volume nearer than this to a wall, an
     obstacle or a person adds clearance_reward x (1 - gap / clearance): the full term at contact,
-    none at this gap (training only: the gap is the simulator's, no sensor's). 0 = none."""
+    none at this gap (training only: the gap is the simulator's, no sensor's). 0 = none. A room's
+    occupancy grid counts within `grid.REACH` cells of the robot's centre (0.5 m for 0.1 m
+    cells), so in grid rooms a clearance beyond about 0.3 m sees the nearer cells only."""
     clearance_reward: float = -0.05
-    """The clearance term at contact (see `clearance`)."""
+    """The clearance term at contact (see `clearance`); <= 0, a cost."""
     max_steps: int = 500
     """Time limit in control steps (500 = 50 s at 10 Hz); ends the episode without penalty."""
     history: int = 16
@@ -117,6 +120,10 @@ class GoalConfig:
                 raise ValueError(f"GoalConfig.{name}: must be > 0 m, got {getattr(self, name)}")
         if self.clearance < 0:
             raise ValueError(f"GoalConfig.clearance: must be >= 0 m, got {self.clearance}")
+        if self.clearance_reward > 0:
+            raise ValueError(
+                f"GoalConfig.clearance_reward: must be <= 0 (a cost), got {self.clearance_reward}"
+            )
         if self.path_clearance < 0:
             raise ValueError(
                 f"GoalConfig.path_clearance: must be >= 0 m, got {self.path_clearance}"
@@ -324,7 +331,7 @@ class GoalEnv(NavTask):
         frame, info, recalled = self._observe(params, data, goal, target, k_obs, info)
         return EnvState(
             data=data,
-            obs=jnp.concatenate([self._stack(frame, state.obs), recalled]),
+            obs=jnp.concatenate([stack_frames(frame, state.obs, self._frames), recalled]),
             reward=f32(reward),
             done=hit | success | truncated,
             truncated=truncated,
@@ -344,10 +351,6 @@ class GoalEnv(NavTask):
                 "critic": self._critic_features(info, data.qpos[:3], after, steps),
             },
         )
-
-    def _stack(self, frame: jax.Array, obs: jax.Array) -> jax.Array:
-        """[(1 + history) x frame]: the new frame, then the newest `history` frames of `obs`."""
-        return jnp.concatenate([frame, obs[: self._frames - self._frame]])
 
     def _to_go(self, info, xy, blocked=None) -> jax.Array:
         """[] m from `xy` to the goal, as `GoalConfig.progress` measures it (`blocked`: the

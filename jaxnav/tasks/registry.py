@@ -92,7 +92,7 @@ def training_randomize(name: str = "avoid") -> RandomizeConfig:
 def observation_size(task, sensor: SensorConfig) -> int:
     """The observation length of a task config with `sensor`: the depth sectors, then the task's
     `extra_observations` (the goal task's goal and last command), times the frames a task stacks
-    (`history`: the goal task's earlier observations), then the memory's bins (`memory_bins`)."""
+    (`history`: either task's earlier observations), then the memory's bins (`memory_bins`)."""
     frame = sensor.num_sectors + getattr(task, "extra_observations", 0)
     return frame * (1 + getattr(task, "history", 0)) + getattr(task, "memory_bins", 0)
 
