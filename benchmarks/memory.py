@@ -2,7 +2,8 @@
 crossing and a 25 m hall: goal policies trained with and without the memory, with BARN-like dense
 fields, walkers or long halls in their room mix, weighted as the cpu preset weighs its families,
 at the Kobuki's top speed, trained twice as long (`memory_hall_long`), and the gpu preset with a
-clearance cost (`memory_hall_clear10`, `_clear20`) or a stop action (`memory_hall_stop`).
+clearance cost (`memory_hall_clear10`, `_clear20`) or a stop action (`memory_hall_stop`), and the
+mix of every hard family with the clearance (`memory_hard_clear20`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -60,6 +61,7 @@ VARIANTS = {
 VARIANTS["memory_hall_stop"] = VARIANTS["memory_hall"] + ("--task.actions", "discrete_stop")
 VARIANTS["memory_hall_clear10"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.1")
 VARIANTS["memory_hall_clear20"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.2")
+VARIANTS["memory_hard_clear20"] = VARIANTS["memory_hard"] + ("--task.clearance", "0.2")
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
