@@ -37,6 +37,7 @@ from report import run_info, write_json
 import jaxnav
 from jaxnav.core.randomize import TRAINING
 from jaxnav.core.scene import SceneConfig
+from jaxnav.core.xla import threefry_kernel
 from jaxnav.ppo.config import PPOConfig, preset
 from jaxnav.ppo.train import make_network, make_train
 from jaxnav.tasks.avoid import AvoidConfig
@@ -52,6 +53,12 @@ VARIANTS = {
     "full": {"scene": {"fast_contacts": True}, "ppo": {"reset_in_place": False}},
     "no_contacts": {"ppo": {"reset_in_place": False}},
     "in_place": {"scene": {"fast_contacts": True}},
+    # Where the new episodes are drawn (PPOConfig.reset_ahead) and how jax.random lowers on a GPU
+    # (PPOConfig.threefry_kernel); the env-only rows draw per step either way.
+    "ahead": {"ppo": {"reset_ahead": True}},
+    "kernel": {"ppo": {"threefry_kernel": True}},
+    "ahead_kernel": {"ppo": {"reset_ahead": True, "threefry_kernel": True}},
+    "inline": {"ppo": {"threefry_kernel": False}},
 }
 
 
@@ -201,6 +208,9 @@ def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
     scene = SceneConfig(**levers.get("scene", {}))
     env = jaxnav.make_env(args.env, randomize=FULL, scene=scene)
     ppo = {**task_defaults(args.env).get("ppo", {}), **levers.get("ppo", {})}
+    threefry_kernel(
+        ppo.get("threefry_kernel", False)
+    )  # for the env rows too, as make_train sets it
     state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     size = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
     row = {"num_envs": n, "variant": variant, "state_bytes": int(size)}  # one robot's EnvState

@@ -148,7 +148,7 @@ def test_analytic_rays_agree_with_mjx_ray():
         sampled_room_prob=1.0, num_boxes=(6, 8), num_cylinders=(3, 4), low_prob=0.3,
         overhang_prob=0.3,
     )  # fmt: skip
-    keys = jax.random.split(jax.random.PRNGKey(5), 16)
+    keys = jax.random.split(jax.random.PRNGKey(5), 20)
     rooms = jax.jit(jax.vmap(lambda k: sample(k, cfg, env.bank, env.robot.radius)))(keys)
     groups = tuple(int(g == OBSTACLE_GROUP) for g in range(6))
 
@@ -163,14 +163,18 @@ def test_analytic_rays_agree_with_mjx_ray():
 
     rng = np.random.default_rng(0)
     hits = 0
-    for i in range(16):
+    for i in range(20):
         room = jax.tree_util.tree_map(lambda x, i=i: x[i], rooms)
         origin = jnp.append(room.spawn[:2], rng.uniform(0.1, 0.5))
         dirs = rng.normal(size=(256, 3)) * [1, 1, 0.3]
         dirs = jnp.asarray(dirs / np.linalg.norm(dirs, axis=1, keepdims=True), jnp.float32)
         dist, slot_mjx, ours, slot = (np.asarray(x) for x in both(room, origin, dirs))
-        seen = dist >= 0
-        np.testing.assert_array_equal(np.isfinite(ours), seen)
+        # MJX parks an inactive slot's geom far below the floor, where a steep ray can reach it
+        # (the sensor's rays end at the floor): such rays are left out.
+        active = np.concatenate([np.asarray(room.box_active), np.asarray(room.cyl_active)])
+        kept = (dist < 0) | (slot_mjx < 0) | active[np.maximum(slot_mjx, 0)]
+        seen = (dist >= 0) & kept
+        np.testing.assert_array_equal(np.isfinite(ours)[kept], seen[kept])
         np.testing.assert_allclose(ours[seen], dist[seen], atol=1e-4)
         np.testing.assert_array_equal(slot[seen], slot_mjx[seen])
         hits += int((slot[seen] >= 0).sum())

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxnav.core.draws import Draws
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.layout import MAX_WALKER_SPEED
 
@@ -290,16 +291,15 @@ def hit_by_walker(room, xy, velocity, radius: float, z=None):
 # The sampler's walkers
 
 
-def _crossings(key, half, r):
+def _crossings(d: Draws, half, r):
     """[TRIES, 2] starts and [TRIES, 2] goals of crossings of a room of interior `half` [2] by a
     walker of radius `r`: the axis uniform (x or y), the direction uniform, the start within the
     outer 40 % of one side and the goal within that of the other, across uniform."""
-    k_axis, k_sign, k_along, k_across = jax.random.split(key, 4)
     limit = jnp.maximum(half - r - FREE_GAP, 0.0)  # [2]
-    along = jax.random.uniform(k_along, (2, TRIES), minval=0.6, maxval=1.0)
-    along = along * jnp.where(jax.random.bernoulli(k_sign, 0.5, (TRIES,)), 1.0, -1.0)
-    across = jax.random.uniform(k_across, (2, TRIES), minval=-1.0, maxval=1.0)
-    on_x = jax.random.bernoulli(k_axis, 0.5, (TRIES,))  # the crossing runs along x
+    along = d.uniform((2, TRIES), 0.6, 1.0)
+    along = along * jnp.where(d.bernoulli(0.5, (TRIES,)), 1.0, -1.0)
+    across = d.uniform((2, TRIES), -1.0, 1.0)
+    on_x = d.bernoulli(0.5, (TRIES,))  # the crossing runs along x
     start = jnp.where(
         on_x[:, None], jnp.stack([-along[0], across[0]], -1), jnp.stack([across[0], -along[0]], -1)
     )
@@ -318,21 +318,18 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
     (if given), and whose straight line keeps FREE_GAP from the walls and the still obstacles;
     a walker with no such crossing is left out."""
     m = cfg.slots
-    ks = jax.random.split(key, 6)
+    d = Draws(key)
     crowd = room.layout_id == CROWD_ROOM
     lo = jnp.where(crowd, cfg.crowd_count[0], cfg.count[0])
     hi = jnp.where(crowd, cfg.crowd_count[1], cfg.count[1])
-    count = jax.random.randint(ks[0], (), lo, hi + 1)
-    uniform = lambda k, bounds: jax.random.uniform(k, (m,), minval=bounds[0], maxval=bounds[1])  # noqa: E731
-    radius, speed, height = (
-        uniform(k, b) for k, b in zip(ks[1:4], (cfg.radius, cfg.speed, cfg.height), strict=True)
-    )
-    reactive = jax.random.bernoulli(ks[4], cfg.reactive, (m,))
+    count = d.randint((), lo, hi + 1)
+    radius, speed, height = (d.uniform((m,), *b) for b in (cfg.radius, cfg.speed, cfg.height))
+    reactive = d.bernoulli(cfg.reactive, (m,))
     still, spawn, w = room, room.spawn[:2], room.motion.walkers
     along = jnp.linspace(0.0, 1.0, SEGMENT_POINTS)[:, None, None]  # [P, 1, 1]
     for j in range(m):
         slot, r = first + j, radius[j]
-        start, end = _crossings(jax.random.fold_in(ks[5], j), room.room_half, r)  # [TRIES, 2]
+        start, end = _crossings(d, room.room_half, r)  # [TRIES, 2] each
         ok = signed_distance(room, start) > r + FREE_GAP
         line = signed_distance(still, start + along * (end - start))  # [P, TRIES]
         ok &= (line > r + FREE_GAP).all(0)

@@ -23,6 +23,7 @@ from flax import struct
 from jaxnav.core import grid as occupancy
 from jaxnav.core import layout as lay
 from jaxnav.core.crowd import CROWD_ROOM
+from jaxnav.core.draws import Draws, draws
 from jaxnav.core.geometry import box_distance
 from jaxnav.core.randomize import (
     RANDOM,
@@ -64,18 +65,18 @@ class Boxes:
     active: jax.Array  # [N] bool
 
 
-def _uniform(key, lo, hi, shape=()):
-    return jax.random.uniform(key, shape, minval=lo, maxval=hi)
+def _uniform(d: Draws, lo, hi, shape=()):
+    return d.uniform(shape, lo, hi)
 
 
-def _walls(pos, half, key, active=True) -> Boxes:
+def _walls(pos, half, d: Draws, active=True) -> Boxes:
     """Axis-aligned standing wall boxes [N]; top uniform in [0.5, 1.0] m."""
     n = pos.shape[0]
     return Boxes(
         pos=pos,
         half=half,
         yaw=jnp.zeros(n),
-        height=_uniform(key, 0.5, 1.0, (n,)),
+        height=_uniform(d, 0.5, 1.0, (n,)),
         bottom=jnp.zeros(n),
         active=jnp.broadcast_to(jnp.asarray(active), (n,)),
     )
@@ -85,22 +86,23 @@ def _join(*groups: Boxes) -> Boxes:
     return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *groups)
 
 
-def _blank(key, nb: int, nc: int, radius: float) -> SceneParams:
+def _blank(d: Draws, nb: int, nc: int, radius: float) -> SceneParams:
     """A room with every slot inactive (sample_room fills the per-episode placeholders)."""
     empty = RandomizeConfig(num_boxes=(0, 0), num_cylinders=(0, 0))
-    return sample_room(key, empty, nb, nc, radius)
+    return sample_room(d, empty, nb, nc, radius)
 
 
-def _assemble(key, half, spawn_xy, boxes: Boxes, nb: int, nc: int, radius: float) -> SceneParams:
+def _assemble(
+    d: Draws, half, spawn_xy, boxes: Boxes, nb: int, nc: int, radius: float
+) -> SceneParams:
     """A room of interior `half` [2] with `boxes` in the first slots and a spawn at `spawn_xy` [2]."""
     n = boxes.pos.shape[0]
     if n > nb:
         raise ValueError(f"room families: need {n} box slots, got num_boxes={nb}")
-    k_blank, k_yaw = jax.random.split(key)
-    room = _blank(k_blank, nb, nc, radius)
+    room = _blank(d, nb, nc, radius)
     pad = lambda x, fill: jnp.concatenate([x, jnp.full((nb - n, *x.shape[1:]), fill, x.dtype)])  # noqa: E731
     # Heading at the spawn: uniform in [-pi, pi).
-    spawn = jnp.append(spawn_xy, _uniform(k_yaw, -jnp.pi, jnp.pi))
+    spawn = jnp.append(spawn_xy, _uniform(d, -jnp.pi, jnp.pi))
     room = room.replace(
         room_half=half,
         box_pos=pad(boxes.pos, 0.0),
@@ -126,12 +128,11 @@ def clear_around(room: SceneParams, points, keep, first_box: int = 0) -> ScenePa
     )
 
 
-def _mirror(key, room: SceneParams) -> SceneParams:
+def _mirror(d: Draws, room: SceneParams) -> SceneParams:
     """The room flipped in x and in y (each with probability 1/2) and transposed (probability 1/2)."""
-    k_flip, k_swap = jax.random.split(key)
-    sign = jnp.where(jax.random.bernoulli(k_flip, 0.5, (2,)), -1.0, 1.0)  # [2]
+    sign = jnp.where(d.bernoulli(0.5, (2,)), -1.0, 1.0)  # [2]
     yaw_sign = sign[0] * sign[1]  # a box is symmetric under a half turn: a flip negates its yaw
-    swap = jax.random.bernoulli(k_swap)
+    swap = d.bernoulli()
     perm = lambda xy: jnp.where(swap, xy[..., ::-1], xy)  # noqa: E731
     yaw = lambda a: jnp.where(swap, 0.5 * jnp.pi - yaw_sign * a, yaw_sign * a)  # noqa: E731
     return room.replace(
@@ -143,9 +144,9 @@ def _mirror(key, room: SceneParams) -> SceneParams:
     )
 
 
-def _room_half(key, lo, hi):
+def _room_half(d: Draws, lo, hi):
     """[2] half interior extents, full extents uniform per axis in [lo, hi] m."""
-    return 0.5 * _uniform(key, lo, hi, (2,))
+    return 0.5 * _uniform(d, lo, hi, (2,))
 
 
 # ------------------------------------------------------------------------------
@@ -195,54 +196,54 @@ def low_and_overhang(key, nb: int, nc: int, radius: float) -> SceneParams:
 
 def pillars(key, nb: int, nc: int, radius: float) -> SceneParams:
     """A grid of square pillars (a car park, a hall): up to 4 x 4, the spawn between four."""
-    ks = jax.random.split(key, 6)
+    d = draws(key)
     g = min(4, int(np.sqrt(nb)))
     # Interior: uniform 5-9 m per axis. Spacing: uniform 1.2-2.0 m. Pillar side: uniform 0.2-0.4 m.
-    half = _room_half(ks[0], 5.0, 9.0)
-    spacing = _uniform(ks[1], 1.2, 2.0)
-    side = _uniform(ks[2], 0.2, 0.4)
+    half = _room_half(d, 5.0, 9.0)
+    spacing = _uniform(d, 1.2, 2.0)
+    side = _uniform(d, 0.2, 0.4)
     # Grid offset: uniform in +-spacing/2 per axis; the spawn is the midpoint of the central four.
-    offset = _uniform(ks[3], -0.5, 0.5, (2,)) * spacing
+    offset = _uniform(d, -0.5, 0.5, (2,)) * spacing
     idx = jnp.arange(g) - 0.5 * (g - 1)
     grid = jnp.stack(jnp.meshgrid(idx, idx), -1).reshape(-1, 2) * spacing + offset  # [g*g, 2]
     # A pillar stays only if a robot still passes between it and the walls (0.4 m).
     inside = (jnp.abs(grid) + 0.5 * side + 0.4 <= half).all(-1)
-    boxes = _walls(grid, jnp.full((g * g, 2), 0.5) * side, ks[4], inside)
-    room = _assemble(ks[5], half, offset, boxes, nb, nc, radius)
-    return _mirror(jax.random.fold_in(key, 1), room)
+    boxes = _walls(grid, jnp.full((g * g, 2), 0.5) * side, d, inside)
+    room = _assemble(d, half, offset, boxes, nb, nc, radius)
+    return _mirror(d, room)
 
 
 def corridor(key, nb: int, nc: int, radius: float) -> SceneParams:
     """A serpentine corridor: 2-4 lanes 1.2-2.5 m wide, joined by U-turns at alternate ends."""
-    ks = jax.random.split(key, 6)
+    d = draws(key)
     # Lanes: uniform in {2, 3, 4}; width uniform 1.2-2.5 m; length uniform 5-9 m;
     # U-turn opening uniform 1.2-2.0 m.
-    lanes = jax.random.randint(ks[0], (), 2, 5)
-    width = _uniform(ks[1], MIN_CORRIDOR, 2.5)
-    hx = 0.5 * _uniform(ks[2], 5.0, 9.0)
-    gap = _uniform(ks[3], MIN_CORRIDOR, 2.0)
+    lanes = d.randint((), 2, 5)
+    width = _uniform(d, MIN_CORRIDOR, 2.5)
+    hx = 0.5 * _uniform(d, 5.0, 9.0)
+    gap = _uniform(d, MIN_CORRIDOR, 2.0)
     hy = 0.5 * (lanes * width + (lanes - 1) * WALL)
     k = jnp.arange(3)  # interior wall k separates lanes k and k + 1
     side = jnp.where(k % 2 == 0, -1.0, 1.0)  # even walls start at the west wall, odd at the east
     pos = jnp.stack([-side * 0.5 * gap, -hy + (k + 1) * width + (k + 0.5) * WALL], -1)
     wall_half = jnp.stack([jnp.full(3, hx - 0.5 * gap), jnp.full(3, 0.5 * WALL)], -1)
-    boxes = _walls(pos, wall_half, ks[4], k < lanes - 1)
+    boxes = _walls(pos, wall_half, d, k < lanes - 1)
     # Spawn: the middle of the first lane, uniform along it.
-    x = _uniform(ks[5], -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
+    x = _uniform(d, -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
     spawn = jnp.stack([x, -hy + 0.5 * width])
-    room = _assemble(jax.random.fold_in(key, 2), jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
-    return _mirror(jax.random.fold_in(key, 1), room)
+    room = _assemble(d, jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
+    return _mirror(d, room)
 
 
 def ltu_room(key, nb: int, nc: int, radius: float) -> SceneParams:
     """An L, T (upside down) or U room: a 5-9 m rectangle with solid blocks along one wall."""
-    ks = jax.random.split(key, 7)
+    d = draws(key)
     # Shape: L, T or U uniformly; interior uniform 5-9 m per axis; the open strip along the south
     # wall and the arms uniform 1.2-2.0 m wide.
-    shape = jax.random.randint(ks[0], (), 0, 3)
-    hx, hy = _room_half(ks[1], 5.0, 9.0)
-    strip = _uniform(ks[2], MIN_CORRIDOR, 2.0)
-    arm = _uniform(ks[3], MIN_CORRIDOR, 2.0)
+    shape = d.randint((), 0, 3)
+    hx, hy = _room_half(d, 5.0, 9.0)
+    strip = _uniform(d, MIN_CORRIDOR, 2.0)
+    arm = _uniform(d, MIN_CORRIDOR, 2.0)
     block_hy = 0.5 * (2 * hy - strip)
     y = hy - block_hy
     # [2] blocks as west and east edges: L blocks the east, T both sides of a stem, U the middle.
@@ -253,30 +254,29 @@ def ltu_room(key, nb: int, nc: int, radius: float) -> SceneParams:
     centre = jnp.stack([0.5 * (west + east), jnp.full(2, y)], -1)  # [2, 2]
     half = jnp.stack([0.5 * (east - west), jnp.full(2, block_hy)], -1)  # [2, 2]
     active = jnp.array([True, False]) | (shape == 1)
-    boxes = _walls(centre, jnp.maximum(half, 0.05), ks[4], active)
+    boxes = _walls(centre, jnp.maximum(half, 0.05), d, active)
     # Spawn: the middle of the south strip, uniform along it.
-    x = _uniform(ks[5], -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
+    x = _uniform(d, -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
     spawn = jnp.stack([x, -hy + 0.5 * strip])
-    room = _assemble(ks[6], jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
-    return _mirror(jax.random.fold_in(key, 1), room)
+    room = _assemble(d, jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
+    return _mirror(d, room)
 
 
-def _scatter(key, half, bound, n: int):
+def _scatter(d: Draws, half, bound, n: int):
     """[n, 2] uniform centres whose bounding circles (radius `bound` [n]) lie inside the room."""
     limit = jnp.maximum(half - bound[:, None], 0.0)  # [n, 2]
-    return jax.random.uniform(key, (n, 2), minval=-1.0, maxval=1.0) * limit
+    return d.uniform((n, 2), -1.0, 1.0) * limit
 
 
-def _furniture_boxes(key, half, n: int) -> Boxes:
+def _furniture_boxes(d: Draws, half, n: int) -> Boxes:
     """[n] standing boxes: full extents uniform 0.3-1.0 m, yaw uniform, top uniform 0.4-1.0 m."""
-    ks = jax.random.split(key, 4)
-    box_half = 0.5 * _uniform(ks[0], 0.3, 1.0, (n, 2))
-    pos = _scatter(ks[1], half, jnp.linalg.norm(box_half, axis=-1), n)
+    box_half = 0.5 * _uniform(d, 0.3, 1.0, (n, 2))
+    pos = _scatter(d, half, jnp.linalg.norm(box_half, axis=-1), n)
     return Boxes(
         pos=pos,
         half=box_half,
-        yaw=_uniform(ks[2], -jnp.pi, jnp.pi, (n,)),
-        height=_uniform(ks[3], 0.4, 1.0, (n,)),
+        yaw=_uniform(d, -jnp.pi, jnp.pi, (n,)),
+        height=_uniform(d, 0.4, 1.0, (n,)),
         bottom=jnp.zeros(n),
         active=jnp.ones(n, bool),
     )
@@ -285,100 +285,94 @@ def _furniture_boxes(key, half, n: int) -> Boxes:
 def joined_rooms(key, nb: int, nc: int, radius: float) -> SceneParams:
     """Two or three rooms side by side, each pair joined by a doorway 0.8-1.2 m wide, with up
     to 6 pieces of furniture kept out of the doorways."""
-    ks = jax.random.split(key, 9)
+    d = draws(key)
     # Rooms: 2 or 3 uniformly; interior 7-10 m along x, 3.5-6 m along y.
-    rooms = jax.random.randint(ks[0], (), 2, 4)
-    hx = 0.5 * _uniform(ks[1], 7.0, 10.0)
-    hy = 0.5 * _uniform(ks[2], 3.5, 6.0)
+    rooms = d.randint((), 2, 4)
+    hx = 0.5 * _uniform(d, 7.0, 10.0)
+    hy = 0.5 * _uniform(d, 3.5, 6.0)
     # Dividers: evenly spaced, each moved uniformly by +-0.3 m; doors uniform 0.8-1.2 m wide,
     # centred uniformly with 0.3 m of wall kept on either side.
     k = jnp.arange(2)
-    x = -hx + (k + 1) * 2 * hx / rooms + _uniform(ks[3], -0.3, 0.3, (2,))  # [2]
-    door = _uniform(ks[4], MIN_DOOR, 1.2, (2,))
-    door_y = _uniform(ks[5], -1.0, 1.0, (2,)) * (hy - 0.5 * door - 0.3)
+    x = -hx + (k + 1) * 2 * hx / rooms + _uniform(d, -0.3, 0.3, (2,))  # [2]
+    door = _uniform(d, MIN_DOOR, 1.2, (2,))
+    door_y = _uniform(d, -1.0, 1.0, (2,)) * (hy - 0.5 * door - 0.3)
     south, north = door_y - 0.5 * door + hy, hy - door_y - 0.5 * door  # [2] wall lengths
     pos = jnp.concatenate(
         [jnp.stack([x, -hy + 0.5 * south], -1), jnp.stack([x, hy - 0.5 * north], -1)]
     )
     wall_half = jnp.stack([jnp.full(4, 0.5 * WALL), 0.5 * jnp.concatenate([south, north])], -1)
     used = jnp.tile(k < rooms - 1, 2)
-    walls = _walls(pos, wall_half, ks[6], used)
+    walls = _walls(pos, wall_half, d, used)
     n_furniture = min(6, nb - 4)
     # Furniture: 0-6 pieces (count uniform), none within a robot's width of a doorway.
-    furniture = _furniture_boxes(ks[7], jnp.stack([hx, hy]), n_furniture)
-    count = jax.random.randint(ks[8], (), 0, n_furniture + 1)
+    furniture = _furniture_boxes(d, jnp.stack([hx, hy]), n_furniture)
+    count = d.randint((), 0, n_furniture + 1)
     furniture = furniture.replace(active=jnp.arange(n_furniture) < count)
     # Spawn: the middle of the west room.
     spawn = jnp.stack([0.5 * (-hx + x[0]), 0.0])
     half = jnp.stack([hx, hy])
-    room = _assemble(
-        jax.random.fold_in(key, 2), half, spawn, _join(walls, furniture), nb, nc, radius
-    )
+    room = _assemble(d, half, spawn, _join(walls, furniture), nb, nc, radius)
     doors = jnp.stack([x, door_y], -1)  # [2, 2]
     room = clear_around(room, doors, 0.5 * door + 2 * radius + 0.1, first_box=4)
-    return _mirror(jax.random.fold_in(key, 1), room)
+    return _mirror(d, room)
 
 
 def furniture(key, nb: int, nc: int, radius: float) -> SceneParams:
     """1-3 tables in a 5-9 m room, each with up to 4 chairs around it."""
-    ks = jax.random.split(key, 9)
+    d = draws(key)
     c = min(3, nb // 5)
     # Interior uniform 5-9 m per axis; clusters: 1-c uniformly; table extents uniform
     # 0.8-1.6 m x 0.6-1.0 m, yaw uniform; chair 0.4 x 0.4 m; each chair there with probability 0.7.
-    half = _room_half(ks[0], 5.0, 9.0)
-    count = jax.random.randint(ks[1], (), 1, c + 1)
-    table = 0.5 * jnp.stack([_uniform(ks[2], 0.8, 1.6, (c,)), _uniform(ks[3], 0.6, 1.0, (c,))], -1)
-    yaw = _uniform(ks[4], -jnp.pi, jnp.pi, (c,))
+    half = _room_half(d, 5.0, 9.0)
+    count = d.randint((), 1, c + 1)
+    table = 0.5 * jnp.stack([_uniform(d, 0.8, 1.6, (c,)), _uniform(d, 0.6, 1.0, (c,))], -1)
+    yaw = _uniform(d, -jnp.pi, jnp.pi, (c,))
     reach = jnp.linalg.norm(table + 0.55, axis=-1)  # [c] bounding circle of table and chairs
-    centre = _scatter(ks[5], half, reach, c)  # [c, 2]
+    centre = _scatter(d, half, reach, c)  # [c, 2]
     # Chairs 0.15 m beyond each side of the table, in the table's frame: +x, -x, +y, -y.
     unit = jnp.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])  # [4, 2]
     local = unit[None] * (table[:, None] + 0.35)  # [c, 4, 2]
     rot = jnp.stack([jnp.cos(yaw), -jnp.sin(yaw), jnp.sin(yaw), jnp.cos(yaw)], -1).reshape(c, 2, 2)
     chairs = centre[:, None] + jnp.einsum("cij,ckj->cki", rot, local)  # [c, 4, 2]
-    chair_on = jax.random.bernoulli(ks[6], 0.7, (c, 4))
+    chair_on = d.bernoulli(0.7, (c, 4))
     used = jnp.arange(c) < count  # [c]
     boxes = Boxes(
         pos=jnp.concatenate([centre, chairs.reshape(-1, 2)]),
         half=jnp.concatenate([table, jnp.full((4 * c, 2), 0.2)]),
         yaw=jnp.concatenate([yaw, jnp.repeat(yaw, 4)]),
         # Tops: tables 0.7-0.8 m, chairs 0.45-0.9 m (seat or back), uniform.
-        height=jnp.concatenate(
-            [_uniform(ks[7], 0.7, 0.8, (c,)), _uniform(ks[8], 0.45, 0.9, (4 * c,))]
-        ),
+        height=jnp.concatenate([_uniform(d, 0.7, 0.8, (c,)), _uniform(d, 0.45, 0.9, (4 * c,))]),
         bottom=jnp.zeros(5 * c),
         active=jnp.concatenate([used, (chair_on & used[:, None]).reshape(-1)]),
     )
     # Spawn: uniform over the room, away from the walls.
-    spawn = _uniform(jax.random.fold_in(key, 3), -1.0, 1.0, (2,)) * (
-        half - radius - SPAWN_CLEARANCE
-    )
-    return _assemble(jax.random.fold_in(key, 2), half, spawn, boxes, nb, nc, radius)
+    spawn = _uniform(d, -1.0, 1.0, (2,)) * (half - radius - SPAWN_CLEARANCE)
+    return _assemble(d, half, spawn, boxes, nb, nc, radius)
 
 
 def long_hall(key, nb: int, nc: int, radius: float) -> SceneParams:
     """A hall 8-30 m long and 1.2-4 m wide (one in four: an open floor 6-12 m wide), with up to
     4 cabinets along one side wall, so the far end often lies beyond the camera's 8 m."""
-    ks = jax.random.split(key, 10)
+    d = draws(key)
     # Length uniform 8-30 m; width uniform 1.2-4 m, or (probability 1/4) 6-12 m.
-    length = _uniform(ks[0], *HALL_LENGTH)
-    wide = jax.random.bernoulli(ks[1], 0.25)
-    width = jnp.where(wide, _uniform(ks[2], *FLOOR_WIDTH), _uniform(ks[2], *HALL_WIDTH))
+    length = _uniform(d, *HALL_LENGTH)
+    wide = d.bernoulli(0.25)
+    width = jnp.where(wide, _uniform(d, *FLOOR_WIDTH), _uniform(d, *HALL_WIDTH))
     half = 0.5 * jnp.stack([length, width])
     n = min(4, nb)
     # Cabinets: 0-n (count uniform), along x uniform, 0.3-1.0 m long; all against one side wall
     # (side uniform), each 0.2-0.6 m deep but leaving MIN_DOOR beside it; top uniform 0.4-1.0 m.
-    count = jax.random.randint(ks[3], (), 0, n + 1)
-    long_half = 0.5 * _uniform(ks[4], 0.3, 1.0, (n,))
-    depth = jnp.minimum(_uniform(ks[5], 0.2, 0.6, (n,)), jnp.maximum(width - MIN_DOOR, 0.1))
-    side = jnp.where(jax.random.bernoulli(ks[6]), 1.0, -1.0)
-    x = _uniform(ks[7], -1.0, 1.0, (n,)) * (half[0] - long_half)
+    count = d.randint((), 0, n + 1)
+    long_half = 0.5 * _uniform(d, 0.3, 1.0, (n,))
+    depth = jnp.minimum(_uniform(d, 0.2, 0.6, (n,)), jnp.maximum(width - MIN_DOOR, 0.1))
+    side = jnp.where(d.bernoulli(), 1.0, -1.0)
+    x = _uniform(d, -1.0, 1.0, (n,)) * (half[0] - long_half)
     pos = jnp.stack([x, side * (half[1] - 0.5 * depth)], -1)  # [n, 2]
-    boxes = _walls(pos, jnp.stack([long_half, 0.5 * depth], -1), ks[8], jnp.arange(n) < count)
+    boxes = _walls(pos, jnp.stack([long_half, 0.5 * depth], -1), d, jnp.arange(n) < count)
     # Spawn: uniform along the hall, on its centre line.
-    spawn = jnp.stack([_uniform(ks[9], -1.0, 1.0) * (half[0] - radius - SPAWN_CLEARANCE), 0.0])
-    room = _assemble(jax.random.fold_in(key, 2), half, spawn, boxes, nb, nc, radius)
-    return _mirror(jax.random.fold_in(key, 1), room)
+    spawn = jnp.stack([_uniform(d, -1.0, 1.0) * (half[0] - radius - SPAWN_CLEARANCE), 0.0])
+    room = _assemble(d, half, spawn, boxes, nb, nc, radius)
+    return _mirror(d, room)
 
 
 FAMILIES = {
@@ -409,12 +403,12 @@ def _neighbours(cells: jax.Array) -> jax.Array:
     return sum(padded[i : i + h, j : j + w] for i, j in shifts)
 
 
-def _automaton(key, inside: jax.Array, fill, rounds) -> jax.Array:
+def _automaton(d: Draws, inside: jax.Array, fill, rounds) -> jax.Array:
     """[G, G] bool: a cellular-automaton field on the `inside` cells [G, G]: each occupied with
     probability `fill`, then `rounds` (traced, at most 4) rounds in which a free cell becomes
     occupied with at least 5 occupied neighbours and an occupied one stays with at least 2: lone
     cells vanish and clusters grow into blobs, as in BARN's generator."""
-    cells = jax.random.bernoulli(key, fill, inside.shape) & inside
+    cells = d.bernoulli(fill, inside.shape) & inside
 
     def round_(i, cells):
         n = _neighbours(cells)
@@ -436,23 +430,23 @@ def _polyline_distance(p: jax.Array, path: jax.Array) -> jax.Array:
 def dense_field(key, nb: int, nc: int, radius: float) -> SceneParams:
     """A field of square cells like BARN's worlds (`jaxnav.core.grid`), 3-8 m a side, with a path
     for the robot from the spawn by the south wall to the north wall; no obstacle slots used."""
-    ks = jax.random.split(key, 8)
+    d = draws(key)
     g = FIELD_CELLS
     # Cell side uniform 0.1-0.2 m; field uniform 30-40 cells per axis (the room is the field).
-    cell = _uniform(ks[0], 0.1, 0.2)
-    n = jax.random.randint(ks[1], (2,), 30, g + 1)  # [2] cells along x, y
+    cell = _uniform(d, 0.1, 0.2)
+    n = d.randint((2,), 30, g + 1)  # [2] cells along x, y
     half = 0.5 * n * cell
     # Initial fill uniform 0.15-0.35; smoothing rounds uniform in {2, 3, 4} (BARN's ranges).
-    fill = _uniform(ks[2], 0.15, 0.35)
-    rounds = jax.random.randint(ks[3], (), 2, 5)
+    fill = _uniform(d, 0.15, 0.35)
+    rounds = d.randint((), 2, 5)
     idx = jnp.arange(g)
     inside = (idx[:, None] < n[1]) & (idx[None, :] < n[0])  # [G, G] rows along y, columns x
-    cells = _automaton(ks[4], inside, fill, rounds)
+    cells = _automaton(d, inside, fill, rounds)
     # Path: FIELD_WAYPOINTS points evenly spaced from the south to the north wall, x uniform,
     # each keeping the robot and its spawn clearance from the walls; the spawn is its first.
     keep = radius + SPAWN_CLEARANCE
     ys = jnp.linspace(-1.0, 1.0, FIELD_WAYPOINTS) * (half[1] - keep)
-    xs = _uniform(ks[5], -1.0, 1.0, (FIELD_WAYPOINTS,)) * (half[0] - keep)
+    xs = _uniform(d, -1.0, 1.0, (FIELD_WAYPOINTS,)) * (half[0] - keep)
     path = jnp.stack([xs, ys], -1)  # [K, 2]
     # Cleared: every cell whose box comes within the robot and FIELD_MARGIN of the path (its
     # centre within that and half its diagonal), or within the spawn clearance of the spawn.
@@ -466,12 +460,10 @@ def dense_field(key, nb: int, nc: int, radius: float) -> SceneParams:
         cells=cells,
         origin=-half,
         cell=cell,
-        height=_uniform(ks[6], 0.5, 1.0),
+        height=_uniform(d, 0.5, 1.0),
     )
-    spawn = jnp.append(path[0], _uniform(ks[7], -jnp.pi, jnp.pi))  # heading uniform
-    return _blank(jax.random.fold_in(key, 1), nb, nc, radius).replace(
-        room_half=half, spawn=spawn, grid=field
-    )
+    spawn = jnp.append(path[0], _uniform(d, -jnp.pi, jnp.pi))  # heading uniform
+    return _blank(d, nb, nc, radius).replace(room_half=half, spawn=spawn, grid=field)
 
 
 GRID_FAMILIES = {"dense_field": dense_field}
@@ -506,10 +498,10 @@ def sample_weighted(
     samplers.update({n: lambda k, f=f: f(k, nb, nc, radius) for n, f in FAMILIES.items()})
     samplers.update({n: lambda k, f=f: f(k, nb, nc, radius) for n, f in GRID_FAMILIES.items()})
     branches = [lambda k, f=samplers[n]: _grown(f(k), g) for n in weights]
-    k_pick, k_room = jax.random.split(key)
+    d = Draws(key)
     # Family: drawn with the given weights.
-    index = jax.random.choice(k_pick, len(branches), p=jnp.asarray(list(weights.values())))
-    return jax.lax.switch(index, branches, k_room) if len(branches) > 1 else branches[0](k_room)
+    index = d.choice(jnp.asarray(list(weights.values()), jnp.float32))
+    return jax.lax.switch(index, branches, d.key()) if len(branches) > 1 else branches[0](d)
 
 
 def _grown(room: SceneParams, g: int) -> SceneParams:
@@ -523,9 +515,9 @@ def _grown(room: SceneParams, g: int) -> SceneParams:
 
 def mixture(key, nb: int, nc: int, radius: float) -> SceneParams:
     """A room of a family drawn uniformly from `FAMILIES`."""
-    k_pick, k_room = jax.random.split(key)
+    d = Draws(key)
     # Family: uniform over FAMILIES.
-    return sample_family(k_room, jax.random.randint(k_pick, (), 0, len(FAMILIES)), nb, nc, radius)
+    return sample_family(d.key(), d.randint((), 0, len(FAMILIES)), nb, nc, radius)
 
 
 # ------------------------------------------------------------------------------

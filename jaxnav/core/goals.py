@@ -41,6 +41,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from jaxnav.core import families
 from jaxnav.core import layout as lay
+from jaxnav.core.draws import Draws
 from jaxnav.core.geometry import planar_distance, signed_distance
 from jaxnav.core.randomize import SceneParams
 
@@ -152,20 +153,19 @@ def _on_main(g: GoalCells, half: jax.Array, xy: jax.Array) -> jax.Array:
     return g.main[row, col]
 
 
-def _layout_goal(key, params: SceneParams, goals: GoalCells, radius, clearance, min_distance):
+def _layout_goal(d: Draws, params: SceneParams, goals: GoalCells, radius, clearance, min_distance):
     """(params with the spawn on the main component, [2] goal) in a layout room."""
     g = jax.tree_util.tree_map(lambda x: x[jnp.maximum(params.layout_id, 0)], goals)
-    k_spawn, k_goal = jax.random.split(key)
-    draw = lambda k: g.cells[jax.random.randint(k, (TRIES,), 0, g.count)]  # noqa: E731
+    draw = lambda: g.cells[d.randint((TRIES,), 0, g.count)]  # noqa: E731
     # Spawn: kept if on the main component, else the first of TRIES uniform main cells that keeps
     # `clearance` from everything (or the one with the most clearance).
-    cand = draw(k_spawn)  # [TRIES, 2]
+    cand = draw()  # [TRIES, 2]
     gap = signed_distance(params, cand) - radius
     moved = cand[_first_or_best(gap >= clearance, gap)]
     spawn_xy = jnp.where(_on_main(g, params.room_half, params.spawn[:2]), params.spawn[:2], moved)
     # Goal: the layout's, else the first of TRIES uniform main cells at least min_distance from
     # the spawn (straight line), or the farthest of them.
-    cand = draw(k_goal)
+    cand = draw()
     dist = jnp.linalg.norm(cand - spawn_xy, axis=-1)
     goal = jnp.where(g.has_goal, g.goal, cand[_first_or_best(dist >= min_distance, dist)])
     return params.replace(spawn=params.spawn.at[:2].set(spawn_xy)), goal
@@ -324,11 +324,11 @@ def _free(params: SceneParams, extent: tuple[float, float], radius: float):
     return gap, gap >= 0.5 * GRID_CELL
 
 
-def _uniform(key, ok: jax.Array) -> jax.Array:
+def _uniform(d: Draws, ok: jax.Array) -> jax.Array:
     """Flat index of a uniform True cell of `ok` [rows, cols] (arbitrary where none is), from one
     random number rather than one per cell."""
     count = jnp.cumsum(ok.ravel())  # [rows * cols]
-    return jnp.argmax(count > jax.random.randint(key, (), 0, jnp.maximum(count[-1], 1)))
+    return jnp.argmax(count > d.randint((), 0, jnp.maximum(count[-1], 1)))
 
 
 def _half_extents(shape: tuple[int, int]) -> np.ndarray:
@@ -379,21 +379,21 @@ def geodesic(
     return jnp.where(jnp.isfinite(best), best, fallback)
 
 
-def _interior_goal(key, params: SceneParams, radius, clearance, min_distance):
+def _interior_goal(d: Draws, params: SceneParams, radius, clearance, min_distance):
     """[2] the first of TRIES uniform points of the room's interior (shrunk by the robot and
     `clearance`) at least min_distance from the spawn, or the farthest of them."""
     limit = jnp.maximum(params.room_half - radius - clearance, 0.0)
-    cand = jax.random.uniform(key, (TRIES, 2), minval=-1.0, maxval=1.0) * limit
+    cand = d.uniform((TRIES, 2), -1.0, 1.0) * limit
     dist = jnp.linalg.norm(cand - params.spawn[:2], axis=-1)
     return cand[_first_or_best(dist >= min_distance, dist)]
 
 
-def _clear_path(key, params: SceneParams, goal, radius, path_clearance) -> SceneParams:
+def _clear_path(d: Draws, params: SceneParams, goal, radius, path_clearance) -> SceneParams:
     """The room with every obstacle removed that blocks an L-shaped path spawn -> corner -> goal
     (half-width radius + path_clearance); the corner (spawn x, goal y) or (goal x, spawn y)."""
     spawn = params.spawn[:2]
     corner = jnp.where(
-        jax.random.bernoulli(key),
+        d.bernoulli(),
         jnp.stack([spawn[0], goal[1]]),
         jnp.stack([goal[0], spawn[1]]),
     )
@@ -429,10 +429,10 @@ def sample_goal(
     cell for the spawn, too (rare), after it: the field then reaches the goal's part only, and
     `geodesic` takes the straight line elsewhere.
     """
-    k_layout, k_goal, k_spawn, k_room, k_path = jax.random.split(key, 5)
+    d = Draws(key)
     centres = _room_centres(extent, params.room_half)  # [rows, cols, 2] in the room's frame
     spawn = params.spawn[:2]  # [2]
-    pick = lambda k, ok: centres.reshape(-1, 2)[_uniform(k, ok)]  # noqa: E731
+    pick = lambda ok: centres.reshape(-1, 2)[_uniform(d, ok)]  # noqa: E731
     where = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
     # Sampled rooms: the goal is a uniform far cell that keeps `clearance`, else (none is far
     # enough) a point of the interior, the path to it cleared before the flood.
@@ -440,12 +440,10 @@ def sample_goal(
     roomy = free & (gap >= clearance)  # [rows, cols] cells a goal or a moved spawn may take
     far = roomy & (planar_distance(centres, spawn) >= min_distance)
     found = far.any()
-    interior = _interior_goal(k_room, params, radius, clearance, min_distance)
-    room_goal = jnp.where(found, pick(k_goal, far), interior)
-    cleared = _clear_path(k_path, params, room_goal, radius, path_clearance)
-    layout_room, layout_goal = _layout_goal(
-        k_layout, params, goals, radius, clearance, min_distance
-    )
+    interior = _interior_goal(d, params, radius, clearance, min_distance)
+    room_goal = jnp.where(found, pick(far), interior)
+    cleared = _clear_path(d, params, room_goal, radius, path_clearance)
+    layout_room, layout_goal = _layout_goal(d, params, goals, radius, clearance, min_distance)
     sampled = params.layout_id < 0
     room = where(sampled, where(found, params, cleared), layout_room)
     goal = jnp.where(sampled, room_goal, layout_goal)
@@ -458,7 +456,7 @@ def sample_goal(
     col, row = jnp.clip(cell, 0, np.array(shape[::-1]) - 1)
     spots = reached & roomy & (planar_distance(centres, goal) >= min_distance)
     move = sampled & found & ~reached[row, col]
-    moved = room.spawn.at[:2].set(pick(k_spawn, spots))
+    moved = room.spawn.at[:2].set(pick(spots))
     room = room.replace(spawn=jnp.where(move & spots.any(), moved, room.spawn))
     return where(move & ~spots.any(), cleared, room), goal, field
 

@@ -31,6 +31,7 @@ import numpy as np
 from flax import struct
 
 from jaxnav.core import crowd
+from jaxnav.core.draws import Draws
 from jaxnav.core.geometry import box_distance, disc_distance, signed_distance
 
 TRIES = 16  # uniform candidates per added mover; a mover whose candidates all fail is left out
@@ -168,19 +169,18 @@ def add_movers(key, room, cfg, robot_radius: float, goal=None):
     robot's disc at `goal` [2] (if given); a mover with no such position is left out."""
     m = cfg.moving_count[1]
     nb, nc = room.box_pos.shape[0], room.cyl_pos.shape[0]
-    ks = jax.random.split(key, 6)
-    count = jax.random.randint(ks[0], (), cfg.moving_count[0], m + 1)
-    uniform = lambda k, bounds: jax.random.uniform(k, (m,), minval=bounds[0], maxval=bounds[1])  # noqa: E731
-    radius = uniform(ks[1], cfg.moving_radius)
-    height = uniform(ks[2], cfg.obstacle_height)
-    speed = uniform(ks[3], cfg.moving_speed)
-    heading = uniform(ks[4], (-jnp.pi, jnp.pi))
+    d = Draws(key)
+    count = d.randint((), cfg.moving_count[0], m + 1)
+    radius = d.uniform((m,), *cfg.moving_radius)
+    height = d.uniform((m,), *cfg.obstacle_height)
+    speed = d.uniform((m,), *cfg.moving_speed)
+    heading = d.uniform((m,), -jnp.pi, jnp.pi)
     spawn = room.spawn[:2]
     velocity = room.motion.velocity
     for j in range(m):
         slot, r = nc - m + j, radius[j]
         limit = jnp.maximum(room.room_half - r - FREE_GAP, 0.0)
-        cand = jax.random.uniform(jax.random.fold_in(ks[5], j), (TRIES, 2), minval=-1.0) * limit
+        cand = d.uniform((TRIES, 2), -1.0, 1.0) * limit
         ok = signed_distance(room, cand) > r + FREE_GAP
         ok &= jnp.linalg.norm(cand - spawn, axis=-1) > robot_radius + cfg.moving_clearance + r
         if goal is not None:

@@ -19,6 +19,7 @@ from flax import struct
 from jaxnav.core import crowd, motion
 from jaxnav.core import grid as occupancy
 from jaxnav.core.checks import require_finite
+from jaxnav.core.draws import Draws, draws
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.layout import MAX_OBSTACLE_SPEED, RoomLayout
 
@@ -463,19 +464,19 @@ def clearance(params: SceneParams, xy: jax.Array) -> jax.Array:
     return signed_distance(params, xy)
 
 
-def _uniform(key, bounds, shape=()):
+def _uniform(d: Draws, bounds, shape=()):
     lo, hi = bounds
-    return jax.random.uniform(key, shape, minval=lo, maxval=hi)
+    return d.uniform(shape, lo, hi)
 
 
-def _place(key, half, bound, spawn_xy, keep_out, count, n, tries=8):
+def _place(d: Draws, half, bound, spawn_xy, keep_out, count, n, tries=8):
     """[n, 2] positions inside the room (margin `bound` [n]) and [n] active flags.
 
     Slot i is active if i < count and one of `tries` uniform candidates keeps its bounding circle
     `keep_out` away from the spawn; otherwise it stays parked, so the spawn is always free.
     """
     limit = jnp.maximum(half - bound[:, None], 0.0)  # [n, 2]
-    cand = jax.random.uniform(key, (n, tries, 2), minval=-1.0, maxval=1.0) * limit[:, None]
+    cand = d.uniform((n, tries, 2), -1.0, 1.0) * limit[:, None]
     free = jnp.linalg.norm(cand - spawn_xy, axis=-1) > bound[:, None] + keep_out  # [n, tries]
     first = jnp.argmax(free, axis=1)
     pos = jnp.take_along_axis(cand, first[:, None, None], axis=1)[:, 0]
@@ -483,28 +484,29 @@ def _place(key, half, bound, spawn_xy, keep_out, count, n, tries=8):
 
 
 def sample_room(
-    key: jax.Array, cfg: RandomizeConfig, nb: int, nc: int, radius: float
+    key: jax.Array | Draws, cfg: RandomizeConfig, nb: int, nc: int, radius: float
 ) -> SceneParams:
-    """A procedural room with `nb`/`nc` slots; the spawn of a robot of `radius` is free by construction."""
-    ks = jax.random.split(key, 10)
+    """A procedural room with `nb`/`nc` slots; the spawn of a robot of `radius` is free by
+    construction. `key`: a PRNG key or the `Draws` to take the numbers from."""
+    d = draws(key)
     # Interior extents: uniform per axis in [room_size_min, room_size_max].
-    half = 0.5 * _uniform(ks[0], (jnp.array(cfg.room_size_min), jnp.array(cfg.room_size_max)), (2,))
+    half = 0.5 * _uniform(d, (jnp.array(cfg.room_size_min), jnp.array(cfg.room_size_max)), (2,))
     keep_out = radius + cfg.spawn_clearance
     # Spawn: uniform over the interior shrunk by the robot and its clearance; heading uniform.
-    spawn_xy = jax.random.uniform(ks[1], (2,), minval=-1.0, maxval=1.0) * (half - keep_out)
-    spawn = jnp.append(spawn_xy, _uniform(ks[2], (-jnp.pi, jnp.pi)))
+    spawn_xy = d.uniform((2,), -1.0, 1.0) * (half - keep_out)
+    spawn = jnp.append(spawn_xy, _uniform(d, (-jnp.pi, jnp.pi)))
     # Boxes: count uniform in num_boxes; full extents uniform in box_size; yaw uniform.
-    box_half = 0.5 * _uniform(ks[3], cfg.box_size, (nb, 2))
-    box_yaw = _uniform(ks[4], (-jnp.pi, jnp.pi), (nb,))
-    n_box = jax.random.randint(ks[5], (), cfg.num_boxes[0], cfg.num_boxes[1] + 1)
+    box_half = 0.5 * _uniform(d, cfg.box_size, (nb, 2))
+    box_yaw = _uniform(d, (-jnp.pi, jnp.pi), (nb,))
+    n_box = d.randint((), cfg.num_boxes[0], cfg.num_boxes[1] + 1)
     box_pos, box_active = _place(
-        ks[6], half, jnp.linalg.norm(box_half, axis=-1), spawn_xy, keep_out, n_box, nb
+        d, half, jnp.linalg.norm(box_half, axis=-1), spawn_xy, keep_out, n_box, nb
     )
     # Cylinders: count uniform in num_cylinders; radius uniform in cylinder_radius.
-    radius = _uniform(ks[7], cfg.cylinder_radius, (nc,))
-    n_cyl = jax.random.randint(ks[8], (), cfg.num_cylinders[0], cfg.num_cylinders[1] + 1)
-    cyl_pos, cyl_active = _place(ks[9], half, radius, spawn_xy, keep_out, n_cyl, nc)
-    bottom, top = _vertical_spans(jax.random.fold_in(key, 1), cfg, nb + nc)
+    radius = _uniform(d, cfg.cylinder_radius, (nc,))
+    n_cyl = d.randint((), cfg.num_cylinders[0], cfg.num_cylinders[1] + 1)
+    cyl_pos, cyl_active = _place(d, half, radius, spawn_xy, keep_out, n_cyl, nc)
+    bottom, top = _vertical_spans(d, cfg, nb + nc)
     zero = jnp.float32(0)
     return SceneParams(
         room_half=half,
@@ -529,32 +531,31 @@ def sample_room(
     )
 
 
-def _vertical_spans(key, cfg: RandomizeConfig, n: int):
+def _vertical_spans(d: Draws, cfg: RandomizeConfig, n: int):
     """[n] undersides and [n] tops of sampled obstacles: standing, low or overhanging."""
-    k_kind, k_top, k_low, k_bottom, k_thick = jax.random.split(key, 5)
     # Kind: low with low_prob, overhang with overhang_prob, else standing.
-    u = jax.random.uniform(k_kind, (n,))
+    u = d.uniform((n,))
     low, hang = u < cfg.low_prob, (u >= cfg.low_prob) & (u < cfg.low_prob + cfg.overhang_prob)
     # Standing: top uniform in obstacle_height; low: top uniform in low_height.
-    top = jnp.where(
-        low, _uniform(k_low, cfg.low_height, (n,)), _uniform(k_top, cfg.obstacle_height, (n,))
-    )
+    top = jnp.where(low, _uniform(d, cfg.low_height, (n,)), _uniform(d, cfg.obstacle_height, (n,)))
     # Overhang: underside uniform in overhang_bottom, 0.05-0.5 m thick.
-    bottom = jnp.where(hang, _uniform(k_bottom, cfg.overhang_bottom, (n,)), 0.0)
-    top = jnp.where(hang, bottom + _uniform(k_thick, (0.05, 0.5), (n,)), top)
+    bottom = jnp.where(hang, _uniform(d, cfg.overhang_bottom, (n,)), 0.0)
+    top = jnp.where(hang, bottom + _uniform(d, (0.05, 0.5), (n,)), top)
     return bottom, top
 
 
-def free_spawn(key, room: SceneParams, radius: float, clearance_margin: float, tries: int = 64):
+def free_spawn(
+    key: jax.Array | Draws, room: SceneParams, radius: float, clearance_margin: float, tries=64
+):
     """[3] a uniform pose whose robot disc (`radius`) keeps `clearance_margin` from everything.
 
     Takes the first of `tries` uniform candidates that is free; if none is (a crowded room), the one
-    with the most clearance.
+    with the most clearance. `key`: a PRNG key or the `Draws` to take the numbers from.
     """
-    k_pos, k_yaw = jax.random.split(key)
+    d = draws(key)
     half = jnp.maximum(room.room_half - radius, 0.0)
-    cand = jax.random.uniform(k_pos, (tries, 2), minval=-1.0, maxval=1.0) * half  # [tries, 2]
+    cand = d.uniform((tries, 2), -1.0, 1.0) * half  # [tries, 2]
     gap = signed_distance(room, cand) - radius  # [tries]
     ok = gap >= clearance_margin
     best = jnp.where(ok.any(), jnp.argmax(ok), jnp.argmax(gap))
-    return jnp.append(cand[best], _uniform(k_yaw, (-jnp.pi, jnp.pi)))
+    return jnp.append(cand[best], _uniform(d, (-jnp.pi, jnp.pi)))

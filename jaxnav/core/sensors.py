@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnav.core.checks import require_finite
+from jaxnav.core.draws import normal_of
 from jaxnav.core.geometry import ray_cast
 from jaxnav.core.robot import RobotSpec
 from jaxnav.robot_side.observation import (
@@ -274,11 +275,11 @@ def camera_readings(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> R
     """The `Readings` of a robot at qpos = (x, y, yaw) with the episode's noise, dropout, dark
     obstacles and camera mount error (`params`: its `SceneParams`), before `far_mask`."""
     rays = ray_readings(params, qpos, cfg, robot)
-    k_noise, k_drop = jax.random.split(key)
     reading = rays.reading
+    u = jax.random.uniform(key, (2, *reading.shape))  # one hash: noise and dropout
     std = params.noise_std + params.noise_quad * jnp.square(jnp.minimum(reading, cfg.range_max))
-    reading = reading + std * jax.random.normal(k_noise, reading.shape)
-    dropped = jax.random.bernoulli(k_drop, params.dropout, reading.shape)
+    reading = reading + std * normal_of(u[0])
+    dropped = u[1] < params.dropout
     dark = (rays.slot >= 0) & params.dark[jnp.maximum(rays.slot, 0)]  # no return
     in_range = (reading <= cfg.range_max) | (not cfg.far_invalid)
     valid = (reading >= cfg.range_min) & in_range & ~dropped & ~dark

@@ -6,9 +6,10 @@ about three quarters of the time and trains as fast (`benchmarks/compile_time.py
 docs/results.md). Other backends keep XLA's defaults, and so does a user's own
 `--xla_backend_optimization_level` in `XLA_FLAGS`.
 
-On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry, and a goal reset
-draws dozens of them: `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits),
-which nearly halves the goal task's first compile (`PPOConfig.threefry_kernel`).
+On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
+`threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,
+`PPOConfig.threefry_kernel`). jaxnav's resets draw their numbers in blocks (`jaxnav.core.draws`),
+so few calls are left to inline.
 """
 
 from __future__ import annotations

@@ -75,9 +75,9 @@ class PPOConfig:
     threefry_kernel: bool = False
     """On one GPU, call jax.random's threefry as JAX's CUDA kernel instead of inlining its rounds
     (`jaxnav.core.xla.threefry_kernel`, set by `make_train` for the process): the same random
-    bits in a smaller program. The goal task's default, where it nearly halves the first
-    compile for a few per cent of pace; `avoid`, which draws its episodes at every step, would
-    lose far more pace (docs/results.md, "The random numbers on the GPU")."""
+    bits in a smaller program. Since the resets draw their numbers in blocks
+    (`jaxnav.core.draws`), inlined is faster for both tasks: the kernel's calls cannot fuse with
+    the step around them (docs/results.md, "Random numbers in blocks")."""
     groups: int = 0
     """Independent blocks the robots are split into (0: one per device). Each block draws its own
     new episodes (`jaxnav.wrappers.AutoReset`) and each minibatch takes the same share of every

@@ -18,13 +18,7 @@ GOAL_GPU_FAMILIES = "all,long_hall:1"
 GOAL = {
     "defaults": {
         # Short episodes whose resets flood the room: fewer new episodes per step, drawn ahead.
-        # threefry_kernel: on one GPU the first chunk compiles in about half the time.
-        "ppo": {
-            "reset_share": 1 / 64,
-            "reset_ahead": True,
-            "privileged_critic": True,
-            "threefry_kernel": True,
-        },
+        "ppo": {"reset_share": 1 / 64, "reset_ahead": True, "privileged_critic": True},
         "randomize": {"families": "all"},
     },
     "preset_defaults": {

@@ -1,0 +1,83 @@
+"""`jaxnav.core.draws.Draws`: many small draws of one key from a few threefry calls, with the
+distributions of jax.random's (moments and frequencies against their exact values)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnav.core.draws import BLOCK, Draws, draws, normal_of
+
+N = 20_000  # draws per statistic: standard errors about 0.2 % of a uniform's range
+
+
+def _many(fn, n=N, seed=0):
+    """[n, ...] of fn(Draws) over n keys."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), n)
+    return np.asarray(jax.jit(jax.vmap(lambda k: fn(Draws(k))))(keys))
+
+
+def test_the_same_key_and_requests_give_the_same_numbers_never_twice():
+    key = jax.random.PRNGKey(3)
+
+    def take(d):
+        # small requests fill blocks; one larger than a block gets its own
+        return jnp.concatenate([d.uniform((5,)), d.uniform((BLOCK - 3,)), d.uniform((2 * BLOCK,))])
+
+    a, b = take(Draws(key)), take(Draws(key))
+    np.testing.assert_array_equal(a, b)
+    assert np.unique(np.asarray(a)).size == a.size  # no number handed out twice
+    assert not np.array_equal(take(Draws(jax.random.PRNGKey(4))), a)
+    d = Draws(key)
+    assert draws(d) is d and isinstance(draws(key), Draws)
+
+
+def test_uniform_bounds_and_moments():
+    u = _many(lambda d: d.uniform((3,), jnp.array([0.0, -2.0, 5.0]), jnp.array([1.0, 2.0, 5.5])))
+    lo, hi = np.array([0.0, -2.0, 5.0]), np.array([1.0, 2.0, 5.5])
+    assert (u >= lo).all() and (u < hi).all()
+    assert (np.abs(u.mean(0) - (lo + hi) / 2) < 4 * (hi - lo) / np.sqrt(12 * N)).all()
+    np.testing.assert_allclose(u.var(0), (hi - lo) ** 2 / 12, rtol=0.05)
+    # The columns of one key are independent.
+    assert abs(np.corrcoef(u[:, 0], u[:, 1])[0, 1]) < 4 / np.sqrt(N)
+
+
+def test_randint_covers_its_range_evenly_with_traced_bounds():
+    def fn(d):
+        hi = jnp.int32(3) + jnp.int32(4)  # traced: {2, ..., 6}
+        return d.randint((), 2, hi)
+
+    k = _many(fn)
+    assert k.dtype == np.int32 and k.min() == 2 and k.max() == 6
+    np.testing.assert_allclose(np.bincount(k)[2:] / N, 0.2, atol=4 * np.sqrt(0.16 / N))
+    assert (_many(lambda d: d.randint((4,), 5, 5)) == 5).all()  # an empty range gives its start
+
+
+def test_bernoulli_and_choice_frequencies():
+    b = _many(lambda d: d.bernoulli(0.3, (2,)))
+    np.testing.assert_allclose(b.mean(0), 0.3, atol=4 * np.sqrt(0.21 / N))
+    p = jnp.array([1.0, 0.0, 3.0, 4.0])
+    i = _many(lambda d: d.choice(p))
+    np.testing.assert_allclose(np.bincount(i, minlength=4) / N, p / p.sum(), atol=0.012)
+    assert (i != 1).all()  # a weight of 0 is never drawn
+
+
+def test_normal_moments_and_tails():
+    z = _many(lambda d: d.normal((2,))).ravel()
+    assert np.isfinite(z).all()
+    np.testing.assert_allclose([z.mean(), z.std()], [0.0, 1.0], atol=0.02)
+    assert abs((np.abs(z) > 1.96).mean() - 0.05) < 0.006
+    # The ends of the uniform's range map to finite values.
+    ends = normal_of(jnp.array([0.0, 1.0 - 2.0**-24]))
+    assert np.isfinite(np.asarray(ends)).all() and ends[0] < -5 and ends[1] > 5
+
+
+@pytest.mark.parametrize("fold", [1, 2])
+def test_blocks_are_apart_from_small_numbers_folded_into_the_key(fold):
+    """Code that folds a small number into the episode key (e.g. the movers') draws numbers
+    unrelated to the `Draws` of that key."""
+    key = jax.random.PRNGKey(7)
+    own = np.asarray(jax.random.uniform(jax.random.fold_in(key, fold), (BLOCK,)))
+    d = Draws(key)
+    blocks = np.concatenate([np.asarray(d.uniform((BLOCK,))) for _ in range(3)])
+    assert not np.isin(own, blocks).any()
