@@ -37,8 +37,9 @@ def test_a_second_task_trains_logs_evaluates_and_exports(stand_still, tmp_path):
     """A task defined outside the package goes through train, evaluate and export. Slow: a
     training run, an evaluation and an export, each compiled for this task alone."""
     tiny = dict(num_envs=16, rollout_length=16, minibatch_size=128, num_epochs=4)
+    # 16 updates of 16 steps: the 50-step episodes end in at least 4 of them.
     ckpt = jaxnav.train(
-        out=tmp_path / "run", env=stand_still, total_steps=16 * 16 * 12, updates_per_chunk=4,
+        out=tmp_path / "run", env=stand_still, total_steps=16 * 16 * 16, updates_per_chunk=4,
         learning_rate=3e-3, progress=False, **tiny,
     )  # fmt: skip
     with open(tmp_path / "run" / "metrics.csv") as fh:

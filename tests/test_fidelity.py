@@ -103,7 +103,7 @@ def test_simulator_and_robot_reduce_alike():
         return state.obs, rays.reading, dark, rays.rise, rays.height
 
     near_seen = floor_seen = 0
-    for seed in range(24):
+    for seed in range(96):  # a reset reads near (an obstacle inside 0.6 m) in a few in 100
         obs, reading, dark, rise, height = (np.asarray(x) for x in sim(jax.random.PRNGKey(seed)))
         unknown = dark | (reading < sensor.range_min) | (reading > sensor.range_max)
         floor = floor_mask(reading, ~unknown, rise, float(height), robot)
@@ -113,7 +113,7 @@ def test_simulator_and_robot_reduce_alike():
         np.testing.assert_allclose(obs, expected, rtol=1e-6)
         near_seen += int((obs == sensor.range_min).any())
         floor_seen += int(floor.any())
-    assert near_seen >= 2 and floor_seen >= 20  # the blind-zone and floor rules were exercised
+    assert near_seen >= 3 and floor_seen >= 80  # the blind-zone and floor rules were exercised
 
 
 def test_fidelity_ranges_are_drawn_per_episode_without_recompiling():

@@ -279,7 +279,7 @@ def test_goal_success_rises_above_random(tmp_path):
     jaxnav.train(
         out=tmp_path / "run", env="goal", layouts=[rooms], progress=False,
         num_envs=64, rollout_length=32, minibatch_size=1024, num_epochs=4, learning_rate=3e-3,
-        total_steps=64 * 32 * 60, updates_per_chunk=10, checkpoint_every=60,
+        total_steps=64 * 32 * 80, updates_per_chunk=10, checkpoint_every=80,
         task={"max_steps": 100}, randomize={"sampled_room_prob": 0.0},
     )  # fmt: skip
     with open(tmp_path / "run" / "metrics.csv") as fh:

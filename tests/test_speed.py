@@ -13,7 +13,7 @@ from jaxnav.core.scene import SceneConfig
 from jaxnav.core.types import EnvState
 from jaxnav.wrappers import AutoReset, EpisodeStats
 
-ROBOTS, STEPS = 32, 40
+ROBOTS, STEPS = 32, 60
 
 
 def forward_biased(key, shape):

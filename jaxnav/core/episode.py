@@ -90,15 +90,17 @@ def _physics_and_sensing(d: Draws, cfg: RandomizeConfig, room: SceneParams) -> S
     calibration = jnp.array([cfg.calibration_height_error, cfg.calibration_pitch_error])
     # Wheel mismatch: gains (1 - a/2, 1 + a/2), a uniform in wheel_asymmetry, which wheel at random.
     a = _in(d, cfg.wheel_asymmetry) * jnp.where(d.bernoulli(), 1.0, -1.0)
-    return room.replace(
+    room = room.replace(
         friction=_in(d, cfg.friction),
         speed_gain=_in(d, cfg.speed_gain),
         noise_std=_in(d, cfg.sensor_noise),
         dropout=_in(d, cfg.sensor_dropout),
         noise_quad=_in(d, cfg.sensor_noise_quadratic),
-        dark=d.bernoulli(cfg.dark_prob, (n,)),
         camera=jnp.concatenate([_symmetric(d, errors), _symmetric(d, calibration)]),
         accel=jnp.stack([_in(d, cfg.accel_limit), _in(d, cfg.angular_accel_limit)]),
         latency=d.randint((), cfg.latency_steps[0], cfg.latency_steps[1] + 1),
         wheel_gain=jnp.stack([1.0 - 0.5 * a, 1.0 + 0.5 * a]),
     )
+    # Last, as its size counts the slots reserved for movers and walkers: the draws before it are
+    # those of an env without them.
+    return room.replace(dark=d.bernoulli(cfg.dark_prob, (n,)))
