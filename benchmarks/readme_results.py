@@ -79,19 +79,12 @@ def train(run: Path, *flags: str) -> float:
 
 
 def evaluate(run: Path, out: Path, *flags: str, pictures: str = "readme_pictures") -> dict:
-    """The JSON of `python -m jaxnav.evaluate` on `run`, its pictures in RESULTS/pictures."""
-    sh(
-        sys.executable,
-        "-m",
-        "jaxnav.evaluate",
-        "--checkpoint",
-        str(run),
-        "--json",
-        str(out),
-        "--plots",
-        str(RESULTS / pictures),
-        *flags,
-    )
+    """The JSON of `python -m jaxnav.evaluate` on `run`, its pictures in RESULTS/pictures; the
+    JSON gains the evaluation's command, this commit and the date."""
+    args = ("--checkpoint", str(run), "--json", str(out), "--plots", str(RESULTS / pictures))
+    sh(sys.executable, "-m", "jaxnav.evaluate", *args, *flags)
+    command = " ".join(["python -m jaxnav.evaluate", *args, *flags]).replace(f"{ROOT}/", "")
+    write_json(out, {"command": command, **json.loads(out.read_text())})
     return json.loads(out.read_text())
 
 
