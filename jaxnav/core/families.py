@@ -29,6 +29,7 @@ from jaxnav.core.randomize import (
     RANDOM,
     RandomizeConfig,
     SceneParams,
+    empty_room,
     family_weights,
     sample_room,
 )
@@ -86,12 +87,6 @@ def _join(*groups: Boxes) -> Boxes:
     return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *groups)
 
 
-def _blank(d: Draws, nb: int, nc: int, radius: float) -> SceneParams:
-    """A room with every slot inactive (sample_room fills the per-episode placeholders)."""
-    empty = RandomizeConfig(num_boxes=(0, 0), num_cylinders=(0, 0))
-    return sample_room(d, empty, nb, nc, radius)
-
-
 def _assemble(
     d: Draws, half, spawn_xy, boxes: Boxes, nb: int, nc: int, radius: float
 ) -> SceneParams:
@@ -99,7 +94,7 @@ def _assemble(
     n = boxes.pos.shape[0]
     if n > nb:
         raise ValueError(f"room families: need {n} box slots, got num_boxes={nb}")
-    room = _blank(d, nb, nc, radius)
+    room = empty_room(nb, nc)
     pad = lambda x, fill: jnp.concatenate([x, jnp.full((nb - n, *x.shape[1:]), fill, x.dtype)])  # noqa: E731
     # Heading at the spawn: uniform in [-pi, pi).
     spawn = jnp.append(spawn_xy, _uniform(d, -jnp.pi, jnp.pi))
@@ -463,7 +458,7 @@ def dense_field(key, nb: int, nc: int, radius: float) -> SceneParams:
         height=_uniform(d, 0.5, 1.0),
     )
     spawn = jnp.append(path[0], _uniform(d, -jnp.pi, jnp.pi))  # heading uniform
-    return _blank(d, nb, nc, radius).replace(room_half=half, spawn=spawn, grid=field)
+    return empty_room(nb, nc).replace(room_half=half, spawn=spawn, grid=field)
 
 
 GRID_FAMILIES = {"dense_field": dense_field}

@@ -446,6 +446,34 @@ def _layout_params(
     )
 
 
+def empty_room(nb: int, nc: int) -> SceneParams:
+    """A room of `nb` box and `nc` cylinder slots, every one inactive (the placeholders of a
+    layout's unused slots), the per-episode fields zero: what a room family fills in."""
+    f32, zeros = np.float32, lambda *shape: np.zeros(shape, np.float32)  # noqa: E731
+    room = SceneParams(
+        room_half=np.ones(2, f32),
+        box_pos=zeros(nb, 2),
+        box_yaw=zeros(nb),
+        box_half=np.full((nb, 2), 0.05, f32),
+        box_height=np.full(nb, 0.1, f32),
+        box_bottom=zeros(nb),
+        box_active=np.zeros(nb, bool),
+        cyl_pos=zeros(nc, 2),
+        cyl_radius=np.full(nc, 0.05, f32),
+        cyl_height=np.full(nc, 0.1, f32),
+        cyl_bottom=zeros(nc),
+        cyl_active=np.zeros(nc, bool),
+        spawn=zeros(3),
+        layout_id=np.int32(-1),
+        friction=f32(0),
+        speed_gain=f32(0),
+        noise_std=f32(0),
+        dropout=f32(0),
+        **_episode_placeholders(nb, nc),
+    )
+    return jax.tree_util.tree_map(jnp.asarray, room)
+
+
 def _episode_placeholders(nb: int, nc: int) -> dict:
     """Zeros for the per-episode physics and sensor fields; `sample` draws them."""
     f32 = np.float32
