@@ -84,8 +84,9 @@ def evaluate(run: Path, out: Path, *flags: str, pictures: str = "readme_pictures
     args = ("--checkpoint", str(run), "--json", str(out), "--plots", str(RESULTS / pictures))
     sh(sys.executable, "-m", "jaxnav.evaluate", *args, *flags)
     command = " ".join(["python -m jaxnav.evaluate", *args, *flags]).replace(f"{ROOT}/", "")
-    write_json(out, {"command": command, **json.loads(out.read_text())})
-    return json.loads(out.read_text())
+    result = json.loads(out.read_text())
+    write_json(out, {"command": command, **result})
+    return result
 
 
 def pct(x: float) -> str:

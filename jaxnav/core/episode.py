@@ -32,10 +32,6 @@ def walker_config(cfg: RandomizeConfig) -> crowd.WalkerConfig:
     return walkers
 
 
-def _in(d: Draws, bounds):
-    return d.uniform((), bounds[0], bounds[1])
-
-
 def sample(key: jax.Array, cfg: RandomizeConfig, bank: LayoutBank, radius: float) -> SceneParams:
     """One episode's scene for a robot of `radius`: a room, a free spawn, physics and sensing.
 
@@ -89,15 +85,15 @@ def _physics_and_sensing(d: Draws, cfg: RandomizeConfig, room: SceneParams) -> S
     # The floor rule's height (m) and pitch (rad) error about the true mount.
     calibration = jnp.array([cfg.calibration_height_error, cfg.calibration_pitch_error])
     # Wheel mismatch: gains (1 - a/2, 1 + a/2), a uniform in wheel_asymmetry, which wheel at random.
-    a = _in(d, cfg.wheel_asymmetry) * jnp.where(d.bernoulli(), 1.0, -1.0)
+    a = d.uniform((), *cfg.wheel_asymmetry) * jnp.where(d.bernoulli(), 1.0, -1.0)
     room = room.replace(
-        friction=_in(d, cfg.friction),
-        speed_gain=_in(d, cfg.speed_gain),
-        noise_std=_in(d, cfg.sensor_noise),
-        dropout=_in(d, cfg.sensor_dropout),
-        noise_quad=_in(d, cfg.sensor_noise_quadratic),
+        friction=d.uniform((), *cfg.friction),
+        speed_gain=d.uniform((), *cfg.speed_gain),
+        noise_std=d.uniform((), *cfg.sensor_noise),
+        dropout=d.uniform((), *cfg.sensor_dropout),
+        noise_quad=d.uniform((), *cfg.sensor_noise_quadratic),
         camera=jnp.concatenate([_symmetric(d, errors), _symmetric(d, calibration)]),
-        accel=jnp.stack([_in(d, cfg.accel_limit), _in(d, cfg.angular_accel_limit)]),
+        accel=jnp.stack([d.uniform((), *cfg.accel_limit), d.uniform((), *cfg.angular_accel_limit)]),
         latency=d.randint((), cfg.latency_steps[0], cfg.latency_steps[1] + 1),
         wheel_gain=jnp.stack([1.0 - 0.5 * a, 1.0 + 0.5 * a]),
     )
