@@ -342,6 +342,7 @@ CONFIG_CASES = [
     (["--randomize.friction", "nan", "1"], "RandomizeConfig.friction"),
     (["--randomize.sampled-room-prob", "1.5"], "RandomizeConfig.sampled_room_prob"),
     (["--randomize.spawn-clearance", "-1"], "RandomizeConfig.spawn_clearance"),
+    (["--randomize.collision-margin", "0", "0.4"], "RandomizeConfig.collision_margin"),
     (["--sensor.range-min", "9"], "SensorConfig.range_min"),
     (["--sensor.fov", "4"], "SensorConfig.fov"),
     (["--sensor.rays-per-sector", "0"], "SensorConfig.rays_per_sector"),

@@ -117,9 +117,20 @@ def test_simulator_and_robot_reduce_alike():
 
 
 def test_fidelity_ranges_are_drawn_per_episode_without_recompiling():
-    env = jaxnav.make_env("avoid", layouts=[], randomize=RandomizeConfig(**FIDELITY))
+    cfg = RandomizeConfig(**FIDELITY, collision_margin=(0.02, 0.08))
+    env = jaxnav.make_env("avoid", layouts=[], randomize=cfg)
     reset = jax.jit(jax.vmap(env.reset))
     params = reset(jax.random.split(jax.random.PRNGKey(0), 256)).info["params"]
+    margin = np.asarray(params.margin)
+    assert margin.min() >= 0.02 and margin.max() <= 0.08 and margin.std() > 0.01
+    # The margin grows the collision test by its size: a robot `gap` m from the nearest surface
+    # touches with a margin above the gap, not below it.
+    one = jax.tree_util.tree_map(lambda x: x[0], params)
+    data = env.place(one)
+    gap = float(env.gap(one, data))
+    assert gap > 0.05 and not bool(env.touching(one.replace(margin=0.0), data))
+    assert bool(env.touching(one.replace(margin=gap + 0.01), data))
+    assert not bool(env.touching(one.replace(margin=gap - 0.01), data))
     assert set(np.unique(np.asarray(params.latency)).tolist()) == {0, 1, 2}
     accel = np.asarray(params.accel)
     assert (accel[:, 0] >= 0.25).all() and (accel[:, 0] <= 0.35).all()

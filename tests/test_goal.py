@@ -521,8 +521,9 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
 def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_hard_ones():
     """The goal task's training distribution is `TRAINING` with its sampled rooms drawn from the
     room families and the 'random' rooms alike, on the cpu preset from the families only,
-    corridors and clutter most often, and on the gpu preset with long halls too; in runs and in
-    `make_env` without layouts, under the user's settings; `avoid` keeps `TRAINING` as it is."""
+    corridors and clutter most often, and on the gpu preset with long halls too (and a collision
+    margin); in runs and in `make_env` without layouts, under the user's settings; `avoid` keeps
+    `TRAINING` as it is."""
     from jaxnav.tasks.presets import GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES
     from jaxnav.tasks.registry import training_randomize
     from jaxnav.training import build_config
@@ -530,6 +531,9 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
     cpu, gpu = (build_config(p, env="goal").randomize for p in ("cpu", "gpu"))
     assert (cpu.families, gpu.families) == (GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES)
     assert family_weights(gpu.families)["long_hall"] == pytest.approx(0.1)
+    # The gpu preset trains with a 5 cm collision margin, the cpu preset with none.
+    assert (cpu.collision_margin, gpu.collision_margin) == ((0.0, 0.0), (0.05, 0.05))
+    gpu = dataclasses.replace(gpu, collision_margin=(0.0, 0.0))
     for r in (cpu, gpu):
         assert dataclasses.replace(r, families="") == TRAINING  # only the families differ
     w = family_weights(cpu.families)

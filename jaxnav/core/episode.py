@@ -97,6 +97,8 @@ def _physics_and_sensing(d: Draws, cfg: RandomizeConfig, room: SceneParams) -> S
         latency=d.randint((), cfg.latency_steps[0], cfg.latency_steps[1] + 1),
         wheel_gain=jnp.stack([1.0 - 0.5 * a, 1.0 + 0.5 * a]),
     )
+    if cfg.collision_margin[1] > 0:  # drawn only where asked, so other envs draw as before
+        room = room.replace(margin=d.uniform((), *cfg.collision_margin))
     # Last, as its size counts the slots reserved for movers and walkers: the draws before it are
     # those of an env without them.
     return room.replace(dark=d.bernoulli(cfg.dark_prob, (n,)))

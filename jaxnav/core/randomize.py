@@ -53,6 +53,7 @@ class SceneParams:
     accel: jax.Array  # [2] acceleration limits of the velocity smoother: m/s^2, rad/s^2
     latency: jax.Array  # [] int32 control steps between a command and the motors
     wheel_gain: jax.Array  # [2] actual / commanded speed of the left and right wheels
+    margin: jax.Array  # [] m the collision test adds to the robot's collision volume (training)
     motion: Any = None  # `motion.MotionState` of the moving obstacles; None: nothing moves
     grid: Any = None  # `grid.OccupancyGrid` [G, G] of cell obstacles; None: the room has none
 
@@ -208,6 +209,11 @@ class RandomizeConfig:
     """Command latency in control steps, uniform over the range (0.1 s each)."""
     wheel_asymmetry: tuple[float, float] = (0.0, 0.0)
     """Left/right wheel gain mismatch: gains 1 -+ a/2 with a uniform here, the sign at random."""
+    collision_margin: tuple[float, float] = (0.0, 0.0)
+    """m the collision test adds to the robot's collision volume, uniform over the range per
+    episode: a policy that must keep this much clear of everything passes things with room for what
+    it cannot see (its drift, the camera's mount error). For training: evaluation's ranges
+    (`jaxnav.evaluation.eval_randomize`) leave it 0, the robot's true size."""
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -231,6 +237,12 @@ class RandomizeConfig:
                 raise ValueError(
                     f"RandomizeConfig.{name}: must be >= 0 m, got {getattr(self, name)}"
                 )
+        if 0 < self.collision_margin[1] and self.collision_margin[1] >= self.spawn_clearance:
+            raise ValueError(
+                f"RandomizeConfig.collision_margin: must stay below spawn_clearance "
+                f"({self.spawn_clearance} m), or a spawn would count as a collision, got "
+                f"{self.collision_margin}"
+            )
         if self.moving_count[1] > MAX_MOVERS:
             raise ValueError(
                 f"RandomizeConfig.moving_count: at most {MAX_MOVERS} per room, got {self.moving_count}"
@@ -484,6 +496,7 @@ def _episode_placeholders(nb: int, nc: int) -> dict:
         accel=np.zeros(2, f32),
         latency=np.int32(0),
         wheel_gain=np.ones(2, f32),
+        margin=f32(0),
     )
 
 

@@ -254,8 +254,9 @@ class NavTask:
         return signed_distance(params, data.qpos[:2], z) - self.scene.bumper_radius
 
     def touching(self, params: SceneParams, data: mjx.Data) -> jax.Array:
-        """[] bool: the robot's collision volume touches a wall or an obstacle."""
-        return self.gap(params, data) < 0
+        """[] bool: the robot's collision volume, grown by the episode's margin (training's
+        `RandomizeConfig.collision_margin`, else 0), touches a wall or an obstacle."""
+        return self.gap(params, data) < params.margin
 
     def actuate(self, params: SceneParams, act: Actuator, target: jax.Array):
         """What reaches the motors this step for the policy's command `target` [2] (m/s, rad/s):

@@ -34,11 +34,13 @@ GOAL = {
         # The memory: BARN's success 66 % -> 82 % (three training seeds each); BARN-like dense
         # fields in the mix as well gave 76 %. Long halls in a tenth of the sampled rooms: a
         # goal 20 m down a 25 m hall reached in 98 % of episodes rather than 72 %, BARN 84 %
-        # rather than 81 % (benchmarks/memory.py).
+        # rather than 81 %. A 5 cm collision margin in training: the suite 95.1 % rather than
+        # 92.5 % (no seed of either overlapping), BARN 86.9 % rather than 85.5 %, three seeds
+        # each (benchmarks/memory.py).
         "gpu": {
             "ppo": {"hidden": (256, 256)},
             "task": {"memory_bins": 16},
-            "randomize": {"families": GOAL_GPU_FAMILIES},
+            "randomize": {"families": GOAL_GPU_FAMILIES, "collision_margin": (0.05, 0.05)},
         },
     },
 }
