@@ -65,7 +65,8 @@ def fresh_run(root: Path, env: str, preset: str) -> Path:
     from jaxnav.io import checkpoint
     from jaxnav.ppo.networks import init_stats
     from jaxnav.ppo.train import TrainState, make_network
-    from jaxnav.tasks.registry import critic_size, observation_size
+    from jaxnav.tasks.base import observation_size
+    from jaxnav.tasks.registry import critic_size
     from jaxnav.training import build_config
 
     config = build_config(preset, env=env)

@@ -24,7 +24,8 @@ from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import RunningStats, normalize
 from jaxnav.ppo.train import make_network
 from jaxnav.runconfig import RunConfig
-from jaxnav.tasks.registry import critic_size, observation_size
+from jaxnav.tasks.base import observation_size
+from jaxnav.tasks.registry import critic_size
 
 
 def load_config(folder: Path) -> RunConfig:

@@ -52,7 +52,7 @@ from jaxnav.io.layouts import LayoutError, RoomLayout, load_layouts
 from jaxnav.policy import BASELINES, Policy
 from jaxnav.process import compile_cache
 from jaxnav.runconfig import add_field_flags, overrides_from_args
-from jaxnav.tasks.registry import observation_size
+from jaxnav.tasks.base import observation_size
 
 DEFAULT_LAYOUTS = SCENES_DIR / "inference_room.json"
 # Bytes of results per room, to refuse a folder without the space before evaluating (a top-down

@@ -24,7 +24,7 @@ from jaxnav.core import grid as occupancy
 from jaxnav.core import layout as lay
 from jaxnav.core.crowd import CROWD_ROOM
 from jaxnav.core.draws import Draws, draws
-from jaxnav.core.geometry import box_distance
+from jaxnav.core.geometry import UNUSED_HEIGHT, UNUSED_SIZE, box_distance
 from jaxnav.core.randomize import (
     RANDOM,
     RandomizeConfig,
@@ -101,9 +101,9 @@ def _assemble(
     room = room.replace(
         room_half=half,
         box_pos=pad(boxes.pos, 0.0),
-        box_half=pad(boxes.half, 0.05),
+        box_half=pad(boxes.half, UNUSED_SIZE),
         box_yaw=pad(boxes.yaw, 0.0),
-        box_height=pad(boxes.height, 0.1),
+        box_height=pad(boxes.height, UNUSED_HEIGHT),
         box_bottom=pad(boxes.bottom, 0.0),
         box_active=pad(boxes.active, False),
         spawn=spawn,

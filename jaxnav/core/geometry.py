@@ -15,6 +15,11 @@ import jax.numpy as jnp
 
 from jaxnav.core import grid as occupancy
 
+# An unused obstacle slot (inactive: it never collides and reflects no ray) holds these, so that
+# its MJX geom stays a valid shape: a box's half extents or a cylinder's radius, and its height.
+UNUSED_SIZE = 0.05  # m
+UNUSED_HEIGHT = 0.1  # m
+
 
 def planar_distance(a, b, xp=jnp):
     """[...] floor-plane distance between points a [..., 2] and b [..., 2] (broadcast), per

@@ -32,7 +32,13 @@ from flax import struct
 
 from jaxnav.core import crowd
 from jaxnav.core.draws import Draws
-from jaxnav.core.geometry import box_distance, disc_distance, signed_distance
+from jaxnav.core.geometry import (
+    UNUSED_HEIGHT,
+    UNUSED_SIZE,
+    box_distance,
+    disc_distance,
+    signed_distance,
+)
 
 TRIES = 16  # uniform candidates per added mover; a mover whose candidates all fail is left out
 FREE_GAP = 0.05  # m an added mover keeps from the walls and the other obstacles at the reset
@@ -67,8 +73,8 @@ def reserve(room, m: int):
     f32, pad = jnp.float32, lambda x, fill: jnp.concatenate([x, jnp.full((m, *x.shape[1:]), fill)])
     return room.replace(
         cyl_pos=pad(room.cyl_pos, f32(0)),
-        cyl_radius=pad(room.cyl_radius, f32(0.05)),
-        cyl_height=pad(room.cyl_height, f32(0.1)),
+        cyl_radius=pad(room.cyl_radius, f32(UNUSED_SIZE)),
+        cyl_height=pad(room.cyl_height, f32(UNUSED_HEIGHT)),
         cyl_bottom=pad(room.cyl_bottom, f32(0)),
         cyl_active=pad(room.cyl_active, False),
         dark=pad(room.dark, False),

@@ -20,7 +20,7 @@ from jaxnav.core import crowd, motion
 from jaxnav.core import grid as occupancy
 from jaxnav.core.checks import require_finite
 from jaxnav.core.draws import Draws, draws
-from jaxnav.core.geometry import signed_distance
+from jaxnav.core.geometry import UNUSED_HEIGHT, UNUSED_SIZE, signed_distance
 from jaxnav.core.layout import MAX_OBSTACLE_SPEED, RoomLayout
 
 
@@ -437,13 +437,16 @@ def _layout_params(
         box_pos=pad([b.pos for b in boxes], nb, 2),
         box_yaw=pad([[b.yaw] for b in boxes], nb, 1)[:, 0],
         box_half=0.5 * pad([b.size for b in boxes], nb, 2)
-        + 0.05 * ~active(len(boxes), nb)[:, None],
-        box_height=pad([[b.height] for b in boxes], nb, 1)[:, 0] + 0.1 * ~active(len(boxes), nb),
+        + UNUSED_SIZE * ~active(len(boxes), nb)[:, None],
+        box_height=pad([[b.height] for b in boxes], nb, 1)[:, 0]
+        + UNUSED_HEIGHT * ~active(len(boxes), nb),
         box_bottom=pad([[b.bottom] for b in boxes], nb, 1)[:, 0],
         box_active=active(len(boxes), nb),
         cyl_pos=pad([c.pos for c in cyls], nc, 2),
-        cyl_radius=pad([[c.radius] for c in cyls], nc, 1)[:, 0] + 0.05 * ~active(len(cyls), nc),
-        cyl_height=pad([[c.height] for c in cyls], nc, 1)[:, 0] + 0.1 * ~active(len(cyls), nc),
+        cyl_radius=pad([[c.radius] for c in cyls], nc, 1)[:, 0]
+        + UNUSED_SIZE * ~active(len(cyls), nc),
+        cyl_height=pad([[c.height] for c in cyls], nc, 1)[:, 0]
+        + UNUSED_HEIGHT * ~active(len(cyls), nc),
         cyl_bottom=pad([[c.bottom] for c in cyls], nc, 1)[:, 0],
         cyl_active=active(len(cyls), nc),
         spawn=np.array(spawn, f32),
@@ -466,13 +469,13 @@ def empty_room(nb: int, nc: int) -> SceneParams:
         room_half=np.ones(2, f32),
         box_pos=zeros(nb, 2),
         box_yaw=zeros(nb),
-        box_half=np.full((nb, 2), 0.05, f32),
-        box_height=np.full(nb, 0.1, f32),
+        box_half=np.full((nb, 2), UNUSED_SIZE, f32),
+        box_height=np.full(nb, UNUSED_HEIGHT, f32),
         box_bottom=zeros(nb),
         box_active=np.zeros(nb, bool),
         cyl_pos=zeros(nc, 2),
-        cyl_radius=np.full(nc, 0.05, f32),
-        cyl_height=np.full(nc, 0.1, f32),
+        cyl_radius=np.full(nc, UNUSED_SIZE, f32),
+        cyl_height=np.full(nc, UNUSED_HEIGHT, f32),
         cyl_bottom=zeros(nc),
         cyl_active=np.zeros(nc, bool),
         spawn=zeros(3),

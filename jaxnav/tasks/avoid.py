@@ -102,7 +102,6 @@ class AvoidEnv(NavTask):
         super().__init__(bank, task, **specs)
         task.check_robot(self.robot)
         self.action_spec = task.action_spec
-        self.observation_size = self.sensor.num_sectors * (1 + task.history)
 
     def reset(self, key: jax.Array) -> EnvState:
         """A new episode: fresh room, spawn and parameters drawn from the randomisation."""

@@ -58,6 +58,14 @@ def stack_frames(frame: jax.Array, obs: jax.Array, size: int) -> jax.Array:
     return jnp.concatenate([frame, obs[: size - frame.shape[0]]])
 
 
+def observation_size(task, sensor: SensorConfig) -> int:
+    """The observation length of a task config with `sensor`: the depth sectors, then the task's
+    `extra_observations` (the goal task's goal and last command), times the frames a task stacks
+    (`history`: either task's earlier observations), then the memory's bins (`memory_bins`)."""
+    frame = sensor.num_sectors + getattr(task, "extra_observations", 0)
+    return frame * (1 + getattr(task, "history", 0)) + getattr(task, "memory_bins", 0)
+
+
 def check_velocity_config(cfg, robot: RobotSpec) -> None:
     """`cfg.actions` is known and its forward_speed / turn_rate are within the robot's limits."""
     name = type(cfg).__name__
@@ -137,9 +145,10 @@ class Actuator:
 
 
 class NavTask:
-    """Batched-MJX robot in randomised rooms. Subclasses define `reset`, `step`, `action_spec`,
-    `metric_names` and `observation_size` (the env contract, `jaxnav.core.types`), and may declare
-    what evaluation reports besides its own metrics (`eval_metrics`)."""
+    """Batched-MJX robot in randomised rooms. Subclasses define `reset`, `step`, `action_spec` and
+    `metric_names` (the env contract, `jaxnav.core.types`; `observation_size` is set here from the
+    task config, by `observation_size`), and may declare what evaluation reports besides its own
+    metrics (`eval_metrics`)."""
 
     eval_metrics: tuple[EvalMetric, ...] = ()
     """What evaluation reports for this task besides the metrics every task gets."""
@@ -160,6 +169,7 @@ class NavTask:
     ):
         randomize.check_robot(robot.radius)
         self.task, self.randomize, self.sensor, self.robot = task, randomize, sensor, robot
+        self.observation_size = observation_size(task, sensor)
         self.bank = bank
         self.scene = Scene(scene, robot)
         self._data0 = mjx.make_data(self.scene.model, device=jax.local_devices()[0])

@@ -237,9 +237,7 @@ class GoalEnv(NavTask):
             raise ValueError("GoalEnv: the layout bank has no goal data; build it with make_env")
         task.check_robot(self.robot)
         self.action_spec = task.action_spec
-        frame = self.sensor.num_sectors + task.extra_observations  # one observation
-        self._frames = frame * (1 + task.history)  # the stacked frames
-        self.observation_size = self._frames + task.memory_bins
+        self._frames = self.observation_size - task.memory_bins  # the stacked frames
         self._memory = None
         if task.memory_bins:
             if self.sensor.model != "camera":

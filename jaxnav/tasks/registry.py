@@ -89,14 +89,6 @@ def training_randomize(name: str = "avoid") -> RandomizeConfig:
     return dataclasses.replace(TRAINING, **task_defaults(name).get("randomize", {}))
 
 
-def observation_size(task, sensor: SensorConfig) -> int:
-    """The observation length of a task config with `sensor`: the depth sectors, then the task's
-    `extra_observations` (the goal task's goal and last command), times the frames a task stacks
-    (`history`: either task's earlier observations), then the memory's bins (`memory_bins`)."""
-    frame = sensor.num_sectors + getattr(task, "extra_observations", 0)
-    return frame * (1 + getattr(task, "history", 0)) + getattr(task, "memory_bins", 0)
-
-
 def critic_size(task, privileged: bool) -> int:
     """C, the inputs only a privileged critic sees: the task config's `critic_observations` (the
     goal task's) with `privileged` (`PPOConfig.privileged_critic`), else 0. A task without them
