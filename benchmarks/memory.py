@@ -66,7 +66,8 @@ VARIANTS["memory_hall_clear20"] = VARIANTS["memory_hall"] + ("--task.clearance",
 VARIANTS["memory_hard_clear20"] = VARIANTS["memory_hard"] + ("--task.clearance", "0.2")
 VARIANTS["memory_hall_s12"] = VARIANTS["memory_hall"] + ("--sensor.num-sectors", "12")
 VARIANTS["memory_hall_s12"] += ("--sensor.rays-per-sector", "2")
-# No margin where a variant names none, so that its row holds whatever the preset's default
+# Every variant names its collision margin (none unless it says), so that its row does not
+# depend on the preset's default.
 MARGIN = "--randomize.collision-margin"
 VARIANTS = {name: (*flags, MARGIN, "0", "0") for name, flags in VARIANTS.items()}
 VARIANTS["memory_hall_margin5"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.05", "0.05")

@@ -211,9 +211,10 @@ class RandomizeConfig:
     """Left/right wheel gain mismatch: gains 1 -+ a/2 with a uniform here, the sign at random."""
     collision_margin: tuple[float, float] = (0.0, 0.0)
     """m the collision test adds to the robot's collision volume, uniform over the range per
-    episode: a policy that must keep this much clear of everything passes things with room for what
-    it cannot see (its drift, the camera's mount error). For training: evaluation's ranges
-    (`jaxnav.evaluation.eval_randomize`) leave it 0, the robot's true size."""
+    episode: a policy that must keep this much clear of everything passes things with room to
+    spare for what it misjudges (how near its path passes an obstacle out of view, its drift). For
+    training: evaluation's ranges (`jaxnav.evaluation.eval_randomize`) leave it 0, the robot's true
+    size (docs/results.md, "A collision margin in training")."""
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
