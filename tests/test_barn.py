@@ -8,6 +8,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -200,3 +201,49 @@ def types_policy():
     import types
 
     return types.SimpleNamespace(env_kwargs={})
+
+
+def test_failure_analysis_finds_the_cylinder_its_bearing_and_when_it_was_last_readable():
+    """benchmarks/barn_failures.py on a hand-made record: a robot driving along +x at 0.05 m a step
+    past a cylinder 0.3 m to its left, the collision at the step that ends beside it."""
+    from types import SimpleNamespace
+
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / "barn_failures.py"
+    if not script.exists():
+        pytest.skip("benchmarks/ is not in this checkout")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("barn_failures", script)
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(script.parent))  # as when run: its folder's `report` is importable
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(script.parent))
+    far = SimpleNamespace(pos=(5.0, -3.0), radius=0.1)
+    post = SimpleNamespace(pos=(0.0, 0.3), radius=0.075)
+    layout = SimpleNamespace(name="by-hand", obstacles=[far, post])
+    env = SimpleNamespace(
+        sensor=SimpleNamespace(fov=math.radians(60), range_min=0.6),
+        robot=SimpleNamespace(camera_forward=-0.05),
+    )
+    steps, t = 60, 40
+    x = -2.0 + 0.05 * np.arange(steps)  # [T]; x = 0 (the cylinder abeam) at step t
+    qpos = np.stack([x, np.zeros(steps), np.zeros(steps)], -1)[:, None]  # [T, 1, 3]
+    action = np.zeros((steps, 1), np.int32)
+    action[t] = 2
+    hit = np.zeros((steps, 1), bool)
+    hit[t] = True
+    rec = (qpos, action, np.full((steps, 1, 8), 8.0, np.float32), hit)
+    (row,) = module.collisions(rec, [layout], 1, env)
+    assert row["world"] == "by-hand" and row["step"] == t and row["actions"][-1] == 2
+    assert row["bearing_deg"] == pytest.approx(90.0)
+    # Last readable: within 30 degrees of the heading and 0.6 m from the camera, by hand.
+    cx = x[t - 20 : t + 1] - 0.05  # the camera, behind the centre
+    bearing = np.degrees(np.arctan2(0.3, 0.0 - x[t - 20 : t + 1]))
+    depth = np.hypot(0.0 - cx, 0.3) - 0.075
+    readable = np.flatnonzero((np.abs(bearing) < 30) & (depth >= 0.6))
+    assert row["steps_since_readable"] == 20 - readable[-1] > 0
+    counts = module.tallies([row], ("forward", "left", "right"))
+    assert counts["bearing_deg"]["60-90"] == 0 and counts["bearing_deg"]["90-120"] == 1
+    assert counts["action"] == {"forward": 0, "left": 0, "right": 1}
