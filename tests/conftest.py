@@ -208,6 +208,25 @@ def cpu_env(devices: int) -> dict:
     )
 
 
+def benchmark_script(name: str):
+    """The module of `benchmarks/NAME.py`, loaded as when it runs (its folder's `report` importable);
+    the test is skipped in a checkout without benchmarks/."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"
+    if not script.exists():
+        pytest.skip("benchmarks/ is not in this checkout")
+    spec = importlib.util.spec_from_file_location(name, script)
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(script.parent))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(script.parent))
+    return module
+
+
 def run_cli(*args, cwd=None):
     return subprocess.run(
         [sys.executable, "-m", "jaxnav.train", *args],

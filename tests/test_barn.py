@@ -8,10 +8,10 @@ import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import benchmark_script
 
 import jaxnav
 from jaxnav.core.assets import scenes_dir
@@ -208,18 +208,7 @@ def test_failure_analysis_finds_the_cylinder_its_bearing_and_when_it_was_last_re
     past a cylinder 0.3 m to its left, the collision at the step that ends beside it."""
     from types import SimpleNamespace
 
-    script = Path(__file__).resolve().parent.parent / "benchmarks" / "barn_failures.py"
-    if not script.exists():
-        pytest.skip("benchmarks/ is not in this checkout")
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("barn_failures", script)
-    module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(script.parent))  # as when run: its folder's `report` is importable
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(script.parent))
+    module = benchmark_script("barn_failures")
     far = SimpleNamespace(pos=(5.0, -3.0), radius=0.1)
     post = SimpleNamespace(pos=(0.0, 0.3), radius=0.075)
     layout = SimpleNamespace(name="by-hand", obstacles=[far, post])
