@@ -66,10 +66,6 @@ class Boxes:
     active: jax.Array  # [N] bool
 
 
-def _uniform(d: Draws, lo, hi, shape=()):
-    return d.uniform(shape, lo, hi)
-
-
 def _walls(pos, half, d: Draws, active=True) -> Boxes:
     """Axis-aligned standing wall boxes [N]; top uniform in [0.5, 1.0] m."""
     n = pos.shape[0]
@@ -77,7 +73,7 @@ def _walls(pos, half, d: Draws, active=True) -> Boxes:
         pos=pos,
         half=half,
         yaw=jnp.zeros(n),
-        height=_uniform(d, 0.5, 1.0, (n,)),
+        height=d.uniform((n,), 0.5, 1.0),
         bottom=jnp.zeros(n),
         active=jnp.broadcast_to(jnp.asarray(active), (n,)),
     )
@@ -97,7 +93,7 @@ def _assemble(
     room = empty_room(nb, nc)
     pad = lambda x, fill: jnp.concatenate([x, jnp.full((nb - n, *x.shape[1:]), fill, x.dtype)])  # noqa: E731
     # Heading at the spawn: uniform in [-pi, pi).
-    spawn = jnp.append(spawn_xy, _uniform(d, -jnp.pi, jnp.pi))
+    spawn = jnp.append(spawn_xy, d.uniform((), -jnp.pi, jnp.pi))
     room = room.replace(
         room_half=half,
         box_pos=pad(boxes.pos, 0.0),
@@ -141,7 +137,7 @@ def _mirror(d: Draws, room: SceneParams) -> SceneParams:
 
 def _room_half(d: Draws, lo, hi):
     """[2] half interior extents, full extents uniform per axis in [lo, hi] m."""
-    return 0.5 * _uniform(d, lo, hi, (2,))
+    return 0.5 * d.uniform((2,), lo, hi)
 
 
 # ------------------------------------------------------------------------------
@@ -195,10 +191,10 @@ def pillars(key, nb: int, nc: int, radius: float) -> SceneParams:
     g = min(4, int(np.sqrt(nb)))
     # Interior: uniform 5-9 m per axis. Spacing: uniform 1.2-2.0 m. Pillar side: uniform 0.2-0.4 m.
     half = _room_half(d, 5.0, 9.0)
-    spacing = _uniform(d, 1.2, 2.0)
-    side = _uniform(d, 0.2, 0.4)
+    spacing = d.uniform((), 1.2, 2.0)
+    side = d.uniform((), 0.2, 0.4)
     # Grid offset: uniform in +-spacing/2 per axis; the spawn is the midpoint of the central four.
-    offset = _uniform(d, -0.5, 0.5, (2,)) * spacing
+    offset = d.uniform((2,), -0.5, 0.5) * spacing
     idx = jnp.arange(g) - 0.5 * (g - 1)
     grid = jnp.stack(jnp.meshgrid(idx, idx), -1).reshape(-1, 2) * spacing + offset  # [g*g, 2]
     # A pillar stays only if a robot still passes between it and the walls (0.4 m).
@@ -214,9 +210,9 @@ def corridor(key, nb: int, nc: int, radius: float) -> SceneParams:
     # Lanes: uniform in {2, 3, 4}; width uniform 1.2-2.5 m; length uniform 5-9 m;
     # U-turn opening uniform 1.2-2.0 m.
     lanes = d.randint((), 2, 5)
-    width = _uniform(d, MIN_CORRIDOR, 2.5)
-    hx = 0.5 * _uniform(d, 5.0, 9.0)
-    gap = _uniform(d, MIN_CORRIDOR, 2.0)
+    width = d.uniform((), MIN_CORRIDOR, 2.5)
+    hx = 0.5 * d.uniform((), 5.0, 9.0)
+    gap = d.uniform((), MIN_CORRIDOR, 2.0)
     hy = 0.5 * (lanes * width + (lanes - 1) * WALL)
     k = jnp.arange(3)  # interior wall k separates lanes k and k + 1
     side = jnp.where(k % 2 == 0, -1.0, 1.0)  # even walls start at the west wall, odd at the east
@@ -224,7 +220,7 @@ def corridor(key, nb: int, nc: int, radius: float) -> SceneParams:
     wall_half = jnp.stack([jnp.full(3, hx - 0.5 * gap), jnp.full(3, 0.5 * WALL)], -1)
     boxes = _walls(pos, wall_half, d, k < lanes - 1)
     # Spawn: the middle of the first lane, uniform along it.
-    x = _uniform(d, -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
+    x = d.uniform((), -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
     spawn = jnp.stack([x, -hy + 0.5 * width])
     room = _assemble(d, jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
     return _mirror(d, room)
@@ -237,8 +233,8 @@ def ltu_room(key, nb: int, nc: int, radius: float) -> SceneParams:
     # wall and the arms uniform 1.2-2.0 m wide.
     shape = d.randint((), 0, 3)
     hx, hy = _room_half(d, 5.0, 9.0)
-    strip = _uniform(d, MIN_CORRIDOR, 2.0)
-    arm = _uniform(d, MIN_CORRIDOR, 2.0)
+    strip = d.uniform((), MIN_CORRIDOR, 2.0)
+    arm = d.uniform((), MIN_CORRIDOR, 2.0)
     block_hy = 0.5 * (2 * hy - strip)
     y = hy - block_hy
     # [2] blocks as west and east edges: L blocks the east, T both sides of a stem, U the middle.
@@ -251,7 +247,7 @@ def ltu_room(key, nb: int, nc: int, radius: float) -> SceneParams:
     active = jnp.array([True, False]) | (shape == 1)
     boxes = _walls(centre, jnp.maximum(half, 0.05), d, active)
     # Spawn: the middle of the south strip, uniform along it.
-    x = _uniform(d, -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
+    x = d.uniform((), -1.0, 1.0) * (hx - radius - SPAWN_CLEARANCE)
     spawn = jnp.stack([x, -hy + 0.5 * strip])
     room = _assemble(d, jnp.stack([hx, hy]), spawn, boxes, nb, nc, radius)
     return _mirror(d, room)
@@ -265,13 +261,13 @@ def _scatter(d: Draws, half, bound, n: int):
 
 def _furniture_boxes(d: Draws, half, n: int) -> Boxes:
     """[n] standing boxes: full extents uniform 0.3-1.0 m, yaw uniform, top uniform 0.4-1.0 m."""
-    box_half = 0.5 * _uniform(d, 0.3, 1.0, (n, 2))
+    box_half = 0.5 * d.uniform((n, 2), 0.3, 1.0)
     pos = _scatter(d, half, jnp.linalg.norm(box_half, axis=-1), n)
     return Boxes(
         pos=pos,
         half=box_half,
-        yaw=_uniform(d, -jnp.pi, jnp.pi, (n,)),
-        height=_uniform(d, 0.4, 1.0, (n,)),
+        yaw=d.uniform((n,), -jnp.pi, jnp.pi),
+        height=d.uniform((n,), 0.4, 1.0),
         bottom=jnp.zeros(n),
         active=jnp.ones(n, bool),
     )
@@ -283,14 +279,14 @@ def joined_rooms(key, nb: int, nc: int, radius: float) -> SceneParams:
     d = draws(key)
     # Rooms: 2 or 3 uniformly; interior 7-10 m along x, 3.5-6 m along y.
     rooms = d.randint((), 2, 4)
-    hx = 0.5 * _uniform(d, 7.0, 10.0)
-    hy = 0.5 * _uniform(d, 3.5, 6.0)
+    hx = 0.5 * d.uniform((), 7.0, 10.0)
+    hy = 0.5 * d.uniform((), 3.5, 6.0)
     # Dividers: evenly spaced, each moved uniformly by +-0.3 m; doors uniform 0.8-1.2 m wide,
     # centred uniformly with 0.3 m of wall kept on either side.
     k = jnp.arange(2)
-    x = -hx + (k + 1) * 2 * hx / rooms + _uniform(d, -0.3, 0.3, (2,))  # [2]
-    door = _uniform(d, MIN_DOOR, 1.2, (2,))
-    door_y = _uniform(d, -1.0, 1.0, (2,)) * (hy - 0.5 * door - 0.3)
+    x = -hx + (k + 1) * 2 * hx / rooms + d.uniform((2,), -0.3, 0.3)  # [2]
+    door = d.uniform((2,), MIN_DOOR, 1.2)
+    door_y = d.uniform((2,), -1.0, 1.0) * (hy - 0.5 * door - 0.3)
     south, north = door_y - 0.5 * door + hy, hy - door_y - 0.5 * door  # [2] wall lengths
     pos = jnp.concatenate(
         [jnp.stack([x, -hy + 0.5 * south], -1), jnp.stack([x, hy - 0.5 * north], -1)]
@@ -320,8 +316,8 @@ def furniture(key, nb: int, nc: int, radius: float) -> SceneParams:
     # 0.8-1.6 m x 0.6-1.0 m, yaw uniform; chair 0.4 x 0.4 m; each chair there with probability 0.7.
     half = _room_half(d, 5.0, 9.0)
     count = d.randint((), 1, c + 1)
-    table = 0.5 * jnp.stack([_uniform(d, 0.8, 1.6, (c,)), _uniform(d, 0.6, 1.0, (c,))], -1)
-    yaw = _uniform(d, -jnp.pi, jnp.pi, (c,))
+    table = 0.5 * jnp.stack([d.uniform((c,), 0.8, 1.6), d.uniform((c,), 0.6, 1.0)], -1)
+    yaw = d.uniform((c,), -jnp.pi, jnp.pi)
     reach = jnp.linalg.norm(table + 0.55, axis=-1)  # [c] bounding circle of table and chairs
     centre = _scatter(d, half, reach, c)  # [c, 2]
     # Chairs 0.15 m beyond each side of the table, in the table's frame: +x, -x, +y, -y.
@@ -336,12 +332,12 @@ def furniture(key, nb: int, nc: int, radius: float) -> SceneParams:
         half=jnp.concatenate([table, jnp.full((4 * c, 2), 0.2)]),
         yaw=jnp.concatenate([yaw, jnp.repeat(yaw, 4)]),
         # Tops: tables 0.7-0.8 m, chairs 0.45-0.9 m (seat or back), uniform.
-        height=jnp.concatenate([_uniform(d, 0.7, 0.8, (c,)), _uniform(d, 0.45, 0.9, (4 * c,))]),
+        height=jnp.concatenate([d.uniform((c,), 0.7, 0.8), d.uniform((4 * c,), 0.45, 0.9)]),
         bottom=jnp.zeros(5 * c),
         active=jnp.concatenate([used, (chair_on & used[:, None]).reshape(-1)]),
     )
     # Spawn: uniform over the room, away from the walls.
-    spawn = _uniform(d, -1.0, 1.0, (2,)) * (half - radius - SPAWN_CLEARANCE)
+    spawn = d.uniform((2,), -1.0, 1.0) * (half - radius - SPAWN_CLEARANCE)
     return _assemble(d, half, spawn, boxes, nb, nc, radius)
 
 
@@ -350,22 +346,22 @@ def long_hall(key, nb: int, nc: int, radius: float) -> SceneParams:
     4 cabinets along one side wall, so the far end often lies beyond the camera's 8 m."""
     d = draws(key)
     # Length uniform 8-30 m; width uniform 1.2-4 m, or (probability 1/4) 6-12 m.
-    length = _uniform(d, *HALL_LENGTH)
+    length = d.uniform((), *HALL_LENGTH)
     wide = d.bernoulli(0.25)
-    width = jnp.where(wide, _uniform(d, *FLOOR_WIDTH), _uniform(d, *HALL_WIDTH))
+    width = jnp.where(wide, d.uniform((), *FLOOR_WIDTH), d.uniform((), *HALL_WIDTH))
     half = 0.5 * jnp.stack([length, width])
     n = min(4, nb)
     # Cabinets: 0-n (count uniform), along x uniform, 0.3-1.0 m long; all against one side wall
     # (side uniform), each 0.2-0.6 m deep but leaving MIN_DOOR beside it; top uniform 0.4-1.0 m.
     count = d.randint((), 0, n + 1)
-    long_half = 0.5 * _uniform(d, 0.3, 1.0, (n,))
-    depth = jnp.minimum(_uniform(d, 0.2, 0.6, (n,)), jnp.maximum(width - MIN_DOOR, 0.1))
+    long_half = 0.5 * d.uniform((n,), 0.3, 1.0)
+    depth = jnp.minimum(d.uniform((n,), 0.2, 0.6), jnp.maximum(width - MIN_DOOR, 0.1))
     side = jnp.where(d.bernoulli(), 1.0, -1.0)
-    x = _uniform(d, -1.0, 1.0, (n,)) * (half[0] - long_half)
+    x = d.uniform((n,), -1.0, 1.0) * (half[0] - long_half)
     pos = jnp.stack([x, side * (half[1] - 0.5 * depth)], -1)  # [n, 2]
     boxes = _walls(pos, jnp.stack([long_half, 0.5 * depth], -1), d, jnp.arange(n) < count)
     # Spawn: uniform along the hall, on its centre line.
-    spawn = jnp.stack([_uniform(d, -1.0, 1.0) * (half[0] - radius - SPAWN_CLEARANCE), 0.0])
+    spawn = jnp.stack([d.uniform((), -1.0, 1.0) * (half[0] - radius - SPAWN_CLEARANCE), 0.0])
     room = _assemble(d, half, spawn, boxes, nb, nc, radius)
     return _mirror(d, room)
 
@@ -428,11 +424,11 @@ def dense_field(key, nb: int, nc: int, radius: float) -> SceneParams:
     d = draws(key)
     g = FIELD_CELLS
     # Cell side uniform 0.1-0.2 m; field uniform 30-40 cells per axis (the room is the field).
-    cell = _uniform(d, 0.1, 0.2)
+    cell = d.uniform((), 0.1, 0.2)
     n = d.randint((2,), 30, g + 1)  # [2] cells along x, y
     half = 0.5 * n * cell
     # Initial fill uniform 0.15-0.35; smoothing rounds uniform in {2, 3, 4} (BARN's ranges).
-    fill = _uniform(d, 0.15, 0.35)
+    fill = d.uniform((), 0.15, 0.35)
     rounds = d.randint((), 2, 5)
     idx = jnp.arange(g)
     inside = (idx[:, None] < n[1]) & (idx[None, :] < n[0])  # [G, G] rows along y, columns x
@@ -441,7 +437,7 @@ def dense_field(key, nb: int, nc: int, radius: float) -> SceneParams:
     # each keeping the robot and its spawn clearance from the walls; the spawn is its first.
     keep = radius + SPAWN_CLEARANCE
     ys = jnp.linspace(-1.0, 1.0, FIELD_WAYPOINTS) * (half[1] - keep)
-    xs = _uniform(d, -1.0, 1.0, (FIELD_WAYPOINTS,)) * (half[0] - keep)
+    xs = d.uniform((FIELD_WAYPOINTS,), -1.0, 1.0) * (half[0] - keep)
     path = jnp.stack([xs, ys], -1)  # [K, 2]
     # Cleared: every cell whose box comes within the robot and FIELD_MARGIN of the path (its
     # centre within that and half its diagonal), or within the spawn clearance of the spawn.
@@ -455,9 +451,9 @@ def dense_field(key, nb: int, nc: int, radius: float) -> SceneParams:
         cells=cells,
         origin=-half,
         cell=cell,
-        height=_uniform(d, 0.5, 1.0),
+        height=d.uniform((), 0.5, 1.0),
     )
-    spawn = jnp.append(path[0], _uniform(d, -jnp.pi, jnp.pi))  # heading uniform
+    spawn = jnp.append(path[0], d.uniform((), -jnp.pi, jnp.pi))  # heading uniform
     return empty_room(nb, nc).replace(room_half=half, spawn=spawn, grid=field)
 
 

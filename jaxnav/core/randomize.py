@@ -509,11 +509,6 @@ def clearance(params: SceneParams, xy: jax.Array) -> jax.Array:
     return signed_distance(params, xy)
 
 
-def _uniform(d: Draws, bounds, shape=()):
-    lo, hi = bounds
-    return d.uniform(shape, lo, hi)
-
-
 def _place(d: Draws, half, bound, spawn_xy, keep_out, count, n, tries=8):
     """[n, 2] positions inside the room (margin `bound` [n]) and [n] active flags.
 
@@ -535,20 +530,20 @@ def sample_room(
     construction. `key`: a PRNG key or the `Draws` to take the numbers from."""
     d = draws(key)
     # Interior extents: uniform per axis in [room_size_min, room_size_max].
-    half = 0.5 * _uniform(d, (jnp.array(cfg.room_size_min), jnp.array(cfg.room_size_max)), (2,))
+    half = 0.5 * d.uniform((2,), jnp.array(cfg.room_size_min), jnp.array(cfg.room_size_max))
     keep_out = radius + cfg.spawn_clearance
     # Spawn: uniform over the interior shrunk by the robot and its clearance; heading uniform.
     spawn_xy = d.uniform((2,), -1.0, 1.0) * (half - keep_out)
-    spawn = jnp.append(spawn_xy, _uniform(d, (-jnp.pi, jnp.pi)))
+    spawn = jnp.append(spawn_xy, d.uniform((), -jnp.pi, jnp.pi))
     # Boxes: count uniform in num_boxes; full extents uniform in box_size; yaw uniform.
-    box_half = 0.5 * _uniform(d, cfg.box_size, (nb, 2))
-    box_yaw = _uniform(d, (-jnp.pi, jnp.pi), (nb,))
+    box_half = 0.5 * d.uniform((nb, 2), *cfg.box_size)
+    box_yaw = d.uniform((nb,), -jnp.pi, jnp.pi)
     n_box = d.randint((), cfg.num_boxes[0], cfg.num_boxes[1] + 1)
     box_pos, box_active = _place(
         d, half, jnp.linalg.norm(box_half, axis=-1), spawn_xy, keep_out, n_box, nb
     )
     # Cylinders: count uniform in num_cylinders; radius uniform in cylinder_radius.
-    radius = _uniform(d, cfg.cylinder_radius, (nc,))
+    radius = d.uniform((nc,), *cfg.cylinder_radius)
     n_cyl = d.randint((), cfg.num_cylinders[0], cfg.num_cylinders[1] + 1)
     cyl_pos, cyl_active = _place(d, half, radius, spawn_xy, keep_out, n_cyl, nc)
     bottom, top = _vertical_spans(d, cfg, nb + nc)
@@ -582,10 +577,10 @@ def _vertical_spans(d: Draws, cfg: RandomizeConfig, n: int):
     u = d.uniform((n,))
     low, hang = u < cfg.low_prob, (u >= cfg.low_prob) & (u < cfg.low_prob + cfg.overhang_prob)
     # Standing: top uniform in obstacle_height; low: top uniform in low_height.
-    top = jnp.where(low, _uniform(d, cfg.low_height, (n,)), _uniform(d, cfg.obstacle_height, (n,)))
+    top = jnp.where(low, d.uniform((n,), *cfg.low_height), d.uniform((n,), *cfg.obstacle_height))
     # Overhang: underside uniform in overhang_bottom, 0.05-0.5 m thick.
-    bottom = jnp.where(hang, _uniform(d, cfg.overhang_bottom, (n,)), 0.0)
-    top = jnp.where(hang, bottom + _uniform(d, (0.05, 0.5), (n,)), top)
+    bottom = jnp.where(hang, d.uniform((n,), *cfg.overhang_bottom), 0.0)
+    top = jnp.where(hang, bottom + d.uniform((n,), 0.05, 0.5), top)
     return bottom, top
 
 
@@ -603,4 +598,4 @@ def free_spawn(
     gap = signed_distance(room, cand) - radius  # [tries]
     ok = gap >= clearance_margin
     best = jnp.where(ok.any(), jnp.argmax(ok), jnp.argmax(gap))
-    return jnp.append(cand[best], _uniform(d, (-jnp.pi, jnp.pi)))
+    return jnp.append(cand[best], d.uniform((), -jnp.pi, jnp.pi))
