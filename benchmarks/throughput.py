@@ -208,9 +208,8 @@ def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
     scene = SceneConfig(**levers.get("scene", {}))
     env = jaxnav.make_env(args.env, randomize=FULL, scene=scene)
     ppo = {**task_defaults(args.env).get("ppo", {}), **levers.get("ppo", {})}
-    threefry_kernel(
-        ppo.get("threefry_kernel", False)
-    )  # for the env rows too, as make_train sets it
+    # For the env rows too, as make_train sets it for the PPO rows.
+    threefry_kernel(ppo.get("threefry_kernel", False))
     state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     size = sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
     row = {"num_envs": n, "variant": variant, "state_bytes": int(size)}  # one robot's EnvState
