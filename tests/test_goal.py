@@ -339,6 +339,47 @@ def test_traced_flood_matches_breadth_first_search():
     np.testing.assert_array_equal(np.asarray(goals._flood_scans(wide, start, 40)), want)
 
 
+def _nine_cells(field, xy, half):
+    """The geodesic's least value at `xy` [2], in numpy: over the 3 x 3 cells around xy's cell,
+    clipped to the grid, of steps x GRID_CELL + the line to the cell's centre (inf if none)."""
+    rows, cols = field.shape
+    grid_half = 0.5 * np.array([cols, rows]) * GRID_CELL
+    p = xy[::-1] if (rows != cols and half[1] > half[0]) else xy  # the grid's frame
+    col, row = np.round((p + grid_half) / GRID_CELL - 0.5).astype(int)
+    best = np.inf
+    for r in np.clip(row + np.arange(-1, 2), 0, rows - 1):
+        for c in np.clip(col + np.arange(-1, 2), 0, cols - 1):
+            centre = (np.array([c, r]) + 0.5) * GRID_CELL - grid_half
+            best = min(best, field[r, c] * GRID_CELL + np.hypot(*(centre - p)))
+    return best
+
+
+def test_probes_read_the_geodesic_from_one_window():
+    """`geodesics` reads every probe's nine cells from one slice of the field around the robot:
+    the values of reading each probe's own cells, to float32 rounding, at the grid's edges and
+    beyond them, on square grids and on a hall's grid lying either way round."""
+    from jaxnav.tasks.goal import LOOK, LOOK_DIRECTIONS
+
+    rng = np.random.default_rng(0)
+    for shape, half in (((20, 20), (2.0, 2.0)), ((12, 40), (4.0, 1.2)), ((12, 40), (1.2, 4.0))):
+        field = rng.integers(0, 40, (64, *shape)).astype(np.float32)
+        field[rng.random(field.shape) < 0.3] = np.inf
+        reach = max(half) + 0.5  # some robots beyond the grid
+        xy = rng.uniform(-reach, reach, (64, 2)).astype(np.float32)
+        xy[:16] = np.round(xy[:16] / 0.1) * 0.1  # on cell boundaries
+        angles = rng.uniform(-np.pi, np.pi, (64, 1)) + np.arange(LOOK_DIRECTIONS) * np.pi / 4
+        probes = (xy[:, None] + LOOK * np.stack([np.cos(angles), np.sin(angles)], -1)).astype(
+            np.float32
+        )  # [64, 8, 2]
+        read = jax.vmap(goals.geodesics, (0, 0, 0, None, None))
+        got = read(field, xy, probes, LOOK, jnp.asarray(half))
+        want = [[_nine_cells(f, p, half) for p in ps] for f, ps in zip(field, probes, strict=True)]
+        np.testing.assert_allclose(
+            np.asarray(got), np.array(want, np.float32), rtol=1e-6, atol=1e-6
+        )
+        assert np.isinf(want).any() and np.isfinite(want).any()
+
+
 @pytest.mark.slow
 def test_family_goals_are_reachable_and_often_behind_walls():
     """Corridors, L/T/U rooms and joined rooms keep their walls; the goal is drawn reachable.
@@ -479,7 +520,8 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     """A reset floods the grid once, from the goal: the field reaches the spawn, which moves out
     of a pocket the goal is not in; where no cell is far enough the path is cleared first. The
     goals, rooms and fields are bit for bit those of the signed distance over the whole grid at
-    once (`goals.grid_clearance` computes it in blocks of rows), and the field is `goal_field`'s."""
+    once (`goals.grid_clearance` computes it in blocks of rows), and the field is `goal_field`'s,
+    whichever rooms share the batch."""
     rooms = [OPEN, RING, SMALL_RING, POCKET]
     spawns = [(-1.5, -1.5), (0.0, 0.0), (0.0, 0.0), (-2.0, 1.0)]
     bank = make_bank(rooms, 8, 4)
@@ -496,6 +538,15 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
 
     keys = jax.random.split(jax.random.PRNGKey(0), len(rooms))
     shared = jax.jit(jax.vmap(draw))(keys, params)
+    # A batch computes the cleared room's grid only where one of its rooms needs it: the same
+    # draws in a batch without the small ring, and one room at a time.
+    at = lambda tree, e: jax.tree_util.tree_map(lambda x: x[e], tree)  # noqa: E731
+    others = np.array([0, 1, 3])
+    chex.assert_trees_all_equal(
+        jax.jit(jax.vmap(draw))(keys[others], at(params, others)), at(shared, others)
+    )
+    for e in range(len(rooms)):
+        chex.assert_trees_all_equal(jax.jit(draw)(keys[e], at(params, e)), at(shared, e))
 
     def whole(params, extent, radius):  # the whole grid in one computation
         gap = signed_distance(params, goals._grid(extent)) - radius

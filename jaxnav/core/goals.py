@@ -324,6 +324,30 @@ def _free(params: SceneParams, extent: tuple[float, float], radius: float):
     return gap, gap >= 0.5 * GRID_CELL
 
 
+def _free_where(need: jax.Array, room: SceneParams, free: jax.Array, extent, radius: float):
+    """[rows, cols] `_free`'s cells of `room` where `need` [] bool, else `free` (those of a room
+    with the same obstacles active). Under `jax.vmap` (`jax.custom_batching`) the batch computes
+    `room`'s grid only when one of its elements needs it, and then for all of them: a `lax.cond`
+    on a batched predicate would compute it for every element always, and it is rarely needed
+    (a spawn with no goal cell far enough, `sample_goal`)."""
+
+    def computed(room):
+        return _free(room, extent, radius)[1]
+
+    @jax.custom_batching.custom_vmap
+    def choose(need, room, free):
+        return jax.lax.cond(need, computed, lambda _: free, room)
+
+    @choose.def_vmap
+    def _batched(axis_size, in_batched, need, room, free):
+        grow = lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))  # noqa: E731
+        need, room, free = jax.tree_util.tree_map(grow, (need, room, free), tuple(in_batched))
+        some = lambda room: jnp.where(need[:, None, None], jax.vmap(computed)(room), free)  # noqa: E731
+        return jax.lax.cond(need.any(), some, lambda _: free, room), True
+
+    return choose(need, room, free)
+
+
 def _uniform(d: Draws, ok: jax.Array) -> jax.Array:
     """Flat index of a uniform True cell of `ok` [rows, cols] (arbitrary where none is), from one
     random number rather than one per cell."""
@@ -337,8 +361,8 @@ def _half_extents(shape: tuple[int, int]) -> np.ndarray:
 
 
 def _grid_cell(shape: tuple[int, int], xy: jax.Array, transposed) -> jax.Array:
-    """[2] int32 (col, row) of the cell of the traced grid of `shape` containing the room's point
-    `xy` [2] (outside the grid's range beyond it)."""
+    """[..., 2] int32 (col, row) of the cells of the traced grid of `shape` containing the room's
+    points `xy` [..., 2] (outside the grid's range beyond it)."""
     half = _half_extents(shape)
     return jnp.round((_swap(xy, transposed) + half) / GRID_CELL - 0.5).astype(jnp.int32)
 
@@ -365,18 +389,39 @@ def geodesic(
     where none of them reaches the goal (a robot pressed against a wall, a point inside one),
     `blocked` [], or by default the straight line. `room_half` [2]: the room's half extents,
     needed where the grid is not square (it may lie on the room transposed)."""
-    shape = field.shape
-    transposed = _transposed(shape, room_half)
-    ij = _grid_cell(shape, xy, transposed)  # [2] col, row
-    offsets = jnp.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])  # [9, 2]
-    cells = jnp.clip(ij + offsets, 0, np.array(shape[::-1]) - 1)  # [9, 2]
-    centres = (cells + 0.5) * GRID_CELL - _half_extents(shape)  # [9, 2] in the grid's frame
-    via = field[cells[:, 1], cells[:, 0]] * GRID_CELL + jnp.linalg.norm(
-        centres - _swap(xy, transposed), axis=-1
-    )
-    best = via.min()
+    best = geodesics(field, xy, xy[None], 0.0, room_half)[0]
     fallback = jnp.linalg.norm(goal - xy) if blocked is None else blocked
     return jnp.where(jnp.isfinite(best), best, fallback)
+
+
+def geodesics(field, centre, points, reach: float, room_half=None) -> jax.Array:
+    """[P] `geodesic`'s least value for each of `points` [P, 2], all within `reach` m (static) of
+    `centre` [2], inf where none of a point's 3 x 3 cells reaches the goal (no fallback). Every
+    cell they read lies in one window of the field around `centre`'s cell, read with one slice:
+    a point's cells are those of the window between its cell -1 and +1, clipped to the grid, and
+    a point within `reach` > 0 lies at most floor(reach / GRID_CELL + 1) cells from `centre`'s. The
+    same values as reading each point's nine cells, bit for bit (`tests/test_goal.py`)."""
+    shape = field.shape  # rows, cols
+    transposed = _transposed(shape, room_half)
+    k = 1 + (int(np.floor(reach / GRID_CELL + 1)) if reach > 0 else 0)  # to a point's neighbour
+    size = np.minimum(2 * k + 1, shape)  # [2] the window's rows, cols
+    last = np.array(shape[::-1]) - 1  # [2] the last col, row
+    start = jnp.clip(_grid_cell(shape, centre, transposed) - k, 0, last + 1 - size[::-1])
+    window = jax.lax.dynamic_slice(field, (start[1], start[0]), tuple(size))  # [h, w]
+    half = _half_extents(shape)
+    cols = start[0] + jnp.arange(size[1])  # [w]
+    rows = start[1] + jnp.arange(size[0])  # [h]
+    cells = _grid_cell(shape, points, transposed)  # [P, 2] col, row
+    lo, hi = jnp.clip(cells - 1, 0, last), jnp.clip(cells + 1, 0, last)  # [P, 2]
+    near_col = (cols >= lo[:, :1]) & (cols <= hi[:, :1])  # [P, w]
+    near_row = (rows >= lo[:, 1:]) & (rows <= hi[:, 1:])  # [P, h]
+    grid_xy = _swap(points, transposed)  # [P, 2] in the grid's frame
+    dx = (cols + 0.5) * GRID_CELL - half[0] - grid_xy[:, :1]  # [P, w]
+    dy = (rows + 0.5) * GRID_CELL - half[1] - grid_xy[:, 1:]  # [P, h]
+    line = jnp.sqrt(jnp.square(dx[:, None, :]) + jnp.square(dy[:, :, None]))  # [P, h, w]
+    via = window * GRID_CELL + line
+    near = near_row[:, :, None] & near_col[:, None, :]
+    return jnp.where(near, via, jnp.inf).min((1, 2))
 
 
 def _interior_goal(d: Draws, params: SceneParams, radius, clearance, min_distance):
@@ -447,7 +492,8 @@ def sample_goal(
     sampled = params.layout_id < 0
     room = where(sampled, where(found, params, cleared), layout_room)
     goal = jnp.where(sampled, room_goal, layout_goal)
-    field = _flood(_free(room, extent, radius)[1], centres, goal)  # [rows, cols]: the one flood
+    # The one flood, of `room`'s free cells: those of `params` but where the path was cleared.
+    field = _flood(_free_where(sampled & ~found, cleared, free, extent, radius), centres, goal)
     # A sampled spawn the flood does not reach moves to a reached cell far from the goal that
     # keeps `clearance`; where there is none (rare), the path is cleared after the flood.
     reached = jnp.isfinite(field)

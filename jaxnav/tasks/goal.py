@@ -40,7 +40,7 @@ import numpy as np
 from jaxnav.core.checks import require_finite
 from jaxnav.core.episode import sample
 from jaxnav.core.families import LARGE_EXTENTS
-from jaxnav.core.goals import GRID_HALF, geodesic, sample_goal, shortest_paths
+from jaxnav.core.goals import GRID_HALF, geodesic, geodesics, sample_goal, shortest_paths
 from jaxnav.core.randomize import family_weights
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
@@ -357,6 +357,14 @@ class GoalEnv(NavTask):
             return geodesic(info["field"], info["goal"], xy, blocked, info["params"].room_half)
         return jnp.linalg.norm(info["goal"] - xy)
 
+    def _to_go_near(self, info, xy, points, blocked) -> jax.Array:
+        """[P] `_to_go` of each of `points` [P, 2], all within LOOK of `xy` [2] (one read of the
+        geodesic's grid around it, `jaxnav.core.goals.geodesics`)."""
+        if self.task.progress == "geodesic":
+            best = geodesics(info["field"], xy, points, LOOK, info["params"].room_half)
+            return jnp.where(jnp.isfinite(best), best, blocked)
+        return jnp.linalg.norm(info["goal"] - points, axis=-1)
+
     def _critic_features(self, info, qpos, here, steps) -> jax.Array:
         """[CRITIC_FEATURES] what only the critic sees (`state.info["critic"]`, training only): the
         distance to go as `progress` measures it (/ 5 m), how much closer a LOOK step in each of
@@ -368,7 +376,7 @@ class GoalEnv(NavTask):
         inferred from the sectors."""
         angles = qpos[2] + jnp.arange(LOOK_DIRECTIONS) * (2 * jnp.pi / LOOK_DIRECTIONS)
         probes = qpos[:2] + LOOK * jnp.stack([jnp.cos(angles), jnp.sin(angles)], -1)  # [8, 2]
-        around = jax.vmap(lambda xy: self._to_go(info, xy, blocked=here + LOOK))(probes)  # [8]
+        around = self._to_go_near(info, qpos[:2], probes, blocked=here + LOOK)  # [8]
         closer = jnp.clip((here - around) / LOOK, -2.0, 2.0)  # [LOOK_DIRECTIONS]
         used = jnp.asarray(steps, jnp.float32) / self.task.max_steps
         return jnp.concatenate([here[None] / 5.0, closer, used[None]])
