@@ -18,9 +18,10 @@ chunk: the seconds to its "compiled and ran the first chunk" line and the whole 
 time, cold and with the cache warm, and JAX's compile events of each run per program (tracing,
 lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints the table last; writes the JSON.
 
-`--checkout DIR`: the command-line runs only, of the jaxnav in DIR (a checkout of an earlier
-commit, e.g. `git worktree add DIR COMMIT`, run from a folder outside this one), for a before and
-after pair measured back to back.
+`--checkout DIR`: the command-line runs only (those above, or those of `--xla-flags` and
+`--train-flags`), of the jaxnav in DIR (a checkout of an earlier commit, e.g. `git worktree add
+DIR COMMIT`, run from a folder outside this one), for a before and after pair measured back to
+back.
 
 `--xla-flags A,B,...`: per task and per `XLA_FLAGS` value (an empty one: jaxnav's own compiler
 options, `jaxnav.core.xla`), `python -m jaxnav.train --no-compile-cache` for `--chunks` chunks: the
@@ -189,11 +190,8 @@ def cli_runs(env: str, preset: str, checkout: Path | None = None) -> dict:
     """Two runs of the command line with one fresh cache: (first chunk s, wall s) each; of the
     jaxnav in `checkout` if given."""
     cache = tempfile.mkdtemp(prefix="jaxnav-cache-")
-    environ = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    environ = _environ(checkout)
     environ["XDG_CACHE_HOME"] = cache
-    if checkout is not None:
-        paths = [str(Path(checkout).resolve()), environ.get("PYTHONPATH", "")]
-        environ["PYTHONPATH"] = os.pathsep.join(p for p in paths if p)
     out = {}
     for label in ("cold", "warm"):
         run = tempfile.mkdtemp(prefix="jaxnav-run-") + "/run"
@@ -233,6 +231,16 @@ def cli_runs(env: str, preset: str, checkout: Path | None = None) -> dict:
     return out
 
 
+def _environ(checkout: Path | None) -> dict:
+    """This process's environment for a command-line run, without a compilation cache folder of
+    its own; with the jaxnav in `checkout` first on the path if given."""
+    environ = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    if checkout is not None:
+        paths = [str(Path(checkout).resolve()), environ.get("PYTHONPATH", "")]
+        environ["PYTHONPATH"] = os.pathsep.join(p for p in paths if p)
+    return environ
+
+
 # `python -m jaxnav.train` with JAX's compile events summed per kind and program, written as JSON
 # to argv[1] at exit: the seconds from the start to the compile line ("to_compile_line_s"), and
 # {event: {program: seconds}} of tracing, lowering, XLA compiles or cache loads, cache retrievals.
@@ -262,22 +270,32 @@ runpy.run_module("jaxnav.train", run_name="__main__", alter_sys=True)
 """
 
 
-def flag_runs(env: str, preset: str, flags: list[str], chunks: int, train: bool = False) -> dict:
+def flag_runs(
+    env: str, preset: str, flags: list[str], chunks: int, train: bool = False, checkout=None
+) -> dict:
     """{flags: {first_chunk_s, steps_per_s after it, wall_s}} of `chunks`-chunk runs, each with
-    one entry of `flags` as its XLA_FLAGS, or (`train`) as more flags of its command line."""
+    one entry of `flags` as its XLA_FLAGS, or (`train`) as more flags of its command line; of the
+    jaxnav in `checkout` if given."""
     from jaxnav.training import build_config
 
     cfg = build_config(preset, env=env).ppo
     out = {}
     for flag in flags:
         run = Path(tempfile.mkdtemp(prefix="jaxnav-run-")) / "run"
-        environ = os.environ if train else {**os.environ, "XLA_FLAGS": flag}
+        environ = _environ(checkout) if train else {**_environ(checkout), "XLA_FLAGS": flag}
         cmd = [sys.executable, "-m", "jaxnav.train", "--env", env, "--preset", preset]
         cmd += flag.split() if train else []
         cmd += ["--out", str(run), "--no-progress", "--no-compile-cache"]
         cmd += ["--total-steps", str(chunks * cfg.updates_per_chunk * cfg.batch_size)]
         tick = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=environ, timeout=1800)
+        proc = subprocess.run(
+            cmd,
+            capture_output=True,
+            text=True,
+            env=environ,
+            timeout=1800,
+            cwd=run.parent if checkout else None,  # not this folder, which `python -m` imports from
+        )
         wall = time.perf_counter() - tick
         found = re.search(r"compiled and ran the first chunk in ([\d.]+) s", proc.stdout)
         rows = list(csv.DictReader((run / "metrics.csv").open())) if proc.returncode == 0 else []
@@ -313,7 +331,7 @@ def main() -> None:
     p.add_argument("--chunks", type=int, default=3, help="with --xla-flags: chunks per run")
     p.add_argument("--checkout", type=Path, help="command-line runs of the jaxnav there only")
     args = p.parse_args()
-    if args.checkout is not None:
+    if args.checkout is not None and args.xla_flags is None and args.train_flags is None:
         rows = {env: cli_runs(env, args.preset, args.checkout) for env in args.envs.split(",")}
         info = run_info("command", "device", "jax", "mujoco", "date")
         write_json(
@@ -330,11 +348,12 @@ def main() -> None:
         train = args.xla_flags is None
         flags = (args.train_flags if train else args.xla_flags).split(",")
         rows = {
-            env: flag_runs(env, args.preset, flags, args.chunks, train)
+            env: flag_runs(env, args.preset, flags, args.chunks, train, args.checkout)
             for env in args.envs.split(",")
         }
         info = run_info("command", "device", "jax", "mujoco", "date")
-        write_json(args.json, {**info, "preset": args.preset, "chunks": args.chunks, "rows": rows})
+        info |= {"preset": args.preset, "chunks": args.chunks, "checkout": str(args.checkout or "")}
+        write_json(args.json, {**info, "rows": rows})
         what = "training flags" if train else "XLA_FLAGS"
         print(f"{'env':<6} {what:<44} {'first chunk s':>13} {'steps/s after':>13}")
         for env, table in rows.items():

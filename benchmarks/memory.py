@@ -5,7 +5,8 @@ at the Kobuki's top speed, trained twice as long (`memory_hall_long`), and the g
 clearance cost (`memory_hall_clear10`, `_clear20`), a stop action (`memory_hall_stop`), a 5 cm
 collision margin in training (`memory_hall_margin5`) or 12 sectors of 5 degrees rather than 8 of
 7.5 (`memory_hall_s12`, as many rays), and the mix of every hard family with the clearance
-(`memory_hard_clear20`).
+(`memory_hard_clear20`); and the cpu preset as it is (`cpu_preset`, with `--preset cpu`: the
+README's goal run, whose training wall time is its row's `train_wall_s`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -60,6 +61,7 @@ VARIANTS = {
     "memory_hard": ("--task.memory-bins", "16", "--randomize.families")
     + ("all,dense_field:1,long_hall:1,crowd:1",),
 }
+VARIANTS["cpu_preset"] = ("--task.memory-bins", "0", "--randomize.families", GOAL_CPU_FAMILIES)
 VARIANTS["memory_hall_stop"] = VARIANTS["memory_hall"] + ("--task.actions", "discrete_stop")
 VARIANTS["memory_hall_clear10"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.1")
 VARIANTS["memory_hall_clear20"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.2")
