@@ -23,6 +23,10 @@ lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints the
 DIR COMMIT`, run from a folder outside this one), for a before and after pair measured back to
 back.
 
+`--xla-log` (a GPU): `trainer.run_chunk` lowered and compiled as above, in a subprocess with
+XLA's compile log on: XLA's own seconds in the chunk's HLO passes, in the autotuning of its matrix
+products (one of those passes), in code generation and in its IR emission (`xla_log`).
+
 `--xla-flags A,B,...`: per task and per `XLA_FLAGS` value (an empty one: jaxnav's own compiler
 options, `jaxnav.core.xla`), `python -m jaxnav.train --no-compile-cache` for `--chunks` chunks: the
 seconds to its first chunk's end and the training pace after it (env steps per second, from the
@@ -312,6 +316,37 @@ def flag_runs(
     return out
 
 
+# XLA's own timers for the chunk's module (`jit_run_chunk`), from its log on a GPU: regex -> key.
+XLA_TIMERS = {
+    "hlo_passes_s": r"RunHloPasses for jit_run_chunk time: ([\d.]+) (ms|s|min)",
+    "backend_s": r"GpuCompiler::RunBackend for jit_run_chunk time: ([\d.]+) (ms|s|min)",
+    "ir_emission_s": r"IR emission for jit_run_chunk time: ([\d.]+) (ms|s|min)",
+}
+UNITS = {"ms": 1e-3, "s": 1.0, "min": 60.0}
+
+
+def xla_log(env: str, preset: str) -> dict:
+    """`split` in a subprocess with XLA's compile log on (a GPU's timers and pass statistics):
+    its seconds, XLA's time in the chunk's HLO passes, in code generation and in its IR emission,
+    and the autotuning of its matrix products (the largest "config-assigner" pass in the log)."""
+    code = f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import compile_time as c; "
+    code += "print('SPLIT', json.dumps(c.split(sys.argv[1], sys.argv[2])))"
+    environ = {**os.environ, "TF_CPP_MIN_LOG_LEVEL": "0"}
+    environ["TF_CPP_VMODULE"] = "gpu_compiler=2,compile_module_to_llvm_ir=2"
+    environ["XLA_FLAGS"] = "--xla_gpu_print_compilation_stats=true"
+    proc = subprocess.run(
+        [sys.executable, "-c", code, env, preset], capture_output=True, text=True, env=environ
+    )
+    found = re.search(r"^SPLIT (.*)$", proc.stdout, re.M)
+    out = {**(json.loads(found.group(1)) if found else {}), "rc": proc.returncode}
+    for key, pattern in XLA_TIMERS.items():
+        if hit := re.search(pattern, proc.stderr):
+            out[key] = round(float(hit.group(1)) * UNITS[hit.group(2)], 2)
+    tuned = [float(x) for x in re.findall(r"\] config-assigner, \d+, ([\d.]+)", proc.stderr, re.I)]
+    out["autotune_s"] = round(max(tuned) / 1000, 2) if tuned else None
+    return out
+
+
 def _one_update(env: str, preset: str) -> int:
     from jaxnav.training import build_config
 
@@ -330,7 +365,15 @@ def main() -> None:
     p.add_argument("--train-flags", default=None, help="comma list of training flags (doc)")
     p.add_argument("--chunks", type=int, default=3, help="with --xla-flags: chunks per run")
     p.add_argument("--checkout", type=Path, help="command-line runs of the jaxnav there only")
+    p.add_argument("--xla-log", action="store_true", help="XLA's own timers of the chunk (GPU)")
     args = p.parse_args()
+    if args.xla_log:
+        rows = {env: xla_log(env, args.preset) for env in args.envs.split(",")}
+        info = run_info("command", "device", "jax", "mujoco", "date")
+        write_json(args.json, {**info, "preset": args.preset, "rows": rows})
+        for env, r in rows.items():
+            print(env, r)
+        return
     if args.checkout is not None and args.xla_flags is None and args.train_flags is None:
         rows = {env: cli_runs(env, args.preset, args.checkout) for env in args.envs.split(",")}
         info = run_info("command", "device", "jax", "mujoco", "date")
