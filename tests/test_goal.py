@@ -547,6 +547,9 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     )
     for e in range(len(rooms)):
         chex.assert_trees_all_equal(jax.jit(draw)(keys[e], at(params, e)), at(shared, e))
+    pairs = lambda tree: jax.tree_util.tree_map(lambda x: x.reshape(2, 2, *x.shape[1:]), tree)  # noqa: E731
+    nested = jax.jit(jax.vmap(jax.vmap(draw)))(pairs(keys), pairs(params))  # as AutoReset.draw
+    chex.assert_trees_all_equal(nested, pairs(shared))
 
     def whole(params, extent, radius):  # the whole grid in one computation
         gap = signed_distance(params, goals._grid(extent)) - radius

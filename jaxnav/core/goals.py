@@ -326,26 +326,30 @@ def _free(params: SceneParams, extent: tuple[float, float], radius: float):
 
 def _free_where(need: jax.Array, room: SceneParams, free: jax.Array, extent, radius: float):
     """[rows, cols] `_free`'s cells of `room` where `need` [] bool, else `free` (those of a room
-    with the same obstacles active). Under `jax.vmap` (`jax.custom_batching`) the batch computes
-    `room`'s grid only when one of its elements needs it, and then for all of them: a `lax.cond`
-    on a batched predicate would compute it for every element always, and it is rarely needed
-    (a spawn with no goal cell far enough, `sample_goal`)."""
-
-    def computed(room):
-        return _free(room, extent, radius)[1]
+    with the same obstacles active). Under `jax.vmap`, however deeply nested
+    (`jax.custom_batching`), a batch computes `room`'s grid only when one of its elements needs
+    it, and then for all of them: a `lax.cond` on a batched predicate would compute it for every
+    element always, and it is rarely needed (a spawn with no goal cell far enough,
+    `sample_goal`). With the batch sharded over devices, that test is one reduction over them per
+    batch of resets."""
 
     @jax.custom_batching.custom_vmap
-    def choose(need, room, free):
-        return jax.lax.cond(need, computed, lambda _: free, room)
+    def batch(need, room, free):  # a batch [B] of rooms
+        def some(room):
+            grids = jax.vmap(lambda r: _free(r, extent, radius)[1])(room)  # [B, rows, cols]
+            return jnp.where(need[:, None, None], grids, free)
 
-    @choose.def_vmap
-    def _batched(axis_size, in_batched, need, room, free):
+        return jax.lax.cond(need.any(), some, lambda _: free, room)
+
+    @batch.def_vmap
+    def _outer(axis_size, in_batched, need, room, free):  # [A, B, ...] as one batch [A * B]
         grow = lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))  # noqa: E731
-        need, room, free = jax.tree_util.tree_map(grow, (need, room, free), tuple(in_batched))
-        some = lambda room: jnp.where(need[:, None, None], jax.vmap(computed)(room), free)  # noqa: E731
-        return jax.lax.cond(need.any(), some, lambda _: free, room), True
+        args = jax.tree_util.tree_map(grow, (need, room, free), tuple(in_batched))
+        merged = jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[2:]), args)
+        return batch(*merged).reshape(axis_size, -1, *free.shape[-2:]), True
 
-    return choose(need, room, free)
+    one = lambda x: x[None]  # noqa: E731
+    return batch(one(need), jax.tree_util.tree_map(one, room), one(free))[0]
 
 
 def _uniform(d: Draws, ok: jax.Array) -> jax.Array:
