@@ -403,8 +403,9 @@ def geodesics(field, centre, points, reach: float, room_half=None) -> jax.Array:
     `centre` [2], inf where none of a point's 3 x 3 cells reaches the goal (no fallback). Every
     cell they read lies in one window of the field around `centre`'s cell, read with one slice:
     a point's cells are those of the window between its cell -1 and +1, clipped to the grid, and
-    a point within `reach` > 0 lies at most floor(reach / GRID_CELL + 1) cells from `centre`'s. The
-    same values as reading each point's nine cells, bit for bit (`tests/test_goal.py`)."""
+    a point within `reach` > 0 lies at most floor(reach / GRID_CELL + 1) cells from `centre`'s.
+    The values of reading each point's nine cells on their own, to float32 rounding
+    (`tests/test_goal.py`)."""
     shape = field.shape  # rows, cols
     transposed = _transposed(shape, room_half)
     k = 1 + (int(np.floor(reach / GRID_CELL + 1)) if reach > 0 else 0)  # to a point's neighbour
