@@ -14,6 +14,7 @@ import jaxnav
 from jaxnav.core import families, goals
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.goals import GRID_CELL, grid_steps, shortest_paths
+from jaxnav.core.motion import still
 from jaxnav.core.randomize import TRAINING, RandomizeConfig, family_weights, make_bank
 from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.io.layouts import Box, LayoutError, RoomLayout, parse_layouts
@@ -529,6 +530,8 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     params = bank.rooms.replace(
         spawn=jnp.array([(*xy, 0.0) for xy in spawns]),
         layout_id=jnp.array([-1, -1, -1, 3]),  # the rings and open as sampled rooms
+        # nothing moves, on paths of no points (leaves with no elements, as in rooms with walkers)
+        motion=jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (4, *x.shape)), still(12)),
     )
 
     def draw(key, params):

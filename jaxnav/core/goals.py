@@ -345,8 +345,9 @@ def _free_where(need: jax.Array, room: SceneParams, free: jax.Array, extent, rad
     def _outer(axis_size, in_batched, need, room, free):  # [A, B, ...] as one batch [A * B]
         grow = lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))  # noqa: E731
         args = jax.tree_util.tree_map(grow, (need, room, free), tuple(in_batched))
-        merged = jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[2:]), args)
-        return batch(*merged).reshape(axis_size, -1, *free.shape[-2:]), True
+        size = args[0].shape[1]  # B (explicit: a leaf may have no elements, e.g. paths of 0 points)
+        merged = jax.tree_util.tree_map(lambda x: x.reshape(axis_size * size, *x.shape[2:]), args)
+        return batch(*merged).reshape(axis_size, size, *free.shape[-2:]), True
 
     one = lambda x: x[None]  # noqa: E731
     return batch(one(need), jax.tree_util.tree_map(one, room), one(free))[0]
