@@ -350,16 +350,17 @@ class GoalEnv(NavTask):
             },
         )
 
-    def _to_go(self, info, xy, blocked=None) -> jax.Array:
-        """[] m from `xy` to the goal, as `GoalConfig.progress` measures it (`blocked`: the
-        geodesic's value where `xy` is walled in, see `jaxnav.core.goals.geodesic`)."""
+    def _to_go(self, info, xy) -> jax.Array:
+        """[] m from `xy` to the goal, as `GoalConfig.progress` measures it (the geodesic falls
+        back to the straight line where `xy` is walled in, see `jaxnav.core.goals.geodesic`)."""
         if self.task.progress == "geodesic":
-            return geodesic(info["field"], info["goal"], xy, blocked, info["params"].room_half)
+            return geodesic(info["field"], info["goal"], xy, None, info["params"].room_half)
         return jnp.linalg.norm(info["goal"] - xy)
 
     def _to_go_near(self, info, xy, points, blocked) -> jax.Array:
         """[P] `_to_go` of each of `points` [P, 2], all within LOOK of `xy` [2] (one read of the
-        geodesic's grid around it, `jaxnav.core.goals.geodesics`)."""
+        geodesic's grid around it, `jaxnav.core.goals.geodesics`), `blocked` [] where a point is
+        walled in rather than the straight line."""
         if self.task.progress == "geodesic":
             best = geodesics(info["field"], xy, points, LOOK, info["params"].room_half)
             return jnp.where(jnp.isfinite(best), best, blocked)
