@@ -588,8 +588,8 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
     cpu, gpu = (build_config(p, env="goal").randomize for p in ("cpu", "gpu"))
     assert (cpu.families, gpu.families) == (GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES)
     assert family_weights(gpu.families)["long_hall"] == pytest.approx(0.1)
-    # The gpu preset trains with a 5 cm collision margin, the cpu preset with none.
-    assert (cpu.collision_margin, gpu.collision_margin) == ((0.0, 0.0), (0.05, 0.05))
+    # The gpu preset trains with a 7.5 cm collision margin, the cpu preset with none.
+    assert (cpu.collision_margin, gpu.collision_margin) == ((0.0, 0.0), (0.075, 0.075))
     gpu = dataclasses.replace(gpu, collision_margin=(0.0, 0.0))
     for r in (cpu, gpu):
         assert dataclasses.replace(r, families="") == TRAINING  # only the families differ
