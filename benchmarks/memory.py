@@ -6,7 +6,8 @@ cost (`memory_hall_clear10`, `_clear20`), a stop action (`memory_hall_stop`), a 
 in training (5, 7.5 and 10 cm: `memory_hall_margin5`, `_margin7`, `_margin10`) or 12 sectors of 5
 degrees rather than 8 of 7.5 (`memory_hall_s12`, as many rays), and the mix of every hard family
 with the clearance (`memory_hard_clear20`); and the cpu preset as it is (`cpu_preset`, with
-`--preset cpu`: the README's goal run, whose training wall time is its row's `train_wall_s`).
+`--preset cpu`: the README's goal run, whose training wall time is its row's `train_wall_s`; with a
+7.5 cm collision margin: `cpu_preset_margin7`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -75,6 +76,7 @@ VARIANTS = {name: (*flags, MARGIN, "0", "0") for name, flags in VARIANTS.items()
 VARIANTS["memory_hall_margin5"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.05", "0.05")
 VARIANTS["memory_hall_margin10"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.1", "0.1")
 VARIANTS["memory_hall_margin7"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.075", "0.075")
+VARIANTS["cpu_preset_margin7"] = (*VARIANTS["cpu_preset"][:-3], MARGIN, "0.075", "0.075")
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")

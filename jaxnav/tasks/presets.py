@@ -35,9 +35,9 @@ GOAL = {
         # fields in the mix as well gave 76 %. Long halls in a tenth of the sampled rooms: a
         # goal 20 m down a 25 m hall reached in 98 % of episodes rather than 72 %, BARN 84 %
         # rather than 81 %. A 7.5 cm collision margin in training: BARN 89.3 % rather than 85.5 %
-        # (86.9 % with 5 cm, 90.8 % with 10 cm), the suite 95.2 % rather than 92.5 % (95.1 % with
-        # 5 cm, 94.0 % with 10 cm, whose policies collide more in clutter), two or three seeds
-        # each (benchmarks/memory.py).
+        # (86.9 % with 5 cm, 90.8 % with 10 cm), the suite 94.8 % rather than 92.5 % (95.1 % with
+        # 5 cm, 94.0 % with 10 cm); in clutter 83.8 % against 89.6 % with 5 cm; three seeds each
+        # (benchmarks/memory.py).
         "gpu": {
             "ppo": {"hidden": (256, 256)},
             "task": {"memory_bins": 16},
