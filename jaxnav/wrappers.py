@@ -109,8 +109,23 @@ class AutoReset(Wrapper):
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
         first = self._pool_keys(k_reset)  # [G, P/G, 2]
         per_step = jax.vmap(lambda t: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, t)))(first))
-        fresh = jax.vmap(jax.vmap(jax.vmap(self.env.reset)))(per_step(jnp.arange(steps)))
+        fresh = self._resets(per_step(jnp.arange(steps)), block_axis=1)
         return state.replace(info={**state.info, RESET_KEY: keys}), fresh
+
+    def _resets(self, keys: jax.Array, block_axis: int) -> EnvState:
+        """The env's resets of `keys` [..., G, P/G, ..., 2] (G at `block_axis`), leaves shaped like
+        the keys. One vmap over all of a block's keys: the reset traces once under one vmap (a
+        vmap per axis would trace it under each in turn); with G > 1 a vmap over the blocks
+        outside it, so that blocks sharded over devices stay where they are."""
+
+        def flat(k):  # [..., 2] -> [...]
+            lead = k.shape[:-1]
+            out = jax.vmap(self.env.reset)(k.reshape(-1, k.shape[-1]))
+            return jax.tree_util.tree_map(lambda x: x.reshape(*lead, *x.shape[1:]), out)
+
+        if self.groups == 1:
+            return flat(keys)
+        return jax.vmap(flat, in_axes=block_axis, out_axes=block_axis)(keys)
 
     def step(self, state: EnvState, action: jax.Array, fresh: EnvState | None = None) -> EnvState:
         """One step of every env; `fresh` (leaves [G, P/G, ...], one step of `draw`) are the new
@@ -121,7 +136,7 @@ class AutoReset(Wrapper):
         g, total = self.groups, action.shape[0]
         pool = self.draws_per_block(total)
         if fresh is None:
-            fresh = jax.vmap(jax.vmap(self.env.reset))(self._pool_keys(k_reset))  # [G, P/G]
+            fresh = self._resets(self._pool_keys(k_reset), block_axis=0)  # [G, P/G]
         # What a new episode replaces: physics, observation and info, except the finished
         # episode's statistics, which carry over.
         part = lambda s: (s.data, s.obs, {k: v for k, v in s.info.items() if k != EPISODE})  # noqa: E731

@@ -11,7 +11,7 @@ import jaxnav
 from jaxnav.core.randomize import TRAINING
 from jaxnav.core.scene import SceneConfig
 from jaxnav.core.types import EnvState
-from jaxnav.wrappers import AutoReset, EpisodeStats
+from jaxnav.wrappers import RESET_KEY, AutoReset, EpisodeStats
 
 ROBOTS, STEPS = 32, 60
 
@@ -186,6 +186,25 @@ def test_drawn_ahead_episodes_start_where_envs_finish(in_place):
         np.testing.assert_array_equal(obs[t, g][done[t, g]], drawn_obs[t, g][slot])
         np.testing.assert_array_equal(left[t, g][done[t, g]], drawn_left[t, g][slot])
     assert len(np.unique(drawn_obs.reshape(-1, 2), axis=0)) == drawn_obs.size // 2
+
+
+@pytest.mark.parametrize("groups", [1, 2])
+def test_each_drawn_episode_is_the_reset_of_its_own_key(groups):
+    """`draw(state, steps)`'s episode [t, g, p] is the env's reset of block g's p-th pool key
+    folded with t: one vmap over a block's keys puts every episode where its key is."""
+    n, pool, steps = 64, 6, 4
+    env = AutoReset(EpisodeStats(Countdown()), pool, groups=groups)
+    state = env.reset(jax.random.split(jax.random.PRNGKey(3), n))
+    after, fresh = env.draw(state, steps)
+    reset = EpisodeStats(Countdown()).reset
+    pairs = jax.vmap(jax.random.split)(state.info[RESET_KEY])  # [N, 2, 2]
+    np.testing.assert_array_equal(after.info[RESET_KEY], pairs[:, 0])
+    first = env._pool_keys(pairs[:, 1])  # [G, P/G, 2]
+    for t, g, p in np.ndindex(steps, groups, pool // groups):
+        want = reset(jax.random.fold_in(first[g, p], t))
+        for a, b in zip(*(jax.tree_util.tree_leaves(x) for x in (fresh, want)), strict=True):
+            np.testing.assert_array_equal(np.asarray(a)[t, g, p], np.asarray(b))
+    assert jax.tree_util.tree_leaves(fresh)[0].shape[:3] == (steps, groups, pool // groups)
 
 
 @pytest.mark.parametrize("in_place", [False, True])
