@@ -113,9 +113,9 @@ class AutoReset(Wrapper):
         return state.replace(info={**state.info, RESET_KEY: keys}), fresh
 
     def _resets(self, keys: jax.Array, block_axis: int) -> EnvState:
-        """The env's resets of `keys` [..., G, P/G, ..., 2] (G at `block_axis`), leaves shaped like
-        the keys. One vmap over all of a block's keys: the reset traces once under one vmap (a
-        vmap per axis would trace it under each in turn); with G > 1 a vmap over the blocks
+        """The env's resets of `keys` ([G, P/G, 2], or [steps, G, P/G, 2]: G at `block_axis`),
+        leaves shaped like the keys. One vmap over all of a block's keys, so that the reset
+        traces under one batching level, not one per axis; with G > 1 a vmap over the blocks
         outside it, so that blocks sharded over devices stay where they are."""
 
         def flat(k):  # [..., 2] -> [...]
