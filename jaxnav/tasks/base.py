@@ -301,14 +301,14 @@ class NavTask:
         m = self.scene.physics_model(params)
         control = self._wheel_speeds if self.scene.wheeled else self._base_forces
 
-        def substep(carry, _):
-            d, hit = carry
+        def substep(d, _):
             d = mjx.step(m, d.replace(ctrl=control(params, d, command)))
-            return (d, hit | self.touching(params, d)), None
+            return d, self.touching(params, d)
 
-        init = (data, jnp.bool_(False))
-        (data, hit), _ = jax.lax.scan(substep, init, None, self.scene.substeps)
-        return data, hit
+        # The touches as the scan's outputs, not its carry: under vmap a carry that starts
+        # unbatched and ends batched makes the scan batch its body twice.
+        data, touched = jax.lax.scan(substep, data, None, self.scene.substeps)
+        return data, touched.any()
 
     def _base_forces(self, params: SceneParams, d: mjx.Data, command: jax.Array) -> jax.Array:
         """Fast physics: [3] forces (x, y) and yaw torque that push the base towards the commanded
