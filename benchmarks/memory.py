@@ -5,9 +5,11 @@ Kobuki's top speed, trained twice as long (`memory_hall_long`), and the gpu pres
 cost (`memory_hall_clear10`, `_clear20`), a stop action (`memory_hall_stop`), a collision margin
 in training (5, 7.5 and 10 cm: `memory_hall_margin5`, `_margin7`, `_margin10`) or 12 sectors of 5
 degrees rather than 8 of 7.5 (`memory_hall_s12`, as many rays), and the mix of every hard family
-with the clearance (`memory_hard_clear20`); and the cpu preset as it is (`cpu_preset`, with
-`--preset cpu`: the README's goal run, whose training wall time is its row's `train_wall_s`; with a
-7.5 cm collision margin: `cpu_preset_margin7`).
+with the clearance (`memory_hard_clear20`); among people, a 360 deg lidar instead of the camera
+(`lidar_crowd_fast`, with the clearance: `_clear20`) and a fifth of the walkers giving way in
+training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`); and the cpu preset as
+it is (`cpu_preset`, with `--preset cpu`: the README's goal run, whose training wall time is its
+row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -69,6 +71,17 @@ VARIANTS["memory_hall_clear20"] = VARIANTS["memory_hall"] + ("--task.clearance",
 VARIANTS["memory_hard_clear20"] = VARIANTS["memory_hard"] + ("--task.clearance", "0.2")
 VARIANTS["memory_hall_s12"] = VARIANTS["memory_hall"] + ("--sensor.num-sectors", "12")
 VARIANTS["memory_hall_s12"] += ("--sensor.rays-per-sector", "2")
+# A 2-D lidar all round (one row, 48 sectors of 7.5 deg, 0.15-8 m) instead of the camera, among
+# people: without the memory, which reads the camera.
+LIDAR_360 = ("--sensor.model", "lidar", "--sensor.fov", "6.283185", "--sensor.num-sectors", "48")
+LIDAR_360 += ("--sensor.rows", "1", "--sensor.range-min", "0.15")
+VARIANTS["lidar_crowd_fast"] = ("--task.memory-bins", "0", *VARIANTS["memory_crowd_fast"][2:])
+VARIANTS["lidar_crowd_fast"] += LIDAR_360
+VARIANTS["lidar_crowd_fast_clear20"] = VARIANTS["lidar_crowd_fast"] + ("--task.clearance", "0.2")
+# ... and with a fifth of the walkers giving way in training rather than half.
+NOT_YIELDING = ("--randomize.walkers", "reactive=0.2")
+VARIANTS["memory_crowd_fast_nr"] = VARIANTS["memory_crowd_fast"] + NOT_YIELDING
+VARIANTS["lidar_crowd_fast_nr"] = VARIANTS["lidar_crowd_fast"] + NOT_YIELDING
 # Every variant names its collision margin (none unless it says), so that its row does not
 # depend on the preset's default.
 MARGIN = "--randomize.collision-margin"

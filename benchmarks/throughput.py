@@ -59,6 +59,9 @@ VARIANTS = {
     "kernel": {"ppo": {"threefry_kernel": True}},
     "ahead_kernel": {"ppo": {"reset_ahead": True, "threefry_kernel": True}},
     "inline": {"ppo": {"threefry_kernel": False}},
+    # New episodes for 1/64 of the robots per step instead of 1/16 (PPOConfig.reset_share).
+    "pool64": {"ppo": {"reset_share": 1 / 64}},
+    "pool64_ahead": {"ppo": {"reset_share": 1 / 64, "reset_ahead": True}},
 }
 
 
