@@ -82,6 +82,13 @@ VARIANTS["lidar_crowd_fast_clear20"] = VARIANTS["lidar_crowd_fast"] + ("--task.c
 NOT_YIELDING = ("--randomize.walkers", "reactive=0.2")
 VARIANTS["memory_crowd_fast_nr"] = VARIANTS["memory_crowd_fast"] + NOT_YIELDING
 VARIANTS["lidar_crowd_fast_nr"] = VARIANTS["lidar_crowd_fast"] + NOT_YIELDING
+# ... and turning at 3 rad/s rather than 1.5 (the Kobuki's limit: pi), with a stop action too.
+TURN_3 = ("--task.turn-rate", "3.0")
+VARIANTS["memory_crowd_fast_turn3"] = VARIANTS["memory_crowd_fast"] + TURN_3
+VARIANTS["memory_crowd_fast_turn3_stop"] = VARIANTS["memory_crowd_fast_turn3"] + (
+    "--task.actions",
+    "discrete_stop",
+)
 # Every variant names its collision margin (none unless it says), so that its row does not
 # depend on the preset's default.
 MARGIN = "--randomize.collision-margin"
