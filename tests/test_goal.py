@@ -20,6 +20,8 @@ from jaxnav.core.robot import TURTLEBOT2I
 from jaxnav.io.layouts import Box, LayoutError, RoomLayout, parse_layouts
 from jaxnav.ppo.distributions import Gaussian
 from jaxnav.robot_side.policy import FrameStack
+from jaxnav.tasks.avoid import AvoidConfig
+from jaxnav.tasks.base import BACK_SHARE, velocity_actions
 from jaxnav.tasks.goal import spl_values
 
 R = TURTLEBOT2I.radius
@@ -217,12 +219,47 @@ def test_stop_action_holds_still_and_clearance_costs_near_walls():
             moved = np.asarray(state.data.qpos[:3] - start.data.qpos[:3])
             np.testing.assert_allclose(moved, 0.0, atol=1e-4)
     assert gap > 0.3  # out of the clearance: no cost beyond the paper's terms
-    with pytest.raises(ValueError, match="AvoidConfig.actions: 'discrete_stop' is for the goal"):
-        jaxnav.make_env("avoid", actions="discrete_stop")
     with pytest.raises(ValueError, match="GoalConfig.clearance: must be >= 0 m"):
         jaxnav.make_env("goal", clearance=-0.1)
     with pytest.raises(ValueError, match="GoalConfig.clearance_reward: must be <= 0 .a cost."):
         jaxnav.make_env("goal", clearance_reward=0.05)
+
+
+def test_fourth_actions_stop_and_back():
+    """`discrete_stop` and `discrete_back` add one command to the paper's three: stop (0, 0), or
+    back at BACK_SHARE of the forward speed; `avoid`, whose Table I pays neither, refuses both."""
+    paper = [[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]]
+    stop, back = (velocity_actions(a, 0.5, 1.5) for a in ("discrete_stop", "discrete_back"))
+    assert stop.names == ("forward", "left", "right", "stop")
+    assert back.names == ("forward", "left", "right", "back")
+    np.testing.assert_array_equal(stop.table(), [*paper, [0.0, 0.0]])
+    np.testing.assert_array_equal(back.table(), [*paper, [-BACK_SHARE * 0.5, 0.0]])
+    for actions in ("discrete_stop", "discrete_back"):
+        with pytest.raises(ValueError, match=f"AvoidConfig.actions: '{actions}' is for the goal"):
+            AvoidConfig(actions=actions)
+
+
+@pytest.mark.slow
+def test_back_action_backs_away_along_the_heading():
+    """The `back` action drives the robot backwards along its heading, without turning, and the
+    reward counts the metres it backs away from the goal. Slow: the env compiles its own program."""
+    room = RoomLayout(
+        name="back", size=(4.0, 4.0), robot_pos=(0.0, 0.0), robot_yaw=np.pi, goal_pos=(-1.5, 0.0)
+    )
+    env = jaxnav.make_env(
+        "goal", layouts=[room], randomize=EXACT, actions="discrete_back", progress="straight"
+    )
+    t, step = env.task, jax.jit(env.step)
+    state = start = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    to_go = lambda s: float(np.hypot(*(np.asarray(s.data.qpos[:2]) - (-1.5, 0.0))))  # noqa: E731
+    for _ in range(10):
+        before, state = to_go(state), step(state, jnp.int32(3))
+        expected = t.time_reward + t.progress_reward * (before - to_go(state))
+        np.testing.assert_allclose(float(state.reward), expected, atol=1e-4)
+    moved = np.asarray(state.data.qpos[:3] - start.data.qpos[:3])
+    back = 10 * env.control_period * BACK_SHARE * t.forward_speed  # +x, as it faces -x
+    np.testing.assert_allclose(moved, [back, 0.0, 0.0], atol=1e-3)  # no drift, no turn
+    assert not bool(state.done)
 
 
 def test_gaussian_policy_log_prob_and_entropy():

@@ -89,8 +89,8 @@ def parse_args(argv=None) -> argparse.Namespace:
             "--actions",
             dest="task.actions",
             choices=ACTIONS,
-            help="short for --task.actions: the paper's three actions, those and a stop (goal task), "
-            "or continuous commands",
+            help="short for --task.actions: the paper's three actions, those and a stop or a back "
+            "(goal task), or continuous commands",
         )
     args = parser.parse_args(argv)
     args.given = [

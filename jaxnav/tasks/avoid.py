@@ -37,8 +37,9 @@ class AvoidConfig:
     actions: str = "discrete"
     """'discrete': the paper's forward / left / right; 'continuous': (forward m/s, yaw rad/s) in
     [0, forward_speed] x [-turn_rate, turn_rate], its reward Table I interpolated by the forward
-    share v / forward_speed (1: the forward entries, 0: the turn entries). ('discrete_stop', the
-    goal task's, is refused: Table I has no entry for standing still.)"""
+    share v / forward_speed (1: the forward entries, 0: the turn entries). ('discrete_stop' and
+    'discrete_back', the goal task's, are refused: Table I has no entry for standing still or
+    backing.)"""
     forward_speed: float = 0.5
     """Commanded speed of the `forward` action, m/s (Kobuki top speed 0.7)."""
     turn_rate: float = 1.5
@@ -76,10 +77,10 @@ class AvoidConfig:
             raise ValueError(
                 f"AvoidConfig.actions: must be one of {', '.join(ACTIONS)}, got {self.actions!r}"
             )
-        if self.actions == "discrete_stop":
+        if self.actions in ("discrete_stop", "discrete_back"):
             raise ValueError(
-                "AvoidConfig.actions: 'discrete_stop' is for the goal task; Table I has no "
-                "reward for standing still (it would pay a stop as a turn)"
+                f"AvoidConfig.actions: {self.actions!r} is for the goal task; Table I has no "
+                "reward for standing still or backing (it would pay either as a turn)"
             )
 
     @property

@@ -35,21 +35,25 @@ from jaxnav.core.types import ActionSpec, ContinuousActions, DiscreteActions
 
 GRAVITY = 9.81  # m/s^2, for the wheels' traction limit
 MAX_LATENCY = 4  # control steps of command history kept for the episode's latency
-ACTIONS = ("discrete", "discrete_stop", "continuous")  # the `actions` options (`velocity_actions`)
+ACTIONS = ("discrete", "discrete_stop", "discrete_back", "continuous")  # `velocity_actions`
+BACK_SHARE = 0.5  # the `back` action's speed, as a share of forward_speed
 
 
 def velocity_actions(actions: str, forward_speed: float, turn_rate: float) -> ActionSpec:
     """The paper's three commands (forward, turn left or right in place); with `actions` =
     "discrete_stop" a fourth, stop (0, 0), to wait with the view kept where it looks; with
-    "continuous", any (forward m/s, yaw rad/s) in [0, forward_speed] x [-turn_rate, turn_rate]
-    (no reversing: the camera looks ahead)."""
+    "discrete_back" a fourth, back (-BACK_SHARE x forward_speed, 0), to back away from what
+    comes, slower than forward as the camera does not see behind; with "continuous", any
+    (forward m/s, yaw rad/s) in [0, forward_speed] x [-turn_rate, turn_rate] (no reversing)."""
     if actions == "continuous":
         return ContinuousActions(low=(0.0, -turn_rate), high=(forward_speed, turn_rate))
-    stop = actions == "discrete_stop"
-    return DiscreteActions(
-        names=("forward", "left", "right") + ("stop",) * stop,
-        commands=((forward_speed, 0.0), (0.0, turn_rate), (0.0, -turn_rate)) + ((0.0, 0.0),) * stop,
-    )
+    names = ("forward", "left", "right")
+    commands = ((forward_speed, 0.0), (0.0, turn_rate), (0.0, -turn_rate))
+    if actions == "discrete_stop":
+        names, commands = names + ("stop",), commands + ((0.0, 0.0),)
+    elif actions == "discrete_back":
+        names, commands = names + ("back",), commands + ((-BACK_SHARE * forward_speed, 0.0),)
+    return DiscreteActions(names=names, commands=commands)
 
 
 def stack_frames(frame: jax.Array, obs: jax.Array, size: int) -> jax.Array:

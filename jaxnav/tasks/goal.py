@@ -67,7 +67,8 @@ class GoalConfig:
 
     actions: str = "discrete"
     """'discrete': the paper's forward / left / right; 'discrete_stop': those and stop (0, 0);
-    'continuous': (forward m/s, yaw rad/s) in [0, forward_speed] x [-turn_rate, turn_rate]."""
+    'discrete_back': those and back (-forward_speed / 2, 0); 'continuous': (forward m/s, yaw
+    rad/s) in [0, forward_speed] x [-turn_rate, turn_rate]."""
     forward_speed: float = 0.5
     """Forward speed of the `forward` action (the top of the continuous range), m/s (Kobuki 0.7)."""
     turn_rate: float = 1.5
@@ -144,7 +145,8 @@ class GoalConfig:
 
     @property
     def action_spec(self) -> ActionSpec:
-        """The paper's three actions (and a stop), or continuous commands within the same speeds."""
+        """The paper's three actions (and a stop or a back), or continuous commands within the same
+        speeds."""
         return velocity_actions(self.actions, self.forward_speed, self.turn_rate)
 
     def check_robot(self, robot: RobotSpec) -> None:
