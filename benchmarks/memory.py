@@ -7,9 +7,11 @@ in training (5, 7.5 and 10 cm: `memory_hall_margin5`, `_margin7`, `_margin10`) o
 degrees rather than 8 of 7.5 (`memory_hall_s12`, as many rays), and the mix of every hard family
 with the clearance (`memory_hard_clear20`); among people, a 360 deg lidar instead of the camera
 (`lidar_crowd_fast`, with the clearance: `_clear20`) and a fifth of the walkers giving way in
-training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`); and the cpu preset as
-it is (`cpu_preset`, with `--preset cpu`: the README's goal run, whose training wall time is its
-row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`).
+training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turning at 3 rad/s
+(`memory_crowd_fast_turn3`, with a stop action: `_stop`) or backing away
+(`memory_crowd_fast_back`); and the cpu preset as it is (`cpu_preset`, with `--preset cpu`: the
+README's goal run, whose training wall time is its row's `train_wall_s`; with a 7.5 cm collision
+margin: `cpu_preset_margin7`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -88,6 +90,11 @@ VARIANTS["memory_crowd_fast_turn3"] = VARIANTS["memory_crowd_fast"] + TURN_3
 VARIANTS["memory_crowd_fast_turn3_stop"] = VARIANTS["memory_crowd_fast_turn3"] + (
     "--task.actions",
     "discrete_stop",
+)
+# ... and with a fourth action that backs away (half the forward speed).
+VARIANTS["memory_crowd_fast_back"] = VARIANTS["memory_crowd_fast"] + (
+    "--task.actions",
+    "discrete_back",
 )
 # Every variant names its collision margin (none unless it says), so that its row does not
 # depend on the preset's default.
