@@ -13,7 +13,8 @@ collided (collision) and ran out of CrowdNav's 25 s (timeout; 250 control steps)
 time of the successful ones (time to goal, s; their "navigation time"). Beside them: the
 collisions the robot caused, and the episodes in which a non-reactive person ran into the robot
 while it stood (`walker_hit`). Success is the goal task's (its centre within `success_radius`,
-0.3 m by default: CrowdNav's robot radius). Prints a table and writes JSON.
+0.3 m by default: CrowdNav's robot radius). `--action-shares`: also how often a discrete policy
+took each of its actions, over the steps of running episodes. Prints a table and writes JSON.
 """
 
 from __future__ import annotations
@@ -60,6 +61,40 @@ def circle_crossing(policy, kind: str, episodes: int, seed: int) -> dict:
     return crowdnav_metrics(result["overall"])
 
 
+def action_shares(policy, kind: str, episodes: int, seed: int) -> dict:
+    """{action name: share of the steps of running episodes} of a discrete goal `Policy` on the
+    circle crossing of `kind` (the rooms, episodes and time limit of `circle_crossing`; its own
+    rollout, as evaluation keeps no actions)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxnav.evaluation import eval_randomize, first_state, make_eval_env, success_radius
+    from jaxnav.io.layouts import load_layouts
+
+    path = SCENES / f"circle_crossing_{kind}.json"
+    layouts = load_layouts([path], success_radius=success_radius(policy))
+    randomize = eval_randomize("layout", True, None, False)
+    env = make_eval_env(policy, layouts, steps=STEPS, randomize=randomize)
+
+    def rollout(key):  # -> actions [STEPS, E], running [STEPS, E]
+        k_reset, k_act = jax.random.split(key)
+        state = first_state(env, k_reset, episodes, True)
+
+        def body(carry, k):
+            s, done = carry
+            action = policy.act(s.obs, k)
+            nxt = jax.vmap(env.step)(s, action)
+            return (nxt, done | nxt.done), (action, ~done)
+
+        start = (state, jnp.zeros(state.done.shape, bool))
+        return jax.lax.scan(body, start, jax.random.split(k_act, STEPS))[1]
+
+    actions, running = map(np.asarray, jax.jit(rollout)(jax.random.PRNGKey(seed)))
+    names = env.action_spec.names
+    return {n: float(((actions == i) & running).sum() / running.sum()) for i, n in enumerate(names)}
+
+
 def format_table(results: dict) -> str:
     """One row per kind of people: CrowdNav's figures, then the attribution of collisions."""
     head = f"{'people':<12}{'success':>9}{'collision':>11}{'timeout':>9}{'time (s)':>10}"
@@ -81,6 +116,9 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=50, help="episodes per room (10 rooms)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=str(DEFAULT_JSON), help="write the results here")
+    parser.add_argument(
+        "--action-shares", action="store_true", help="also each action's share of the steps"
+    )
     args = parser.parse_args()
     import jaxnav
     from jaxnav.evaluation import baseline
@@ -91,6 +129,11 @@ def main() -> None:
         policy = baseline(args.policy, "goal")
     results = {k: circle_crossing(policy, k, args.episodes, args.seed) for k in KINDS}
     print(format_table(results))
+    if args.action_shares:
+        for kind in KINDS:
+            shares = action_shares(policy, kind, args.episodes, args.seed)
+            results[kind]["action_shares"] = shares
+            print(kind, " ".join(f"{n} {v:.1%}" for n, v in shares.items()))
     result = {
         **run_info("device", "python", "jax"),
         "policy": args.checkpoint or args.policy,
