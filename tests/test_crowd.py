@@ -182,6 +182,42 @@ def test_walker_config_spec_and_errors():
             crowd.WalkerConfig.parse(spec)
 
 
+def test_aimed_walkers_cross_the_robots_way():
+    """An aimed walker walks through a point of the straight way from the spawn to the goal
+    (20-80 % along it) or, without a goal, 1-4 m ahead of the spawn, starting 1.5-4 m from that
+    point and ending as far beyond; crossings of the room mostly miss the way."""
+    lay = RoomLayout(
+        name="way",
+        size=(8.0, 8.0),
+        robot_pos=(-3.0, 0.0),
+        obstacles=(_walker((3.5, 3.5), (3.5, 3.5)),),
+    )
+    room = jax.tree_util.tree_map(lambda x: x[0], make_bank([lay], 1, 7).rooms)  # facing +x
+    keys = jax.random.split(jax.random.PRNGKey(0), 100)
+
+    def crossings(aimed, goal):
+        """[N, 2] starts and [N, 2] ends of the walkers placed in slots 1-6 of 100 draws."""
+        cfg = crowd.WalkerConfig(count=(6, 6), aimed=aimed)
+        add = jax.jit(jax.vmap(lambda k: crowd.add_walkers(k, room, cfg, 1, ROBOT, goal)))
+        p = add(keys)
+        on = np.asarray(p.cyl_active)[:, 1:]
+        assert on.mean() > 0.8  # most walkers find a crossing in 16 draws
+        return np.asarray(p.cyl_pos)[:, 1:][on], np.asarray(p.motion.walkers.goal)[:, 1:][on]
+
+    for goal, (lo, hi) in (((3.0, 0.0), (-1.8, 1.8)), (None, (-2.0, 1.0))):
+        start, end = crossings(1.0, None if goal is None else jnp.array(goal))
+        via = (start + end) / 2  # on the way: y = 0, x within the span
+        assert np.abs(via[:, 1]).max() < 1e-4
+        assert lo - 1e-4 <= via[:, 0].min() and via[:, 0].max() <= hi + 1e-4
+        reach = np.linalg.norm(end - start, axis=-1) / 2
+        assert reach.min() >= 1.5 - 1e-4 and reach.max() <= 4.0 + 1e-4
+    start, end = crossings(0.0, jnp.array((3.0, 0.0)))
+    via = (start + end) / 2
+    assert (np.abs(via[:, 1]) < 0.05).mean() < 0.2
+    with pytest.raises(ValueError, match="WalkerConfig.aimed: must be in"):
+        crowd.WalkerConfig(aimed=1.5)
+
+
 # ------------------------------------------------------------------------------
 # In the env: the sampler's walkers, the attribution of collisions, no recompiling
 

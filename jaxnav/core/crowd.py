@@ -49,6 +49,9 @@ _DX = 1e-3  # m, step of the finite differences that give a still obstacle's nor
 STOPPED_SPEED = 0.05  # m/s: a robot slower than this stands (`hit_by_walker`)
 TOUCH = 1e-3  # m of tolerance on the robot touching a walker
 MAX_WALKERS = 16  # most walkers added per room
+AIM_SPAN = (0.2, 0.8)  # share of the way to the goal at which an aimed walker crosses it
+AIM_AHEAD = (1.0, 4.0)  # m ahead of the spawn at which it crosses the way where there is no goal
+AIM_REACH = (1.5, 4.0)  # m from its start to the point it crosses, and as far beyond
 CROWD_ROOM = -2  # `SceneParams.layout_id` of a room of the `crowd` family (sampled, < 0)
 
 
@@ -73,6 +76,11 @@ class WalkerConfig:
     """Height of a walker, m."""
     clearance: float = 1.0
     """Least gap between a walker and the robot's edge at the reset, m."""
+    aimed: float = 0.0
+    """Share of the walkers whose crossing is aimed across the robot's way (`_aimed`): it walks
+    through a point of the straight line from the spawn to the goal, or ahead of the spawn where
+    there is no goal, back and forth, as CrowdNav's people cross the circle's centre; the others
+    cross the room (`_crossings`). 0: none, and the draws of a room are those of before."""
 
     def __post_init__(self):
         for name in ("count", "crowd_count", "speed", "radius", "height"):
@@ -94,8 +102,11 @@ class WalkerConfig:
                 raise ValueError(
                     f"WalkerConfig.{name}: low must be > 0 m, got {getattr(self, name)}"
                 )
-        if not 0 <= self.reactive <= 1:
-            raise ValueError(f"WalkerConfig.reactive: must be in [0, 1], got {self.reactive}")
+        for name in ("reactive", "aimed"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(
+                    f"WalkerConfig.{name}: must be in [0, 1], got {getattr(self, name)}"
+                )
         if self.clearance < 0:
             raise ValueError(f"WalkerConfig.clearance: must be >= 0 m, got {self.clearance}")
 
@@ -309,11 +320,32 @@ def _crossings(d: Draws, half, r):
     return start * limit, goal * limit
 
 
+def _aimed(d: Draws, half, r, spawn, goal):
+    """[TRIES, 2] starts and [TRIES, 2] goals of crossings through a point of the robot's way:
+    of the straight line from `spawn` [3] (x, y, yaw) to `goal` [2] at a uniform share AIM_SPAN
+    of it or, where `goal` is None, AIM_AHEAD m ahead of the spawn along its heading. Each comes
+    from a uniform direction, starts AIM_REACH m from that point and ends as far beyond it; and
+    [TRIES] bool: both ends lie inside the room of interior `half` [2] for a walker of radius
+    `r`."""
+    if goal is None:
+        ahead = d.uniform((TRIES, 1), *AIM_AHEAD)
+        via = spawn[:2] + ahead * jnp.stack([jnp.cos(spawn[2]), jnp.sin(spawn[2])])
+    else:
+        via = spawn[:2] + d.uniform((TRIES, 1), *AIM_SPAN) * (goal - spawn[:2])  # [TRIES, 2]
+    angle = d.uniform((TRIES,), -jnp.pi, jnp.pi)
+    offset = d.uniform((TRIES, 1), *AIM_REACH) * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)
+    start, end = via + offset, via - offset
+    limit = half - r - FREE_GAP
+    inside = (jnp.abs(start) <= limit).all(-1) & (jnp.abs(end) <= limit).all(-1)
+    return start, end, inside
+
+
 def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, goal=None):
     """`room` (SceneParams with `motion.walkers`) with up to `cfg.slots` walkers in cylinder slots
     `first`... : count uniform in cfg.count (cfg.crowd_count in a `crowd` room), radius, speed and
-    height uniform in their ranges, reactive with probability cfg.reactive. Each takes the first
-    of `TRIES` crossings (`_crossings`) whose start keeps FREE_GAP from everything placed so far
+    height uniform in their ranges, reactive with probability cfg.reactive, aimed across the
+    robot's way with probability cfg.aimed. Each takes the first of `TRIES` crossings
+    (`_crossings`, an aimed one `_aimed`) whose start keeps FREE_GAP from everything placed so far
     and `cfg.clearance` from the robot's edge at the spawn, off the robot's disc at `goal` [2]
     (if given), and whose straight line keeps FREE_GAP from the walls and the still obstacles;
     a walker with no such crossing is left out."""
@@ -325,12 +357,18 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
     count = d.randint((), lo, hi + 1)
     radius, speed, height = (d.uniform((m,), *b) for b in (cfg.radius, cfg.speed, cfg.height))
     reactive = d.bernoulli(cfg.reactive, (m,))
+    aimed = d.bernoulli(cfg.aimed, (m,)) if cfg.aimed else None
     still, spawn, w = room, room.spawn[:2], room.motion.walkers
     along = jnp.linspace(0.0, 1.0, SEGMENT_POINTS)[:, None, None]  # [P, 1, 1]
     for j in range(m):
         slot, r = first + j, radius[j]
         start, end = _crossings(d, room.room_half, r)  # [TRIES, 2] each
-        ok = signed_distance(room, start) > r + FREE_GAP
+        ok = True
+        if aimed is not None:
+            at, to, inside = _aimed(d, room.room_half, r, room.spawn, goal)
+            start, end = (jnp.where(aimed[j], a, b) for a, b in ((at, start), (to, end)))
+            ok = inside | ~aimed[j]
+        ok &= signed_distance(room, start) > r + FREE_GAP
         line = signed_distance(still, start + along * (end - start))  # [P, TRIES]
         ok &= (line > r + FREE_GAP).all(0)
         ok &= jnp.linalg.norm(start - spawn, axis=-1) > robot_radius + cfg.clearance + r
