@@ -10,9 +10,11 @@ with the clearance (`memory_hard_clear20`); among people, a 360 deg lidar instea
 training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turning at 3 rad/s
 (`memory_crowd_fast_turn3`, with a stop action: `_stop`), backing away
 (`memory_crowd_fast_back`) or walkers aimed across the robot's way in training (half of them:
-`memory_crowd_fast_aimed`, all: `_aimed_all`, half and backing away: `_aimed_back`); and the cpu
-preset as it is (`cpu_preset`, with `--preset cpu`: the README's goal run, whose training wall
-time is its row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`).
+`memory_crowd_fast_aimed`, all: `_aimed_all`, half and backing away: `_aimed_back`), backing
+away with twice the training (`memory_crowd_fast_back_long`), walkers in half the rooms
+(`_back_crowd9`) or a fifth giving way (`_back_nr`); and the cpu preset as it is (`cpu_preset`,
+with `--preset cpu`: the README's goal run, whose training wall time is its row's `train_wall_s`;
+with a 7.5 cm collision margin: `cpu_preset_margin7`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -107,6 +109,18 @@ VARIANTS["memory_crowd_fast_aimed_all"] = VARIANTS["memory_crowd_fast"] + (
     "--randomize.walkers",
     "aimed=1",
 )
+BACK = ("--task.actions", "discrete_back")
+# ... and backing away with twice the training, walkers in half the rooms, or a fifth yielding.
+VARIANTS["memory_crowd_fast_back_long"] = VARIANTS["memory_crowd_fast_back"] + (
+    "--total-steps",
+    "200000000",
+)
+VARIANTS["memory_crowd_fast_back_crowd9"] = (
+    ("--task.memory-bins", "16", "--randomize.families", "all,crowd:9")
+    + ("--task.forward-speed", "0.7")
+    + BACK
+)
+VARIANTS["memory_crowd_fast_back_nr"] = VARIANTS["memory_crowd_fast_back"] + NOT_YIELDING
 VARIANTS["memory_crowd_fast_aimed_back"] = VARIANTS["memory_crowd_fast_aimed"] + (
     "--task.actions",
     "discrete_back",
