@@ -12,7 +12,8 @@ training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turni
 (`memory_crowd_fast_back`) or walkers aimed across the robot's way in training (half of them:
 `memory_crowd_fast_aimed`, all: `_aimed_all`, half and backing away: `_aimed_back`), backing
 away with twice the training (`memory_crowd_fast_back_long`), walkers in half the rooms
-(`_back_crowd9`) or a fifth giving way (`_back_nr`); and the cpu preset as it is (`cpu_preset`,
+(`_back_crowd9`) or a fifth giving way (`_back_nr`), and the lidar backing away
+(`lidar_crowd_fast_back`, twice the training: `_long`); and the cpu preset as it is (`cpu_preset`,
 with `--preset cpu`: the README's goal run, whose training wall time is its row's `train_wall_s`;
 with a 7.5 cm collision margin: `cpu_preset_margin7`).
 
@@ -121,6 +122,12 @@ VARIANTS["memory_crowd_fast_back_crowd9"] = (
     + BACK
 )
 VARIANTS["memory_crowd_fast_back_nr"] = VARIANTS["memory_crowd_fast_back"] + NOT_YIELDING
+# ... and the 360 deg lidar with the back action (twice the training: `_long`).
+VARIANTS["lidar_crowd_fast_back"] = VARIANTS["lidar_crowd_fast"] + BACK
+VARIANTS["lidar_crowd_fast_back_long"] = VARIANTS["lidar_crowd_fast_back"] + (
+    "--total-steps",
+    "200000000",
+)
 VARIANTS["memory_crowd_fast_aimed_back"] = VARIANTS["memory_crowd_fast_aimed"] + (
     "--task.actions",
     "discrete_back",
