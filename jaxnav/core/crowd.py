@@ -49,9 +49,8 @@ _DX = 1e-3  # m, step of the finite differences that give a still obstacle's nor
 STOPPED_SPEED = 0.05  # m/s: a robot slower than this stands (`hit_by_walker`)
 TOUCH = 1e-3  # m of tolerance on the robot touching a walker
 MAX_WALKERS = 16  # most walkers added per room
-AIM_SPAN = (0.2, 0.8)  # share of the way to the goal at which an aimed walker crosses it
-AIM_AHEAD = (1.0, 4.0)  # m ahead of the spawn at which it crosses the way where there is no goal
-AIM_REACH = (1.5, 4.0)  # m from its start to the point it crosses, and as far beyond
+AIM_AHEAD = (1.0, 4.0)  # m, radius of an aimed walker's circle where the robot has no goal
+AIM_NOISE = 0.5  # m, the most an aimed walker's start lies off its circle per axis (CrowdNav's)
 CROWD_ROOM = -2  # `SceneParams.layout_id` of a room of the `crowd` family (sampled, < 0)
 
 
@@ -77,10 +76,11 @@ class WalkerConfig:
     clearance: float = 1.0
     """Least gap between a walker and the robot's edge at the reset, m."""
     aimed: float = 0.0
-    """Share of the walkers whose crossing is aimed across the robot's way (`_aimed`): it walks
-    through a point of the straight line from the spawn to the goal, or ahead of the spawn where
-    there is no goal, back and forth, as CrowdNav's people cross the circle's centre; the others
-    cross the room (`_crossings`). 0: none, and the draws of a room are those of before."""
+    """Share of the walkers that cross the robot's way as CrowdNav's circle crossing has them
+    (`_aimed`): from a point of the circle whose diameter is the straight way from the spawn to
+    the goal (ahead of the spawn where there is no goal) to the opposite point, back and forth;
+    where no such crossing fits, and for the others, a crossing of the room (`_crossings`).
+    0: none, and the draws of a room are those of before."""
 
     def __post_init__(self):
         for name in ("count", "crowd_count", "speed", "radius", "height"):
@@ -321,20 +321,22 @@ def _crossings(d: Draws, half, r):
 
 
 def _aimed(d: Draws, half, r, spawn, goal):
-    """[TRIES, 2] starts and [TRIES, 2] goals of crossings through a point of the robot's way:
-    of the straight line from `spawn` [3] (x, y, yaw) to `goal` [2] at a uniform share AIM_SPAN
-    of it or, where `goal` is None, AIM_AHEAD m ahead of the spawn along its heading. Each comes
-    from a uniform direction, starts AIM_REACH m from that point and ends as far beyond it; and
+    """[TRIES, 2] starts and [TRIES, 2] goals of CrowdNav's circle crossing around the robot's
+    way: on the circle through `spawn` [3] (x, y, yaw) and `goal` [2] whose diameter is the
+    straight line between them or, where `goal` is None, the circle of radius AIM_AHEAD m centred
+    that far ahead of the spawn along its heading; the start at a uniform angle on it plus
+    uniform noise of up to AIM_NOISE m per axis, the goal opposite it across the centre. And
     [TRIES] bool: both ends lie inside the room of interior `half` [2] for a walker of radius
     `r`."""
     if goal is None:
-        ahead = d.uniform((TRIES, 1), *AIM_AHEAD)
-        via = spawn[:2] + ahead * jnp.stack([jnp.cos(spawn[2]), jnp.sin(spawn[2])])
+        reach = d.uniform((TRIES, 1), *AIM_AHEAD)
+        centre = spawn[:2] + reach * jnp.stack([jnp.cos(spawn[2]), jnp.sin(spawn[2])])
     else:
-        via = spawn[:2] + d.uniform((TRIES, 1), *AIM_SPAN) * (goal - spawn[:2])  # [TRIES, 2]
+        centre, reach = (spawn[:2] + goal) / 2, jnp.linalg.norm(goal - spawn[:2]) / 2
     angle = d.uniform((TRIES,), -jnp.pi, jnp.pi)
-    offset = d.uniform((TRIES, 1), *AIM_REACH) * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)
-    start, end = via + offset, via - offset
+    offset = reach * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)  # [TRIES, 2]
+    offset += d.uniform((TRIES, 2), -AIM_NOISE, AIM_NOISE)
+    start, end = centre + offset, centre - offset
     limit = half - r - FREE_GAP
     inside = (jnp.abs(start) <= limit).all(-1) & (jnp.abs(end) <= limit).all(-1)
     return start, end, inside
@@ -345,7 +347,7 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
     `first`... : count uniform in cfg.count (cfg.crowd_count in a `crowd` room), radius, speed and
     height uniform in their ranges, reactive with probability cfg.reactive, aimed across the
     robot's way with probability cfg.aimed. Each takes the first of `TRIES` crossings
-    (`_crossings`, an aimed one `_aimed`) whose start keeps FREE_GAP from everything placed so far
+    (`_crossings`; an aimed one the first of `TRIES` of `_aimed`, else those) whose start keeps FREE_GAP from everything placed so far
     and `cfg.clearance` from the robot's edge at the spawn, off the robot's disc at `goal` [2]
     (if given), and whose straight line keeps FREE_GAP from the walls and the still obstacles;
     a walker with no such crossing is left out."""
@@ -362,14 +364,14 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
     along = jnp.linspace(0.0, 1.0, SEGMENT_POINTS)[:, None, None]  # [P, 1, 1]
     for j in range(m):
         slot, r = first + j, radius[j]
-        start, end = _crossings(d, room.room_half, r)  # [TRIES, 2] each
+        start, end = _crossings(d, room.room_half, r)  # [N, 2] each, N = TRIES
         ok = True
-        if aimed is not None:
+        if aimed is not None:  # the aimed crossings first, where they fit: N = 2 TRIES
             at, to, inside = _aimed(d, room.room_half, r, room.spawn, goal)
-            start, end = (jnp.where(aimed[j], a, b) for a, b in ((at, start), (to, end)))
-            ok = inside | ~aimed[j]
+            start, end = jnp.concatenate([at, start]), jnp.concatenate([to, end])
+            ok = jnp.concatenate([inside & aimed[j], jnp.ones(TRIES, bool)])
         ok &= signed_distance(room, start) > r + FREE_GAP
-        line = signed_distance(still, start + along * (end - start))  # [P, TRIES]
+        line = signed_distance(still, start + along * (end - start))  # [P, N]
         ok &= (line > r + FREE_GAP).all(0)
         ok &= jnp.linalg.norm(start - spawn, axis=-1) > robot_radius + cfg.clearance + r
         if goal is not None:
