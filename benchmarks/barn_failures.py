@@ -32,35 +32,25 @@ def rollout(policy, layouts, episodes: int, steps: int, exact: bool):
     """Per step [T, E]: pose (x, y, yaw) before it, action, the newest depth sectors, and
     whether the step collided in a still running episode; and the env."""
     import jax
-    import jax.numpy as jnp
 
-    from jaxnav.evaluation import eval_randomize, first_state, make_eval_env
+    from jaxnav.evaluation import eval_randomize, make_eval_env, make_recorder
 
     randomize = eval_randomize(stochastic_env=not exact)
     env = make_eval_env(policy, layouts, steps=steps, randomize=randomize)
-    step, sectors = jax.vmap(env.step), env.sensor.num_sectors
+    sectors = env.sensor.num_sectors
 
-    def body(carry, key):
-        state, done = carry
-        action = policy.act(state.obs, key)
-        nxt = step(state, action)
-        hit = (nxt.metrics["collision"] > 0) & ~done
-        rec = (state.data.qpos[:, :3], action, state.obs[:, :sectors], hit)
-        return (nxt, done | nxt.done), rec
+    def record(state, action, nxt, running):
+        hit = (nxt.metrics["collision"] > 0) & running
+        return state.data.qpos[:, :3], action, state.obs[:, :sectors], hit
 
-    @jax.jit
-    def run(key):
-        k_reset, k_act = jax.random.split(key)
-        state = first_state(env, k_reset, episodes, True)
-        done = jnp.zeros(state.obs.shape[0], bool)
-        _, rec = jax.lax.scan(body, (state, done), jax.random.split(k_act, steps))
-        return rec
-
+    run = make_recorder(env, policy.act, episodes, steps, record)
     return [np.asarray(x) for x in jax.device_get(run(jax.random.PRNGKey(0)))], env
 
 
-def collisions(rec, layouts, episodes: int, env) -> list[dict]:
-    """One record per episode that collided (module docstring)."""
+def collisions(rec, layouts, episodes: int, env, moving=None) -> list[dict]:
+    """One record per episode that collided (module docstring). `moving`: [T, E, C, 2] the
+    centres of the cylinders at each step, slot i the layout's i-th (people who walk), instead
+    of the layouts' still ones."""
     qpos, action, sectors, hit = rec
     half_fov, range_min = 0.5 * env.sensor.fov, env.sensor.range_min
     forward = env.robot.camera_forward
@@ -68,17 +58,24 @@ def collisions(rec, layouts, episodes: int, env) -> list[dict]:
     for e in np.flatnonzero(hit.any(0)):
         t = int(np.argmax(hit[:, e]))
         layout = layouts[e // episodes]
-        centres = np.array([o.pos for o in layout.obstacles])  # [N, 2]
         radii = np.array([o.radius for o in layout.obstacles])  # [N]
-        end = qpos[min(t + 1, len(qpos) - 1), e]  # the pose after the colliding step
-        i = int(np.argmin(np.linalg.norm(centres - end[:2], axis=1) - radii))
-        back = qpos[max(0, t - 20) : t + 1, e]  # [<= 21, 3] the poses up to the colliding step
-        rel = centres[i] - back[:, :2]
+        if moving is None:
+            centres = np.array([o.pos for o in layout.obstacles])[None]  # [1, N, 2]
+        else:
+            centres = moving[:, e, : len(radii)]  # [T, N, 2]
+        centres = np.broadcast_to(centres, (len(qpos), len(radii), 2))
+        after = min(t + 1, len(qpos) - 1)  # the pose after the colliding step
+        end = qpos[after, e]
+        i = int(np.argmin(np.linalg.norm(centres[after] - end[:2], axis=1) - radii))
+        first = max(0, t - 20)
+        back = qpos[first : t + 1, e]  # [<= 21, 3] the poses up to the colliding step
+        seen_at = centres[first : t + 1, i]  # [<= 21, 2] where the cylinder was then
+        rel = seen_at - back[:, :2]
         bearing = (np.arctan2(rel[:, 1], rel[:, 0]) - back[:, 2] + math.pi) % (
             2 * math.pi
         ) - math.pi
         camera = back[:, :2] + forward * np.stack([np.cos(back[:, 2]), np.sin(back[:, 2])], -1)
-        depth = np.linalg.norm(centres[i] - camera, axis=1) - radii[i]
+        depth = np.linalg.norm(seen_at - camera, axis=1) - radii[i]
         readable = (np.abs(bearing) < half_fov) & (depth >= range_min)
         seen = np.flatnonzero(readable)
         last = len(back) - 1

@@ -14,7 +14,10 @@ time of the successful ones (time to goal, s; their "navigation time"). Beside t
 collisions the robot caused, and the episodes in which a non-reactive person ran into the robot
 while it stood (`walker_hit`). Success is the goal task's (its centre within `success_radius`,
 0.3 m by default: CrowdNav's robot radius). `--action-shares`: also how often a discrete policy
-took each of its actions, over the steps of running episodes. Prints a table and writes JSON.
+took each of its actions, over the steps of running episodes. `--contacts`: also, for each
+collision, the person the robot touched (the nearest after that step), its bearing from the
+heading and how many steps before it was last where the camera could read it, tallied as
+`benchmarks/barn_failures.py` tallies BARN's cylinders. Prints a table and writes JSON.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from barn_failures import collisions, tallies
 from report import run_info, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -61,38 +65,36 @@ def circle_crossing(policy, kind: str, episodes: int, seed: int) -> dict:
     return crowdnav_metrics(result["overall"])
 
 
-def action_shares(policy, kind: str, episodes: int, seed: int) -> dict:
-    """{action name: share of the steps of running episodes} of a discrete goal `Policy` on the
-    circle crossing of `kind` (the rooms, episodes and time limit of `circle_crossing`; its own
-    rollout, as evaluation keeps no actions)."""
+def people_steps(policy, kind: str, episodes: int, seed: int):
+    """Per step [T, E] of the circle crossing of `kind` (the rooms, episodes, time limit and key
+    of `circle_crossing`'s evaluation): (pose (x, y, yaw) before it, action, the newest depth
+    sectors, whether it collided in a running episode), whether the episode was running, and the
+    people's centres [T, E, C, 2]; with the env and the layouts."""
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
-    from jaxnav.evaluation import eval_randomize, first_state, make_eval_env, success_radius
+    from jaxnav.evaluation import eval_randomize, make_eval_env, make_recorder, success_radius
     from jaxnav.io.layouts import load_layouts
 
     path = SCENES / f"circle_crossing_{kind}.json"
     layouts = load_layouts([path], success_radius=success_radius(policy))
     randomize = eval_randomize("layout", True, None, False)
     env = make_eval_env(policy, layouts, steps=STEPS, randomize=randomize)
+    sectors = env.sensor.num_sectors
 
-    def rollout(key):  # -> actions [STEPS, E], running [STEPS, E]
-        k_reset, k_act = jax.random.split(key)
-        state = first_state(env, k_reset, episodes, True)
+    def record(state, action, nxt, running):
+        hit = (nxt.metrics["collision"] > 0) & running
+        step = (state.data.qpos[:, :3], action, state.obs[:, :sectors], hit)
+        return step, running, state.info["params"].cyl_pos
 
-        def body(carry, k):
-            s, done = carry
-            action = policy.act(s.obs, k)
-            nxt = jax.vmap(env.step)(s, action)
-            return (nxt, done | nxt.done), (action, ~done)
+    run = make_recorder(env, policy.act, episodes, STEPS, record)
+    rec, running, people = jax.tree_util.tree_map(np.asarray, run(jax.random.PRNGKey(seed)))
+    return rec, running, people, env, layouts
 
-        start = (state, jnp.zeros(state.done.shape, bool))
-        return jax.lax.scan(body, start, jax.random.split(k_act, STEPS))[1]
 
-    actions, running = map(np.asarray, jax.jit(rollout)(jax.random.PRNGKey(seed)))
-    names = env.action_spec.names
-    return {n: float(((actions == i) & running).sum() / running.sum()) for i, n in enumerate(names)}
+def action_shares(action, running, names) -> dict:
+    """{action name: share of the steps of running episodes} from [T, E] actions."""
+    return {n: float(((action == i) & running).sum() / running.sum()) for i, n in enumerate(names)}
 
 
 def format_table(results: dict) -> str:
@@ -119,6 +121,11 @@ def main() -> None:
     parser.add_argument(
         "--action-shares", action="store_true", help="also each action's share of the steps"
     )
+    parser.add_argument(
+        "--contacts",
+        action="store_true",
+        help="also where the people the robot touched were (benchmarks/barn_failures.py's tallies)",
+    )
     args = parser.parse_args()
     import jaxnav
     from jaxnav.evaluation import baseline
@@ -129,11 +136,20 @@ def main() -> None:
         policy = baseline(args.policy, "goal")
     results = {k: circle_crossing(policy, k, args.episodes, args.seed) for k in KINDS}
     print(format_table(results))
-    if args.action_shares:
-        for kind in KINDS:
-            shares = action_shares(policy, kind, args.episodes, args.seed)
+    for kind in KINDS if args.action_shares or args.contacts else ():
+        rec, running, people, env, layouts = people_steps(policy, kind, args.episodes, args.seed)
+        names = tuple(getattr(env.action_spec, "names", ()))  # () for continuous actions
+        if args.action_shares and names:
+            shares = action_shares(rec[1], running, names)
             results[kind]["action_shares"] = shares
             print(kind, " ".join(f"{n} {v:.1%}" for n, v in shares.items()))
+        if args.contacts:
+            rows = collisions(rec, layouts, args.episodes, env, moving=people)
+            results[kind]["contacts"] = {"collided": len(rows), **tallies(rows, names)}
+            print(f"{kind}: {len(rows)} collisions")
+            for what, table in results[kind]["contacts"].items():
+                if what != "collided":
+                    print(f"{what:>22}: " + ", ".join(f"{k} {v}" for k, v in table.items()))
     result = {
         **run_info("device", "python", "jax"),
         "policy": args.checkpoint or args.policy,

@@ -196,6 +196,29 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
     return jax.jit(rollout, compiler_options=compiler_options())
 
 
+def make_recorder(env, act, episodes: int, steps: int, record):
+    """A jitted `run(key) -> [steps, ...]`: `record(state, action, nxt, running)` at each step of
+    `episodes` episodes in every layout of the env's bank, the episodes of `make_rollout(...,
+    pinned=True)` with the same key (its resets, keys and actions); `running` [E]: the episode had
+    not ended before the step. For analyses that need more than a rollout's counts, such as where
+    a policy collided and with what."""
+    step = jax.vmap(env.step)
+
+    def body(carry, key):
+        state, done = carry
+        action = act(state.obs, key)
+        nxt = step(state, action)
+        return (nxt, done | nxt.done), record(state, action, nxt, ~done)
+
+    def run(key):
+        k_reset, k_act = jax.random.split(key)
+        state = first_state(env, k_reset, episodes, True)
+        done = jnp.zeros(state.done.shape, bool)
+        return jax.lax.scan(body, (state, done), jax.random.split(k_act, steps))[1]
+
+    return jax.jit(run, compiler_options=compiler_options())
+
+
 def metrics(
     collided, steps_run, distance, control_period, task_metrics=None, cover=None, declared=None
 ) -> dict:

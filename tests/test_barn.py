@@ -236,3 +236,34 @@ def test_failure_analysis_finds_the_cylinder_its_bearing_and_when_it_was_last_re
     counts = module.tallies([row], ("forward", "left", "right"))
     assert counts["bearing_deg"]["60-90"] == 0 and counts["bearing_deg"]["90-120"] == 1
     assert counts["action"] == {"forward": 0, "left": 0, "right": 1}
+
+
+def test_failure_analysis_follows_a_person_who_walked_in():
+    """benchmarks/barn_failures.py's analysis with moving cylinders (crowdnav.py --contacts): a
+    robot standing at the origin facing +x, a person walking from 2 m ahead to its left side;
+    the bearing and when it was last readable come from where the person was at each step, not
+    from where the layout put it."""
+    from types import SimpleNamespace
+
+    module = benchmark_script("barn_failures")
+    layout = SimpleNamespace(name="walk", obstacles=[SimpleNamespace(pos=(2.0, 0.0), radius=0.25)])
+    env = SimpleNamespace(
+        sensor=SimpleNamespace(fov=math.radians(60), range_min=0.6),
+        robot=SimpleNamespace(camera_forward=-0.05),
+    )
+    steps, t = 30, 25
+    qpos = np.zeros((steps, 1, 3))
+    walk = np.minimum(np.arange(steps), t) / t  # [T] 0 -> 1 at the collision, then it stands
+    path = np.stack([2.0 * (1 - walk), 0.45 * walk], -1)  # [T, 2]
+    hit = np.zeros((steps, 1), bool)
+    hit[t] = True
+    rec = (qpos, np.zeros((steps, 1), np.int32), np.full((steps, 1, 8), 8.0), hit)
+    (still,) = module.collisions(rec, [layout], 1, env)
+    assert still["bearing_deg"] == 0.0 and still["steps_since_readable"] == 0
+    (row,) = module.collisions(rec, [layout], 1, env, moving=path[:, None, None])
+    assert row["bearing_deg"] == pytest.approx(90.0)
+    seen = path[t - 20 : t + 1]  # by hand: within 30 degrees and 0.6 m of the camera
+    bearing = np.degrees(np.arctan2(seen[:, 1], seen[:, 0]))
+    depth = np.hypot(seen[:, 0] + 0.05, seen[:, 1]) - 0.25
+    readable = np.flatnonzero((np.abs(bearing) < 30) & (depth >= 0.6))
+    assert row["steps_since_readable"] == 20 - readable[-1] > 0

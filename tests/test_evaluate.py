@@ -31,6 +31,7 @@ from jaxnav.evaluation import (
     file_stems,
     format_table,
     load_suite,
+    make_recorder,
     make_rollout,
     metrics,
     strip_private,
@@ -258,6 +259,31 @@ def test_one_batch_matches_per_room_rollouts():
         assert got["mean_speed"] == pytest.approx(alone["mean_speed"], rel=1e-3), room.name
         assert got["mean_steps"] == alone["mean_steps"], room.name
         assert 0.0 < got["coverage"] <= 1.0
+
+
+@pytest.mark.slow
+def test_recorder_records_the_rollouts_episodes():
+    """`make_recorder` steps the episodes of a pinned `make_rollout` with the same key: the steps
+    it records as running and the collisions add up to the rollout's counts, from the same
+    starts. Slow: it compiles both."""
+    suite = load_suite("benchmark")
+    rooms = [suite["corridor"][0], suite["clutter"][1]]
+    env = jaxnav.make_env("avoid", rooms, randomize=eval_randomize("layout"), max_steps=150)
+
+    def act(obs, key):  # forward 4 steps in 5, else left: drawn with the step's key
+        return jnp.where(jax.random.uniform(key, obs.shape[:1]) < 0.8, 0, 1).astype(jnp.int32)
+
+    key = jax.random.PRNGKey(3)
+    track, _ = make_rollout(env, act, 4, 150, pinned=True)(key)
+
+    def record(state, action, nxt, running):
+        return running, (nxt.metrics["collision"] > 0) & running, state.data.qpos[:, :2]
+
+    running, hit, xy = map(np.asarray, make_recorder(env, act, 4, 150, record)(key))
+    np.testing.assert_array_equal(running.sum(0), track.steps)
+    np.testing.assert_array_equal(hit.any(0), track.collided)
+    np.testing.assert_array_equal(xy[0], track.start)
+    assert hit.any() and len(set(running.sum(0))) > 2  # collisions, at steps the keys drew
 
 
 class _CleanEnv(AvoidEnv):
