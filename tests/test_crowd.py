@@ -185,8 +185,8 @@ def test_walker_config_spec_and_errors():
 def test_aimed_walkers_cross_the_robots_way():
     """An aimed walker crosses as in CrowdNav's circle crossing: it starts near the circle whose
     diameter is the straight way from the spawn to the goal (or, without a goal, a circle of
-    1-4 m radius centred ahead of the spawn) and walks to the point opposite across its centre;
-    crossings of the room mostly miss the way's middle."""
+    1-4 m radius centred ahead of the spawn) and walks to the point opposite across its centre,
+    where it stays; crossings of the room, back and forth, mostly miss the way's middle."""
     lay = RoomLayout(
         name="way",
         size=(8.0, 8.0),
@@ -203,7 +203,10 @@ def test_aimed_walkers_cross_the_robots_way():
         p = add(keys)
         on = np.asarray(p.cyl_active)[:, 1:]
         assert on.mean() > 0.9  # every walker finds a crossing in 16 draws, nearly always
-        return np.asarray(p.cyl_pos)[:, 1:][on], np.asarray(p.motion.walkers.goal)[:, 1:][on]
+        w = p.motion.walkers
+        stays = np.asarray(w.back == w.goal).all(-1)[:, 1:][on]  # it stays at its goal
+        assert stays.all() if aimed == 1 else not stays.any()
+        return np.asarray(p.cyl_pos)[:, 1:][on], np.asarray(w.goal)[:, 1:][on]
 
     noise = np.hypot(crowd.AIM_NOISE, crowd.AIM_NOISE) + 1e-4
     start, end = crossings(1.0, jnp.array((3.0, 0.0)))  # the circle of radius 3 around 0

@@ -78,8 +78,9 @@ class WalkerConfig:
     aimed: float = 0.0
     """Share of the walkers that cross the robot's way as CrowdNav's circle crossing has them
     (`_aimed`): from a point of the circle whose diameter is the straight way from the spawn to
-    the goal (ahead of the spawn where there is no goal) to the opposite point, back and forth;
-    where no such crossing fits, and for the others, a crossing of the room (`_crossings`).
+    the goal (ahead of the spawn where there is no goal) to the opposite point, where it stays;
+    where no such crossing fits, and for the others, a crossing of the room (`_crossings`), back
+    and forth.
     0: none, and the draws of a room are those of before."""
 
     def __post_init__(self):
@@ -386,9 +387,10 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
             cyl_bottom=put(room.cyl_bottom, 0.0),
             cyl_active=put(room.cyl_active, True),
         )
+        stays = False if aimed is None else aimed[j] & (pick < TRIES)  # as CrowdNav's people
         w = w.replace(
             goal=put(w.goal, end[pick]),
-            back=put(w.back, start[pick]),
+            back=put(w.back, jnp.where(stays, end[pick], start[pick])),
             speed=put(w.speed, speed[j]),
             reactive=put(w.reactive, reactive[j]),
         )
