@@ -9,13 +9,13 @@ with the clearance (`memory_hard_clear20`); among people, a 360 deg lidar instea
 (`lidar_crowd_fast`, with the clearance: `_clear20`) and a fifth of the walkers giving way in
 training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turning at 3 rad/s
 (`memory_crowd_fast_turn3`, with a stop action: `_stop`), backing away
-(`memory_crowd_fast_back`) or walkers aimed across the robot's way in training (half of them:
-`memory_crowd_fast_aimed`, all: `_aimed_all`, half and backing away: `_aimed_back`), backing
-away with twice the training (`memory_crowd_fast_back_long`), walkers in half the rooms
-(`_back_crowd9`) or a fifth giving way (`_back_nr`), and the lidar backing away
-(`lidar_crowd_fast_back`, twice the training: `_long`); and the cpu preset as it is (`cpu_preset`,
-with `--preset cpu`: the README's goal run, whose training wall time is its row's `train_wall_s`;
-with a 7.5 cm collision margin: `cpu_preset_margin7`).
+(`memory_crowd_fast_back`; with twice the training: `_back_long`, walkers in half the rooms:
+`_back_crowd9`, a fifth of them giving way: `_back_nr`), the lidar backing away
+(`lidar_crowd_fast_back`, twice the training: `_long`) and walkers aimed across the robot's way
+in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing away too:
+`_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`); and the cpu preset
+as it is (`cpu_preset`, with `--preset cpu`: the README's goal run, whose training wall time is
+its row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -128,9 +128,11 @@ VARIANTS["lidar_crowd_fast_back_long"] = VARIANTS["lidar_crowd_fast_back"] + (
     "--total-steps",
     "200000000",
 )
-VARIANTS["memory_crowd_fast_aimed_back"] = VARIANTS["memory_crowd_fast_aimed"] + (
-    "--task.actions",
-    "discrete_back",
+VARIANTS["memory_crowd_fast_aimed_back"] = VARIANTS["memory_crowd_fast_aimed"] + BACK
+VARIANTS["memory_crowd_fast_aimed_all_back"] = VARIANTS["memory_crowd_fast_aimed_all"] + BACK
+VARIANTS["memory_crowd_fast_aimed_all_long"] = VARIANTS["memory_crowd_fast_aimed_all"] + (
+    "--total-steps",
+    "200000000",
 )
 # Every variant names its collision margin (none unless it says), so that its row does not
 # depend on the preset's default.
