@@ -79,9 +79,8 @@ class WalkerConfig:
     """Share of the walkers that cross the robot's way as CrowdNav's circle crossing has them
     (`_aimed`): from a point of the circle whose diameter is the straight way from the spawn to
     the goal (ahead of the spawn where there is no goal) to the opposite point, where it stays;
-    where no such crossing fits, and for the others, a crossing of the room (`_crossings`), back
-    and forth.
-    0: none, and the draws of a room are those of before."""
+    where no such crossing fits, and for the others, a crossing of the room back and forth
+    (`_crossings`). 0: none, and the draws of a room are those of before."""
 
     def __post_init__(self):
         for name in ("count", "crowd_count", "speed", "radius", "height"):
@@ -347,11 +346,11 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
     """`room` (SceneParams with `motion.walkers`) with up to `cfg.slots` walkers in cylinder slots
     `first`... : count uniform in cfg.count (cfg.crowd_count in a `crowd` room), radius, speed and
     height uniform in their ranges, reactive with probability cfg.reactive, aimed across the
-    robot's way with probability cfg.aimed. Each takes the first of `TRIES` crossings
-    (`_crossings`; an aimed one the first of `TRIES` of `_aimed`, else those) whose start keeps FREE_GAP from everything placed so far
-    and `cfg.clearance` from the robot's edge at the spawn, off the robot's disc at `goal` [2]
-    (if given), and whose straight line keeps FREE_GAP from the walls and the still obstacles;
-    a walker with no such crossing is left out."""
+    robot's way with probability cfg.aimed. Each takes the first of `TRIES` crossings of the room
+    (`_crossings`; an aimed walker first tries `TRIES` of `_aimed`) whose start keeps FREE_GAP
+    from everything placed so far and `cfg.clearance` from the robot's edge at the spawn, off the
+    robot's disc at `goal` [2] (if given), and whose straight line keeps FREE_GAP from the walls
+    and the still obstacles; a walker with no such crossing is left out."""
     m = cfg.slots
     d = Draws(key)
     crowd = room.layout_id == CROWD_ROOM
