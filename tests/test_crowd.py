@@ -186,39 +186,39 @@ def test_aimed_walkers_cross_the_robots_way():
     """An aimed walker crosses as in CrowdNav's circle crossing: it starts near the circle whose
     diameter is the straight way from the spawn to the goal (or, without a goal, a circle of
     1-4 m radius centred ahead of the spawn) and walks to the point opposite across its centre,
-    where it stays; crossings of the room, back and forth, mostly miss the way's middle."""
+    where it stays; the others cross the room back and forth, mostly missing the way's middle."""
     lay = RoomLayout(
         name="way",
         size=(8.0, 8.0),
         robot_pos=(-3.0, 0.0),
         obstacles=(_walker((3.5, 3.5), (3.5, 3.5)),),
     )
-    room = jax.tree_util.tree_map(lambda x: x[0], make_bank([lay], 1, 7).rooms)  # facing +x
-    keys = jax.random.split(jax.random.PRNGKey(0), 100)
+    room = jax.tree_util.tree_map(lambda x: x[0], make_bank([lay], 1, 4).rooms)  # facing +x
+    keys = jax.random.split(jax.random.PRNGKey(0), 200)
 
     def crossings(aimed, goal):
-        """[N, 2] starts and [N, 2] ends of the walkers placed in slots 1-6 of 100 draws."""
-        cfg = crowd.WalkerConfig(count=(6, 6), aimed=aimed)
+        """[N, 2] starts, [N, 2] ends and [N] stays of the walkers placed in slots 1-3 of 200
+        draws."""
+        cfg = crowd.WalkerConfig(count=(3, 3), aimed=aimed)
         add = jax.jit(jax.vmap(lambda k: crowd.add_walkers(k, room, cfg, 1, ROBOT, goal)))
         p = add(keys)
         on = np.asarray(p.cyl_active)[:, 1:]
         assert on.mean() > 0.9  # every walker finds a crossing in 16 draws, nearly always
         w = p.motion.walkers
         stays = np.asarray(w.back == w.goal).all(-1)[:, 1:][on]  # it stays at its goal
-        assert stays.all() if aimed == 1 else not stays.any()
-        return np.asarray(p.cyl_pos)[:, 1:][on], np.asarray(w.goal)[:, 1:][on]
+        return np.asarray(p.cyl_pos)[:, 1:][on], np.asarray(w.goal)[:, 1:][on], stays
 
     noise = np.hypot(crowd.AIM_NOISE, crowd.AIM_NOISE) + 1e-4
-    start, end = crossings(1.0, jnp.array((3.0, 0.0)))  # the circle of radius 3 around 0
-    np.testing.assert_allclose((start + end) / 2, 0.0, atol=1e-5)
-    assert np.abs(np.linalg.norm(start, axis=-1) - 3.0).max() <= noise
-    start, end = crossings(1.0, None)  # circles centred 1-4 m ahead: (-2..1, 0)
+    start, end, aimed = crossings(0.5, jnp.array((3.0, 0.0)))  # the circle of radius 3 around 0
+    assert 0.35 < aimed.mean() < 0.65
+    np.testing.assert_allclose((start[aimed] + end[aimed]) / 2, 0.0, atol=1e-5)
+    assert np.abs(np.linalg.norm(start[aimed], axis=-1) - 3.0).max() <= noise
+    assert (np.linalg.norm((start + end)[~aimed] / 2, axis=-1) < 0.5).mean() < 0.2
+    start, end, aimed = crossings(1.0, None)  # circles centred 1-4 m ahead: (-2..1, 0)
     via = (start + end) / 2
-    assert np.abs(via[:, 1]).max() < 1e-5 and -2 - 1e-5 <= via[:, 0].min() <= via[:, 0].max() <= 1
-    reach = np.linalg.norm(start - via, axis=-1) - (via[:, 0] + 3)  # off the circle
-    assert np.abs(reach).max() <= noise
-    start, end = crossings(0.0, jnp.array((3.0, 0.0)))
-    assert (np.linalg.norm((start + end) / 2, axis=-1) < 0.5).mean() < 0.2
+    assert aimed.all() and np.abs(via[:, 1]).max() < 1e-5
+    assert -2 - 1e-5 <= via[:, 0].min() <= via[:, 0].max() <= 1
+    assert np.abs(np.linalg.norm(start - via, axis=-1) - (via[:, 0] + 3)).max() <= noise
     with pytest.raises(ValueError, match="WalkerConfig.aimed: must be in"):
         crowd.WalkerConfig(aimed=1.5)
 
