@@ -146,6 +146,28 @@ def first_state(env, key, episodes: int, pinned: bool):
     return jax.vmap(lambda k, r: reset_in(env, k, r))(keys, room)
 
 
+def run_episodes(env, act, key, episodes: int, steps: int, pinned: bool, start, body):
+    """(the first state, the last carry, [steps, ...] outputs) of `steps` steps of the batch of
+    `first_state(env, ., episodes, pinned)`: the one loop every rollout runs, so that rollouts of
+    the same key run the same episodes. `start(state) -> carry` begins what the caller keeps;
+    `body(state, action, nxt, carry) -> (carry, output)` takes each step (`act`: obs [E, D],
+    key -> actions [E])."""
+    step = jax.vmap(env.step)
+
+    def scan_body(carry, k):
+        state, kept = carry
+        action = act(state.obs, k)
+        nxt = step(state, action)
+        kept, out = body(state, action, nxt, kept)
+        return (nxt, kept), out
+
+    k_reset, k_act = jax.random.split(key)
+    first = first_state(env, k_reset, episodes, pinned)
+    keys = jax.random.split(k_act, steps)
+    (_, carry), outs = jax.lax.scan(scan_body, (first, start(first)), keys)
+    return first, carry, outs
+
+
 def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=False):
     """A jitted `rollout(key) -> (Track, Kept)`.
 
@@ -153,15 +175,20 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
     in layout e // episodes), all in one compiled batch; otherwise `episodes` episodes drawn by
     the env's own randomisation (R = 1). `keep` paths per room are kept.
     """
-    step = jax.vmap(env.step)
     rooms = env.bank.size if pinned else 1
     keep = min(keep, episodes)
     kept = (jnp.arange(rooms)[:, None] * episodes + jnp.arange(keep)).reshape(-1)  # [R * K]
     firsts = jnp.arange(rooms) * episodes  # [R]
 
-    def body(carry, key):
-        state, track = carry
-        nxt = step(state, act(state.obs, key))  # act: obs [E, D] -> actions [E]
+    def start(state):
+        n = rooms * episodes
+        xy0 = state.data.qpos[:, :2]  # [E, 2]
+        false, zero = jnp.zeros(n, bool), jnp.zeros(n)
+        sums = {k: zero for k in env.metric_names if k != "collision"}
+        goal = state.info.get("goal", xy0)  # [E, 2]
+        return Track(false, false, jnp.zeros(n, jnp.int32), zero, xy0, sums, xy0, goal)
+
+    def body(state, action, nxt, track):
         live = ~track.done  # [E]; only episodes still running count this step
         xy = nxt.data.qpos[:, :2]  # [E, 2]
         moved = jnp.linalg.norm(xy - track.xy, axis=-1)  # [E] m
@@ -175,20 +202,13 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
             start=track.start,
             goal=track.goal,
         )
-        return (nxt, track), (track.xy[kept], nxt.data.qpos[firsts, :3])
+        return track, (track.xy[kept], nxt.data.qpos[firsts, :3])
 
     def rollout(key):
-        k_reset, k_act = jax.random.split(key)
-        state = first_state(env, k_reset, episodes, pinned)
-        n = rooms * episodes
-        xy0 = state.data.qpos[:, :2]  # [E, 2]
-        false, zero = jnp.zeros(n, bool), jnp.zeros(n)
-        sums = {k: zero for k in env.metric_names if k != "collision"}
-        goal = state.info.get("goal", xy0)  # [E, 2]
-        track = Track(false, false, jnp.zeros(n, jnp.int32), zero, xy0, sums, xy0, goal)
-        keys = jax.random.split(k_act, steps)
-        (_, track), (path, qpos) = jax.lax.scan(body, (state, track), keys)  # [steps, R * K, 2]
-        path = jnp.concatenate([xy0[None, kept], path])  # [steps + 1, R * K, 2]
+        state, track, (path, qpos) = run_episodes(
+            env, act, key, episodes, steps, pinned, start, body
+        )  # path [steps, R * K, 2], qpos [steps, R, 3]
+        path = jnp.concatenate([track.start[None, kept], path])  # [steps + 1, R * K, 2]
         qpos = jnp.concatenate([state.data.qpos[None, firsts, :3], qpos])  # [steps + 1, R, 3]
         first = jax.tree_util.tree_map(lambda x: x[firsts], state.info["params"])
         return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=jnp.swapaxes(qpos, 0, 1), params=first)
@@ -199,22 +219,16 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
 def make_recorder(env, act, episodes: int, steps: int, record):
     """A jitted `run(key) -> [steps, ...]`: `record(state, action, nxt, running)` at each step of
     `episodes` episodes in every layout of the env's bank, the episodes of `make_rollout(...,
-    pinned=True)` with the same key (its resets, keys and actions); `running` [E]: the episode had
-    not ended before the step. For analyses that need more than a rollout's counts, such as where
-    a policy collided and with what."""
-    step = jax.vmap(env.step)
+    pinned=True)` with the same key (`run_episodes`); `running` [E]: the episode had not ended
+    before the step. For analyses that need more than a rollout's counts, such as where a policy
+    collided and with what."""
 
-    def body(carry, key):
-        state, done = carry
-        action = act(state.obs, key)
-        nxt = step(state, action)
-        return (nxt, done | nxt.done), record(state, action, nxt, ~done)
+    def body(state, action, nxt, done):
+        return done | nxt.done, record(state, action, nxt, ~done)
 
     def run(key):
-        k_reset, k_act = jax.random.split(key)
-        state = first_state(env, k_reset, episodes, True)
-        done = jnp.zeros(state.done.shape, bool)
-        return jax.lax.scan(body, (state, done), jax.random.split(k_act, steps))[1]
+        start = lambda state: jnp.zeros(state.done.shape, bool)  # noqa: E731
+        return run_episodes(env, act, key, episodes, steps, True, start, body)[2]
 
     return jax.jit(run, compiler_options=compiler_options())
 
