@@ -95,27 +95,18 @@ VARIANTS["memory_crowd_fast_turn3_stop"] = VARIANTS["memory_crowd_fast_turn3"] +
     "--task.actions",
     "discrete_stop",
 )
-# ... and with a fourth action that backs away (half the forward speed).
-VARIANTS["memory_crowd_fast_back"] = VARIANTS["memory_crowd_fast"] + (
-    "--task.actions",
-    "discrete_back",
-)
+# ... and with a fourth action that backs away (half the forward speed); twice the training.
+BACK = ("--task.actions", "discrete_back")
+LONG = ("--total-steps", "200000000")
+VARIANTS["memory_crowd_fast_back"] = VARIANTS["memory_crowd_fast"] + BACK
 # ... and with half the walkers aimed across the robot's way (all of them: `_all`), as
 # CrowdNav's people cross the circle's centre.
-VARIANTS["memory_crowd_fast_aimed"] = VARIANTS["memory_crowd_fast"] + (
-    "--randomize.walkers",
-    "aimed=0.5",
-)
-VARIANTS["memory_crowd_fast_aimed_all"] = VARIANTS["memory_crowd_fast"] + (
-    "--randomize.walkers",
-    "aimed=1",
-)
-BACK = ("--task.actions", "discrete_back")
+AIMED_HALF = ("--randomize.walkers", "aimed=0.5")
+AIMED_ALL = ("--randomize.walkers", "aimed=1")
+VARIANTS["memory_crowd_fast_aimed"] = VARIANTS["memory_crowd_fast"] + AIMED_HALF
+VARIANTS["memory_crowd_fast_aimed_all"] = VARIANTS["memory_crowd_fast"] + AIMED_ALL
 # ... and backing away with twice the training, walkers in half the rooms, or a fifth yielding.
-VARIANTS["memory_crowd_fast_back_long"] = VARIANTS["memory_crowd_fast_back"] + (
-    "--total-steps",
-    "200000000",
-)
+VARIANTS["memory_crowd_fast_back_long"] = VARIANTS["memory_crowd_fast_back"] + LONG
 VARIANTS["memory_crowd_fast_back_crowd9"] = (
     ("--task.memory-bins", "16", "--randomize.families", "all,crowd:9")
     + ("--task.forward-speed", "0.7")
@@ -124,16 +115,10 @@ VARIANTS["memory_crowd_fast_back_crowd9"] = (
 VARIANTS["memory_crowd_fast_back_nr"] = VARIANTS["memory_crowd_fast_back"] + NOT_YIELDING
 # ... and the 360 deg lidar with the back action (twice the training: `_long`).
 VARIANTS["lidar_crowd_fast_back"] = VARIANTS["lidar_crowd_fast"] + BACK
-VARIANTS["lidar_crowd_fast_back_long"] = VARIANTS["lidar_crowd_fast_back"] + (
-    "--total-steps",
-    "200000000",
-)
+VARIANTS["lidar_crowd_fast_back_long"] = VARIANTS["lidar_crowd_fast_back"] + LONG
 VARIANTS["memory_crowd_fast_aimed_back"] = VARIANTS["memory_crowd_fast_aimed"] + BACK
 VARIANTS["memory_crowd_fast_aimed_all_back"] = VARIANTS["memory_crowd_fast_aimed_all"] + BACK
-VARIANTS["memory_crowd_fast_aimed_all_long"] = VARIANTS["memory_crowd_fast_aimed_all"] + (
-    "--total-steps",
-    "200000000",
-)
+VARIANTS["memory_crowd_fast_aimed_all_long"] = VARIANTS["memory_crowd_fast_aimed_all"] + LONG
 # Every variant names its collision margin (none unless it says), so that its row does not
 # depend on the preset's default.
 MARGIN = "--randomize.collision-margin"
