@@ -149,6 +149,7 @@ def main() -> None:
                     continue  # the same as single
                 rows.append(measure(args, mode, k, n))
                 print(json.dumps(rows[-1]), flush=True)
+    speed_ups(rows)
     result = {
         **run_info("date", "python", "command"),
         "ppo": args.set,
@@ -159,25 +160,39 @@ def main() -> None:
         write_json(args.json, result)
 
 
+def speed_ups(rows) -> None:
+    """Adds to each row its speed-up against one device: `speed_up` at the same robot count
+    (strong scaling) and `weak_speed_up` at the same robots per device (weak scaling: how much
+    more a run with more devices trains, each device as full as the one-device run's)."""
+    done = [r for r in rows if "error" not in r]
+    one = {r["num_envs"]: r["env_steps_per_s"] for r in done if r["devices"] == 1}
+    for r in done:
+        base = one.get(r["num_envs"])
+        weak = one.get(r["num_envs"] // r["devices"])
+        r["speed_up"] = round(r["env_steps_per_s"] / base, 3) if base else None
+        r["weak_speed_up"] = round(r["env_steps_per_s"] / weak, 3) if weak else None
+
+
 def print_table(rows) -> None:
-    """Speed-up and efficiency are against one device at the same robot count."""
+    """Speed-up and efficiency are against one device at the same robot count; weak is against
+    one device at the same robots per device (`speed_ups` adds both to the rows)."""
     done = [r for r in rows if "error" not in r]
     if done:
         print(f"\n{done[0]['device']}, jax {done[0]['jax']}")
     print(
         f"{'robots':>8} {'devices':>7} {'processes':>9} {'env steps/s':>12} {'speed-up':>8} "
-        f"{'efficiency':>10} {'s/update':>9} {'compile s':>9}"
+        f"{'efficiency':>10} {'weak':>6} {'s/update':>9} {'compile s':>9}"
     )
+    show = lambda x, fmt, width: format(x, fmt) if x is not None else "-".rjust(width)  # noqa: E731
     for r in rows:
         lead = f"{r['num_envs']:>8} {r['devices']:>7} {r['processes']:>9}"
         if "error" in r:
             print(f"{lead} {r['error']}")
             continue
-        one = [o for o in rows if o["num_envs"] == r["num_envs"] and o["devices"] == 1]
-        base = one[0].get("env_steps_per_s") if one else None
-        up = r["env_steps_per_s"] / base if base else float("nan")
+        up, weak = r["speed_up"], r["weak_speed_up"]
         print(
-            f"{lead} {r['env_steps_per_s']:>12,} {up:>7.2f}x {up / r['devices']:>10.0%} "
+            f"{lead} {r['env_steps_per_s']:>12,} {show(up, '>7.2f', 7)}x "
+            f"{show(up and up / r['devices'], '>10.0%', 10)} {show(weak, '>5.2f', 5)}x "
             f"{r['s_per_update']:>9.3f} {r['compile_s']:>9}"
         )
 
