@@ -14,7 +14,8 @@ per room, `RandomizeConfig.moving_count`); the `goal` task (`goal_families`: roo
 the same drawn ahead, each 32 steps' in one batch as PPO's `reset_ahead` draws a rollout's);
 the speed levers: `full` (MJX's
 contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-reset's select in
-every row, `PPOConfig.reset_in_place` off), `no_contacts` and `in_place` (one lever on each).
+every row, `PPOConfig.reset_in_place` off, as by default), `contacts` (MJX's contact pass alone)
+and `in_place` (the auto-reset writing the finished rows only).
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size.
@@ -48,10 +49,10 @@ VARIANTS = {
     "wheeled": {"scene": SceneConfig(physics="wheeled")},
     "movers": {"randomize": dataclasses.replace(TRAINING, moving_count=(0, 3))},
     # The speed levers (benchmarks/throughput.py --variants has them too): the full MJX path, and
-    # one lever at a time on it.
+    # each lever against the defaults.
     "full": {"scene": SceneConfig(fast_contacts=True), "in_place": False},
-    "no_contacts": {"in_place": False},
-    "in_place": {"scene": SceneConfig(fast_contacts=True)},
+    "contacts": {"scene": SceneConfig(fast_contacts=True)},
+    "in_place": {"in_place": True},
     # The goal task (its default 16-frame memory and geodesic progress), and what its pieces cost.
     "goal": {"task": "goal"},
     "goal_families": {"task": "goal", "randomize": dataclasses.replace(TRAINING, families="all")},

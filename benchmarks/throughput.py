@@ -1,7 +1,7 @@
 """Throughput of the `avoid` scene and of PPO training, per batch size, with a split of the step.
 
     python benchmarks/throughput.py --num-envs 1024,4096 --steps 100 --json benchmarks/throughput.json
-    python benchmarks/throughput.py --num-envs 65536 --variants default,full,no_contacts,in_place
+    python benchmarks/throughput.py --num-envs 65536 --variants default,full,in_place
     python benchmarks/throughput.py --env goal --num-envs 256 --steps 10 --no-train
 
 For each size: (a) env-only random rollouts of the training distribution (sim-to-real ranges and the
@@ -15,7 +15,7 @@ the best of `--repeats` runs of a jitted scan, after compiling it, with `block_u
 
 `--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
 contact pass in every physics step, the auto-reset selecting in every row), `default` the
-defaults. `--pieces` names the variants that also get the split; `--trace DIR` writes a JAX
+defaults, `contacts` and `in_place` one lever each against them. `--pieces` names the variants that also get the split; `--trace DIR` writes a JAX
 profiler trace of one PPO chunk of the first variant (open it in TensorBoard or Perfetto).
 """
 
@@ -46,13 +46,13 @@ from jaxnav.wrappers import AutoReset
 
 # The training distribution (sim-to-real ranges on) with every obstacle slot in use.
 FULL = dataclasses.replace(TRAINING, num_boxes=(8, 8), num_cylinders=(4, 4), sampled_room_prob=1.0)
-# The speed levers, each on or off: SceneConfig.fast_contacts (MJX's contact pass and solver) and
-# PPOConfig.reset_in_place (the auto-reset writes the finished rows only).
+# The speed levers against the defaults: SceneConfig.fast_contacts (MJX's contact pass and solver)
+# and PPOConfig.reset_in_place (the auto-reset writes the finished rows only, behind a branch).
 VARIANTS = {
     "default": {},
     "full": {"scene": {"fast_contacts": True}, "ppo": {"reset_in_place": False}},
-    "no_contacts": {"ppo": {"reset_in_place": False}},
-    "in_place": {"scene": {"fast_contacts": True}},
+    "contacts": {"scene": {"fast_contacts": True}},
+    "in_place": {"ppo": {"reset_in_place": True}},
     # Where the new episodes are drawn (PPOConfig.reset_ahead) and how jax.random lowers on a GPU
     # (PPOConfig.threefry_kernel); the env-only rows draw per step either way.
     "ahead": {"ppo": {"reset_ahead": True}},

@@ -68,10 +68,12 @@ class PPOConfig:
     """Draw the new episodes of a whole rollout at its start, in one batch of rollout_length x
     pool draws, instead of a pool at every step: the same distribution from other keys (the goal
     task's default; see `jaxnav.wrappers.AutoReset.draw`)."""
-    reset_in_place: bool = True
+    reset_in_place: bool = False
     """Write the new episodes into the rows of the robots that finished only, instead of selecting
     between old and new state for every robot: the same result bit for bit (tested; see
-    `jaxnav.wrappers.AutoReset`), less memory traffic per step."""
+    `jaxnav.wrappers.AutoReset`), less memory traffic per step but a branch on every step, which
+    a GPU waits for (and several GPUs agree on); off, PPO runs faster on one GPU and on two, and
+    compiles sooner (docs/results.md, "The auto-reset's branch")."""
     threefry_kernel: bool = False
     """On one GPU, call jax.random's threefry as JAX's CUDA kernel instead of inlining its rounds
     (`jaxnav.core.xla.threefry_kernel`, set by `make_train` for the process): the same random
