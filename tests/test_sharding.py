@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import cpu_env
+from conftest import benchmark_script, cpu_env
 
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.train import block_count, shard_envs
@@ -62,3 +62,22 @@ def test_robot_blocks_must_split_evenly():
         block_count(preset("cpu", num_envs=48, minibatch_size=12, groups=8), two)
     with pytest.raises(ValueError, match="--groups: must be >= 0"):
         cfg(groups=-1)
+
+
+def test_scaling_speed_ups_are_strong_and_weak():
+    """benchmarks/scaling.py's speed-ups on hand-made rows: strong against one device at the same
+    robot count, weak against one device at the same robots per device (none where that row is
+    missing, nor for a failed row)."""
+    scaling = benchmark_script("scaling")
+    row = lambda n, k, rate: {"num_envs": n, "devices": k, "env_steps_per_s": rate}  # noqa: E731
+    rows = [
+        row(64, 1, 100.0),
+        row(64, 2, 150.0),
+        row(128, 1, 120.0),
+        row(128, 2, 196.0),
+        row(256, 2, 240.0),
+        {"num_envs": 256, "devices": 4, "error": "did not finish"},
+    ]
+    scaling.speed_ups(rows)
+    got = [(r.get("speed_up"), r.get("weak_speed_up")) for r in rows]
+    assert got == [(1.0, 1.0), (1.5, None), (1.0, 1.0), (1.633, 1.96), (None, 2.0), (None, None)]
