@@ -10,7 +10,8 @@ Each measurement runs in its own subprocess(es) (GPUs picked with CUDA_VISIBLE_D
 process, JAX_LOCAL_DEVICE_IDS; on the CPU, `--xla_force_host_platform_device_count`), so the parent
 never holds a device. The timing is
 `benchmarks/throughput.py`'s PPO one (the `cpu` preset's update shape: rollout 32, 4 epochs,
-4 minibatches; every obstacle slot in use), the best of `--repeats` chunks of `--updates` updates
+4 minibatches; every obstacle slot in use; `--env goal`: the goal task with its own PPO defaults,
+as `throughput.py --env goal` times it), the best of `--repeats` chunks of `--updates` updates
 after the compile; env-steps/s counts every robot of every device.
 """
 
@@ -55,7 +56,7 @@ def free_port() -> int:
 
 def measure(args, mode: str, k: int, n: int) -> dict:
     """One row: `mode` over `k` devices at `n` robots, from its subprocess(es)."""
-    base = [sys.executable, __file__, "--worker", "--num-envs", str(n)]
+    base = [sys.executable, __file__, "--worker", "--env", args.env, "--num-envs", str(n)]
     base += ["--updates", str(args.updates), "--repeats", str(args.repeats)]
     base += [f"--set={item}" for item in args.set]
     if mode == "single":
@@ -105,10 +106,12 @@ def worker(args) -> None:
     from throughput import FULL, training
 
     import jaxnav
+    from jaxnav.tasks.registry import task_defaults
 
-    env = jaxnav.make_env("avoid", randomize=FULL)
+    env = jaxnav.make_env(args.env, randomize=FULL)
     (n,) = (int(x) for x in args.num_envs.split(","))
-    result = training(env, n, args.updates, args.repeats, sets.get("ppo", {}))
+    ppo = {**task_defaults(args.env).get("ppo", {}), **sets.get("ppo", {})}
+    result = training(env, n, args.updates, args.repeats, ppo)
     result.update(num_envs=n, **run_info("device"))
     result.update(device_count=jax.device_count(), **run_info("jax"))
     print(json.dumps(result), flush=True)
@@ -116,6 +119,7 @@ def worker(args) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="avoid", help="the task trained (avoid or goal)")
     parser.add_argument("--devices", default="1,2,4", help="comma-separated device counts")
     parser.add_argument("--num-envs", default="65536", help="comma-separated robot counts")
     parser.add_argument("--modes", default=",".join(MODES), help="single, multi or both")
@@ -152,6 +156,7 @@ def main() -> None:
     speed_ups(rows)
     result = {
         **run_info("date", "python", "command"),
+        "env": args.env,
         "ppo": args.set,
         "rows": rows,
     }

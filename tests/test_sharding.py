@@ -28,12 +28,15 @@ def train_on(devices: int, out: Path) -> dict:
 
 @pytest.mark.slow
 def test_two_devices_match_one(tmp_path):
-    """Training sharded over two devices gives the one-device result. Slow: two training
+    """Training sharded over two devices gives the one-device result, and no op of its rollout
+    waits for the other device (no collective in the compiled rollout: a branch on all robots,
+    as the in-place auto-reset has, would put one in every env step). Slow: two training
     processes (a device count is fixed per process)."""
     one = train_on(1, tmp_path / "one.npz")
     two = train_on(2, tmp_path / "two.npz")
     assert int(one["devices"]) == 1 and int(two["devices"]) == 2
     assert int(two["shards"]) == 2  # the robots really were split between the devices
+    assert int(two["rollout_collectives"]) == 0
     weights = [k for k in one if k.startswith("arr_")]
     assert weights
     for k in weights:

@@ -199,12 +199,14 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             return (nxt, key), tr
 
         env_state, fresh = ts.env_state, None  # fresh: the rollout's new episodes, drawn ahead
-        if cfg.reset_ahead:
-            env_state, fresh = env.draw(env_state, cfg.rollout_length)
-            fresh = shard_draws(fresh)
-        (env_state, key), traj = jax.lax.scan(
-            _env_step, (env_state, ts.key), fresh, cfg.rollout_length
-        )
+        # Named in the program (profiles; tests check that no rollout op waits on another device).
+        with jax.named_scope("rollout"):
+            if cfg.reset_ahead:
+                env_state, fresh = env.draw(env_state, cfg.rollout_length)
+                fresh = shard_draws(fresh)
+            (env_state, key), traj = jax.lax.scan(
+                _env_step, (env_state, ts.key), fresh, cfg.rollout_length
+            )
         return env_state, key, traj
 
     def _update_minibatch(carry, batch: Batch):
