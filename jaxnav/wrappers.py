@@ -69,7 +69,8 @@ class AutoReset(Wrapper):
     `in_place`: write the draws into the rows of the envs that finished only (at most P of them),
     instead of selecting between the old and the new state in every row: the same result bit for
     bit (tested), reading and writing P rows of state instead of N. A step in which more than P
-    envs finish takes the select.
+    envs finish takes the select. Choosing is a branch on every step, which a GPU waits for, and
+    with the blocks over devices, all of them (`PPOConfig.reset_in_place`, off by default).
 
     `groups`: G independent blocks of N/G consecutive envs, each with its own P/G draws from its
     own envs' keys (G = 1: one block). With the blocks sharded over devices, every device draws
