@@ -15,8 +15,11 @@ the best of `--repeats` runs of a jitted scan, after compiling it, with `block_u
 
 `--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
 contact pass in every physics step, the auto-reset selecting in every row), `default` the
-defaults, `contacts` and `in_place` one lever each against them. `--pieces` names the variants that also get the split; `--trace DIR` writes a JAX
-profiler trace of one PPO chunk of the first variant (open it in TensorBoard or Perfetto).
+defaults, `contacts` and `in_place` one lever each against them. `--pieces` names the variants
+that also get the split; `--trace DIR` writes a JAX profiler trace of one PPO chunk of the first
+variant (open it in TensorBoard or Perfetto) and prints its top ops and, per accelerator, the
+chunk's span, busy time and time in cross-device ops (on several GPUs: how long each waited for
+the others).
 """
 
 from __future__ import annotations
@@ -175,20 +178,29 @@ def training(env, n, updates, repeats, ppo: dict, trace=None):
     }
 
 
-def trace_summary(folder: str, top: int = 15) -> list[dict]:
-    """The ops of a profiler trace that took the most time in total: on an accelerator its
-    device ops, on the CPU the host's (Python frames left out)."""
+def trace_events(folder: str) -> tuple[list[dict], dict]:
+    """(the complete events of a profiler trace, {pid: process name})."""
     events = []
     for path in Path(folder).rglob("*.trace.json.gz"):
         raw = json.loads(gzip.open(path).read())
         events += raw["traceEvents"] if isinstance(raw, dict) else raw
-    procs = {e["pid"]: e["args"]["name"] for e in events if e.get("name") == "process_name"}
+    procs = {
+        e.get("pid"): e.get("args", {}).get("name", "")
+        for e in events
+        if e.get("name") == "process_name"
+    }
+    timed = [e for e in events if e.get("ph") == "X" and "dur" in e]
+    return timed, procs
+
+
+def trace_summary(folder: str, top: int = 15) -> list[dict]:
+    """The ops of a profiler trace that took the most time in total: on an accelerator its
+    device ops, on the CPU the host's (Python frames left out)."""
+    events, procs = trace_events(folder)
     device = {p for p, name in procs.items() if "/device:" in name}
     total, calls = collections.Counter(), collections.Counter()
     for e in events:
-        if e.get("ph") != "X" or "dur" not in e or e["name"].startswith("$"):
-            continue
-        if device and e["pid"] not in device:
+        if e["name"].startswith("$") or (device and e.get("pid") not in device):
             continue
         total[e["name"]] += e["dur"]
         calls[e["name"]] += 1
@@ -196,6 +208,35 @@ def trace_summary(folder: str, top: int = 15) -> list[dict]:
         {"op": name, "ms": round(us / 1e3, 2), "calls": calls[name]}
         for name, us in total.most_common(top)
     ]
+
+
+COLLECTIVE = ("nccl", "all_reduce", "all-reduce", "all_gather", "all-gather")
+
+
+def device_time(folder: str) -> list[dict]:
+    """Per accelerator of a trace: the span from its first op to its last, the time some op ran
+    (busy), and the time in cross-device ops (NCCL kernels and XLA's collective fusions, their
+    waiting for the other devices included) (ms each). Empty on the CPU."""
+    events, procs = trace_events(folder)
+    rows = []
+    for pid, name in sorted(procs.items(), key=lambda kv: kv[1]):
+        spans = sorted((e["ts"], e["ts"] + e["dur"]) for e in events if e.get("pid") == pid)
+        if "/device:" not in name or not spans:
+            continue
+        busy, (start, end) = 0.0, spans[0]
+        for a, b in spans[1:]:  # the union of the ops' intervals
+            if a > end:
+                busy, start = busy + end - start, a
+            end = max(end, b)
+        busy += end - start
+        mine = [e for e in events if e.get("pid") == pid]
+        wait = sum(e["dur"] for e in mine if any(c in e["name"].lower() for c in COLLECTIVE))
+        span = spans[-1][1] - spans[0][0]
+        ms = lambda us: round(us / 1e3, 2)  # noqa: E731
+        rows.append(
+            {"device": name, "span_ms": ms(span), "busy_ms": ms(busy), "collective_ms": ms(wait)}
+        )
+    return rows
 
 
 def peak_memory_mb() -> float:
@@ -287,9 +328,15 @@ def main() -> None:
                 write_json(args.json, result)
     if args.trace:
         result["trace_top"] = trace_summary(args.trace)
+        result["trace_devices"] = device_time(args.trace)
         print(f"\nprofile of one PPO chunk of '{variants[0]}' (top ops, total ms; {args.trace}):")
         for r in result["trace_top"]:
             print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
+        for r in result["trace_devices"]:
+            print(
+                f"{r['device']}: span {r['span_ms']} ms, busy {r['busy_ms']} ms, "
+                f"in cross-device ops {r['collective_ms']} ms"
+            )
         if args.json:
             write_json(args.json, result)
     print_table(result)

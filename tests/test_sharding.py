@@ -84,3 +84,31 @@ def test_scaling_speed_ups_are_strong_and_weak():
     scaling.speed_ups(rows)
     got = [(r.get("speed_up"), r.get("weak_speed_up")) for r in rows]
     assert got == [(1.0, 1.0), (1.5, None), (1.0, 1.0), (1.633, 1.96), (None, 2.0), (None, None)]
+
+
+def test_trace_device_time_on_a_hand_made_trace(tmp_path):
+    """benchmarks/throughput.py's per-accelerator profile summary on a hand-made trace: the span
+    from first op to last, busy as the union of overlapping ops, the time in collective ops;
+    host processes are left out."""
+    import gzip
+    import json
+
+    throughput = benchmark_script("throughput")
+    op = lambda pid, name, ts, dur: {"ph": "X", "pid": pid, "name": name, "ts": ts, "dur": dur}  # noqa: E731
+    events = [
+        {"name": "process_name", "ph": "M", "pid": 1, "args": {"name": "/device:GPU:0"}},
+        {"name": "process_name", "ph": "M", "pid": 2, "args": {"name": "/host:CPU"}},
+        op(1, "loop_fusion", 0, 2000),
+        op(1, "gemm_fusion", 1000, 2000),  # overlaps the first: busy 0-3 ms
+        op(1, "ncclDevKernel_AllReduce_Sum_f32", 5000, 4000),  # 5-9 ms
+        op(1, "all_reduce_30_fusion", 9000, 1000),  # 9-10 ms
+        op(2, "host_work", 0, 50000),
+    ]
+    folder = tmp_path / "plugins" / "profile"
+    folder.mkdir(parents=True)
+    with gzip.open(folder / "x.trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    rows = throughput.device_time(str(tmp_path))
+    assert rows == [
+        {"device": "/device:GPU:0", "span_ms": 10.0, "busy_ms": 8.0, "collective_ms": 5.0}
+    ]
