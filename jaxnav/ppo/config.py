@@ -72,8 +72,8 @@ class PPOConfig:
     """Write the new episodes into the rows of the robots that finished only, instead of selecting
     between old and new state for every robot: the same result bit for bit (tested; see
     `jaxnav.wrappers.AutoReset`), less memory traffic per step but a branch on every step, which
-    a GPU waits for (and several GPUs agree on); off, PPO runs faster on one GPU and on two, and
-    compiles sooner (docs/results.md, "The auto-reset's branch")."""
+    a GPU waits for (and several GPUs agree on); off, PPO runs faster and compiles sooner on one
+    GPU and on two, and the same on a CPU (docs/results.md, "The auto-reset's branch")."""
     threefry_kernel: bool = False
     """On one GPU, call jax.random's threefry as JAX's CUDA kernel instead of inlining its rounds
     (`jaxnav.core.xla.threefry_kernel`, set by `make_train` for the process): the same random
