@@ -390,6 +390,8 @@ def main() -> None:
     if args.xla_flags is not None or args.train_flags is not None:
         train = args.xla_flags is None
         flags = (args.train_flags if train else args.xla_flags).split(",")
+        if len(set(flags)) < len(flags):  # results are keyed by the flags: a repeat would overwrite
+            p.error("--xla-flags/--train-flags: each entry once; run the command again to repeat")
         rows = {
             env: flag_runs(env, args.preset, flags, args.chunks, train, args.checkout)
             for env in args.envs.split(",")

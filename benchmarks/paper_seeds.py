@@ -30,7 +30,8 @@ def main() -> None:
         run = runs / f"paper-{seed}"
         seconds = train(run, "--preset", "paper", "--seed", str(seed))
         flags = ("--suite", "benchmark", "--episodes", "20")
-        ev = evaluate(run, runs / f"paper-{seed}.json", *flags, pictures=str(runs / "pictures"))
+        pictures = str(runs / "pictures" / f"paper-{seed}")
+        ev = evaluate(run, runs / f"paper-{seed}.json", *flags, pictures=pictures)
         o = ev["overall"]
         rows.append(
             {

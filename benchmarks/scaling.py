@@ -133,7 +133,7 @@ def main() -> None:
         action="append",
         default=[],
         help="ppo.FIELD=VALUE (repeatable), e.g. "
-        "ppo.reset_in_place=false; default: the default speed levers",
+        "ppo.reset_in_place=true; default: the default speed levers",
     )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--coordinator", help=argparse.SUPPRESS)

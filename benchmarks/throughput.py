@@ -210,33 +210,54 @@ def trace_summary(folder: str, top: int = 15) -> list[dict]:
     ]
 
 
-COLLECTIVE = ("nccl", "all_reduce", "all-reduce", "all_gather", "all-gather")
+COLLECTIVE = ("nccl", "all_reduce", "all-reduce", "all_gather", "all-gather", "reduce_scatter")
+COLLECTIVE += (
+    "reduce-scatter",
+    "all_to_all",
+    "all-to-all",
+    "collective_permute",
+    "collective-permute",
+)
+
+
+def _covered(spans: list[tuple[float, float]]) -> float:
+    """The time the union of the intervals `spans` covers (overlaps counted once)."""
+    total, end = 0.0, float("-inf")
+    for a, b in sorted(spans):
+        if b > end:
+            total += b - max(a, end)
+            end = b
+    return total
 
 
 def device_time(folder: str) -> list[dict]:
-    """Per accelerator of a trace: the span from its first op to its last, the time some op ran
-    (busy), and the time in cross-device ops (NCCL kernels and XLA's collective fusions, their
-    waiting for the other devices included) (ms each). Empty on the CPU."""
+    """Per accelerator of a trace: the span from its first op's start to its last op's end, the
+    time some op ran (busy) and the time some cross-device op ran (NCCL kernels and XLA's
+    collective fusions, their waiting for the other devices included), in ms. Empty on the CPU."""
     events, procs = trace_events(folder)
     rows = []
     for pid, name in sorted(procs.items(), key=lambda kv: kv[1]):
-        spans = sorted((e["ts"], e["ts"] + e["dur"]) for e in events if e.get("pid") == pid)
-        if "/device:" not in name or not spans:
+        if "/device:" not in name:
             continue
-        busy, (start, end) = 0.0, spans[0]
-        for a, b in spans[1:]:  # the union of the ops' intervals
-            if a > end:
-                busy, start = busy + end - start, a
-            end = max(end, b)
-        busy += end - start
         mine = [e for e in events if e.get("pid") == pid]
-        wait = sum(e["dur"] for e in mine if any(c in e["name"].lower() for c in COLLECTIVE))
-        span = spans[-1][1] - spans[0][0]
+        if not mine:
+            continue
+        spans = [(e["ts"], e["ts"] + e["dur"]) for e in mine]
+        waits = [(e["ts"], e["ts"] + e["dur"]) for e in mine if _collective(e["name"])]
         ms = lambda us: round(us / 1e3, 2)  # noqa: E731
         rows.append(
-            {"device": name, "span_ms": ms(span), "busy_ms": ms(busy), "collective_ms": ms(wait)}
+            {
+                "device": name,
+                "span_ms": ms(max(b for _, b in spans) - min(a for a, _ in spans)),
+                "busy_ms": ms(_covered(spans)),
+                "collective_ms": ms(_covered(waits)),
+            }
         )
     return rows
+
+
+def _collective(op: str) -> bool:
+    return any(c in op.lower() for c in COLLECTIVE)
 
 
 def peak_memory_mb() -> float:

@@ -36,6 +36,7 @@ def test_two_devices_match_one(tmp_path):
     two = train_on(2, tmp_path / "two.npz")
     assert int(one["devices"]) == 1 and int(two["devices"]) == 2
     assert int(two["shards"]) == 2  # the robots really were split between the devices
+    assert int(two["rollout_ops"]) > 0  # the rollout is named in the compiled program
     assert int(two["rollout_collectives"]) == 0
     weights = [k for k in one if k.startswith("arr_")]
     assert weights
@@ -102,6 +103,8 @@ def test_trace_device_time_on_a_hand_made_trace(tmp_path):
         op(1, "gemm_fusion", 1000, 2000),  # overlaps the first: busy 0-3 ms
         op(1, "ncclDevKernel_AllReduce_Sum_f32", 5000, 4000),  # 5-9 ms
         op(1, "all_reduce_30_fusion", 9000, 1000),  # 9-10 ms
+        op(1, "ncclDevKernel_AllReduce_Sum_f32", 9500, 500),  # within the one before: counted once
+        op(1, "a_long_op_that_starts_early", 500, 11500),  # ends last: the span runs to 12 ms
         op(2, "host_work", 0, 50000),
     ]
     folder = tmp_path / "plugins" / "profile"
@@ -110,5 +113,5 @@ def test_trace_device_time_on_a_hand_made_trace(tmp_path):
         json.dump({"traceEvents": events}, f)
     rows = throughput.device_time(str(tmp_path))
     assert rows == [
-        {"device": "/device:GPU:0", "span_ms": 10.0, "busy_ms": 8.0, "collective_ms": 5.0}
+        {"device": "/device:GPU:0", "span_ms": 12.0, "busy_ms": 12.0, "collective_ms": 5.0}
     ]

@@ -43,5 +43,6 @@ np.savez(
     *leaves,
     devices=len(jax.devices()),
     shards=len(ts.env_state.obs.sharding.device_set),
+    rollout_ops=sum("/rollout/" in line for line in hlo.splitlines()),
     rollout_collectives=len(waits),
 )
