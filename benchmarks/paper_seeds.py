@@ -14,7 +14,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from readme_results import evaluate, machine, pct, train
+from readme_results import SUITE, evaluate, machine, pct, train
 from report import write_json
 
 
@@ -29,9 +29,8 @@ def main() -> None:
     for seed in (int(s) for s in args.seeds.split(",")):
         run = runs / f"paper-{seed}"
         seconds = train(run, "--preset", "paper", "--seed", str(seed))
-        flags = ("--suite", "benchmark", "--episodes", "20")
         pictures = str(runs / "pictures" / f"paper-{seed}")
-        ev = evaluate(run, runs / f"paper-{seed}.json", *flags, pictures=pictures)
+        ev = evaluate(run, runs / f"paper-{seed}.json", *SUITE, pictures=pictures)
         o = ev["overall"]
         rows.append(
             {

@@ -33,6 +33,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 OUT = RESULTS / "readme.json"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 QUICK = "python -m jaxnav.train"
+SUITE = ("--suite", "benchmark", "--episodes", "20")  # how the README judges a policy on the suite
 # Accelerator lines: (JSON under benchmarks/results/, the command that wrote it, what it measures).
 GATHERED = (
     (
@@ -129,9 +130,7 @@ def cpu_lines(args) -> list[dict]:
             f"coverage {pct(o['coverage'])}",
         )
     )
-    suite = evaluate(
-        run, RESULTS / "readme_cpu_suite.json", "--suite", "benchmark", "--episodes", "20"
-    )
+    suite = evaluate(run, RESULTS / "readme_cpu_suite.json", *SUITE)
     lines.append(
         line(
             "the same policy on the 32 rooms of the benchmark suite (never trained on), 20 episodes a room",
@@ -149,9 +148,8 @@ def paper_line(run: Path) -> dict:
     """The paper preset trained (timed) next to `run` and evaluated on the suite."""
     paper = run.with_name(run.name + "-paper")
     seconds = train(paper, "--preset", "paper")
-    flags = ("--suite", "benchmark", "--episodes", "20")
     ev = evaluate(
-        paper, RESULTS / "readme_cpu_paper_suite.json", *flags, pictures="readme_pictures/paper"
+        paper, RESULTS / "readme_cpu_paper_suite.json", *SUITE, pictures="readme_pictures/paper"
     )
     return dict(
         what=PAPER_WHAT,

@@ -210,13 +210,14 @@ def trace_summary(folder: str, top: int = 15) -> list[dict]:
     ]
 
 
-COLLECTIVE = ("nccl", "all_reduce", "all-reduce", "all_gather", "all-gather", "reduce_scatter")
-COLLECTIVE += (
-    "reduce-scatter",
+# Cross-device ops in a trace (names lower-cased, "-" read as "_"): NCCL's kernels, XLA's fusions.
+COLLECTIVE = (
+    "nccl",
+    "all_reduce",
+    "all_gather",
+    "reduce_scatter",
     "all_to_all",
-    "all-to-all",
     "collective_permute",
-    "collective-permute",
 )
 
 
@@ -257,7 +258,7 @@ def device_time(folder: str) -> list[dict]:
 
 
 def _collective(op: str) -> bool:
-    return any(c in op.lower() for c in COLLECTIVE)
+    return any(c in op.lower().replace("-", "_") for c in COLLECTIVE)
 
 
 def peak_memory_mb() -> float:

@@ -31,18 +31,18 @@ leaves = jax.tree_util.tree_leaves(jax.device_get(ts.params))
 # The compiled program's cross-device ops within the rollout (`make_train` names it), read from
 # the executable just run (the lowering is cached: nothing compiles again).
 hlo = trainer.train.lower(jax.random.PRNGKey(0)).compile().as_text()
+rollout = [line for line in hlo.splitlines() if "/rollout/" in line]
 collectives = ("all-reduce", "all-gather", "all-to-all", "collective-permute", "reduce-scatter")
 waits = [
     line
-    for line in hlo.splitlines()
+    for line in rollout
     if any(f" {op}(" in line or f" {op}-start(" in line for op in collectives)
-    and "/rollout/" in line
 ]
 np.savez(
     sys.argv[1],
     *leaves,
     devices=len(jax.devices()),
     shards=len(ts.env_state.obs.sharding.device_set),
-    rollout_ops=sum("/rollout/" in line for line in hlo.splitlines()),
+    rollout_ops=len(rollout),
     rollout_collectives=len(waits),
 )
