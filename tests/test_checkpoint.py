@@ -108,6 +108,34 @@ def test_format_1_checkpoint_is_refused_in_one_line(tmp_path, state):
     assert_one_line(err, str(ckpt / "train_state.npz"), "written by an older jaxnav (format 1)")
 
 
+def test_robots_state_of_another_physics_restarts_episodes(tmp_path, state, capsys):
+    """A checkpoint whose robots' state (`env_state`) no longer fits, as one written before the
+    physics state changed its fields, restores everything learnt and renews only the robots'
+    state, with a note; a learner that does not fit is still refused."""
+    ts, config = state
+    saved = ts.replace(env_state={"geom_xpos": jnp.ones((2, 22, 3)), "qpos": jnp.ones((2, 3))})
+    ckpt = checkpoint.save(tmp_path, saved, config, {})
+    template = ts.replace(
+        params=jax.tree_util.tree_map(jnp.zeros_like, ts.params),
+        env_state={"geom_xpos": jnp.zeros((2, 5, 3)), "qpos": jnp.zeros((2, 3))},
+    )
+    got = checkpoint.restore_train_state(ckpt, template)
+    leaves = jax.tree_util.tree_leaves
+    for a, b in zip(leaves(got.params), leaves(ts.params), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert got.env_state["geom_xpos"].shape == (2, 5, 3)
+    np.testing.assert_array_equal(got.env_state["qpos"], 0.0)  # all of it from the template
+    assert "robots start new episodes" in capsys.readouterr().err
+    same = template.replace(env_state=saved.env_state)  # fits: restored as saved, silently
+    np.testing.assert_array_equal(checkpoint.restore_train_state(ckpt, same).env_state["qpos"], 1)
+    assert capsys.readouterr().err == ""
+    wider = make_network(PPO, AvoidConfig().action_spec)  # the learner no longer fits
+    other = template.replace(params=wider.init(jax.random.PRNGKey(0), jnp.zeros((1, 9))))
+    with pytest.raises(CheckpointError) as err:
+        checkpoint.restore_train_state(ckpt, other)
+    assert_one_line(err, "Dense_0']['kernel'] is float32[8, 8]", "needs float32[9, 8]")
+
+
 def truncate(file):
     file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
 

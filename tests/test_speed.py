@@ -64,6 +64,36 @@ def test_fast_physics_skips_mjx_contacts():
         assert not build(cfg).opt.disableflags & no_contact
 
 
+def test_fast_physics_steps_the_robot_alone():
+    """Without MJX contacts the physics steps the robot's bodies, joints and motors alone (no
+    geoms, sites or camera), with the room model's masses and inertias: MuJoCo steps both models
+    the same, bit for bit (the bit-identical episodes below check it under MJX)."""
+    cfg = SceneConfig()
+    room, alone = jaxnav.core.scene.build_mj_model(cfg), jaxnav.core.scene.build_robot_model(cfg)
+    assert (alone.ngeom, alone.nsite, alone.ncam) == (0, 0, 0) and room.ngeom > 20
+    bodies = slice(alone.nbody)  # the room model's bodies are the robot's
+    for field in ("body_mass", "body_inertia", "body_ipos", "body_iquat"):
+        np.testing.assert_array_equal(getattr(alone, field), getattr(room, field)[bodies], field)
+    for field in ("dof_armature", "dof_damping", "actuator_gear"):
+        np.testing.assert_array_equal(getattr(alone, field), getattr(room, field), field)
+    assert (alone.opt.timestep, alone.opt.disableflags) == (
+        room.opt.timestep,
+        room.opt.disableflags,
+    )
+    runs = []
+    for m in (room, alone):
+        d = mujoco.MjData(m)
+        d.qpos[:3] = 0.5, -1.0, 0.3
+        poses = []
+        for t in range(30):
+            d.ctrl[:] = 2.0 * np.sin(t), 1.5 * np.cos(t), 0.05 * np.sin(3 * t)
+            mujoco.mj_step(m, d)
+            poses.append(np.concatenate([d.qpos, d.qvel]))
+        runs.append(np.array(poses))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert np.abs(runs[0][-1, :3] - [0.5, -1.0, 0.3]).max() > 0.1  # it moved
+
+
 @pytest.mark.slow  # two env steps and a reset to compile: about 80 s on a 2-core CPU
 def test_episodes_without_mjx_contacts_are_bit_identical(full_and_fast):
     """Every step of every episode up to its end, the colliding step included, is the same bit

@@ -64,10 +64,10 @@ class SceneConfig:
     step suffices."""
     fast_contacts: bool = False
     """Run MJX's contact pass and constraint solver in the fast physics (True: the full MJX path).
-    Off (default), MJX skips both and every env shares one model: a contact only ever ends the
-    episode, which the analytic collision test (`NavTask.touching`) does at the first touch, and
-    MuJoCo applies contact forces only from a pose that already penetrates, never the start of a
-    step of a live episode. So episodes are bit-identical to the full path with one substep, the
+    Off (default), MJX skips both and steps the robot alone (`build_robot_model`): a contact
+    only ever ends the episode, which the analytic collision test (`NavTask.touching`) does at
+    the first touch, and MuJoCo applies contact forces only from a pose that already penetrates,
+    never the start of a step of a live episode. So episodes are bit-identical to the full path with one substep, the
     colliding step included (tested); with more, the rest of the colliding step goes on into the
     obstacle. The wheeled physics always runs them (its wheels roll on floor contacts)."""
 
@@ -122,6 +122,46 @@ def robot_mjcf(robot: RobotSpec, physics: str = "fast") -> Path:
     return path
 
 
+def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
+    """The robot's MJCF of `cfg.physics` as a spec; the fast physics with `cfg`'s timestep and
+    solver iterations, the wheeled model with its MJCF's own."""
+    spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot, cfg.physics)))
+    if cfg.physics == "fast":
+        spec.option.timestep = cfg.timestep
+        spec.option.iterations = cfg.solver_iterations
+        spec.option.ls_iterations = cfg.solver_iterations
+        if not cfg.fast_contacts:
+            spec.option.disableflags |= _NO_CONTACTS
+    return spec
+
+
+def _compiled(spec: mujoco.MjSpec) -> mujoco.MjModel:
+    m = spec.compile()
+    if m.opt.disableflags & _NO_CONTACTS and not m.dof_damping.any():
+        # Euler's implicit damping would refactor M to add nothing (MuJoCo itself skips it then).
+        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+    return m
+
+
+def build_robot_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.MjModel:
+    """The robot's bodies, joints and actuators alone, with `build_mj_model`'s options: what the
+    fast physics without MJX contacts steps (`Scene.physics_model`). There nothing acts on the
+    robot but its motors, and nothing reads more than `qpos` and `qvel`: the room's geoms and the
+    robot's own (its shapes, sites, camera) would only add their poses to every step's
+    kinematics. Each body keeps its mass and inertia as the whole MJCF has them (geoms may give
+    them), so the dynamics are the full model's."""
+    spec = _robot_spec(cfg, robot)
+    whole = spec.compile()
+    for i, body in enumerate(spec.bodies[1:], 1):  # in the compiled order; world has none
+        body.mass, body.inertia = whole.body_mass[i], whole.body_inertia[i]
+        body.ipos, body.iquat = whole.body_ipos[i], whole.body_iquat[i]
+        body.explicitinertial = True
+    for kind in ("geoms", "sites", "cameras", "lights"):
+        for element in list(getattr(spec, kind)):
+            spec.delete(element)
+    return _compiled(spec)
+
+
 def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.MjModel:
     """Robot MJCF + floor + 4 plane walls + obstacle slots (boxes, then cylinders), all parked.
 
@@ -130,13 +170,7 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
     shapes are identical. The fast physics takes its timestep and solver iterations from `cfg`; the
     wheeled model keeps its MJCF's own.
     """
-    spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot, cfg.physics)))
-    if cfg.physics == "fast":
-        spec.option.timestep = cfg.timestep
-        spec.option.iterations = cfg.solver_iterations
-        spec.option.ls_iterations = cfg.solver_iterations
-        if not cfg.fast_contacts:
-            spec.option.disableflags |= _NO_CONTACTS
+    spec = _robot_spec(cfg, robot)
     spec.add_material(name="floor", rgba=[0.85, 0.85, 0.8, 1])
     spec.add_material(name="wall", rgba=[0.7, 0.6, 0.5, 1])
     spec.add_material(name="obstacle", rgba=[0.3, 0.5, 0.8, 1])
@@ -180,11 +214,7 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
             material="obstacle",
             **solid,
         )
-    m = spec.compile()
-    if m.opt.disableflags & _NO_CONTACTS and not m.dof_damping.any():
-        # Euler's implicit damping would refactor M to add nothing (MuJoCo itself skips it then).
-        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
-    return m
+    return _compiled(spec)
 
 
 def _bumper_span(m: mujoco.MjModel, bumper: int, source: str) -> tuple[tuple[float, float], float]:
@@ -286,6 +316,12 @@ class Scene:
         self.yaw_inertia = float(self.mj_model.body_inertia[self.robot_body, 2])
         self.wheeled = cfg.physics == "wheeled"
         self.shared = not (self.wheeled or cfg.fast_contacts)  # one model for every env
+        # What the physics steps: the robot alone where the room's geoms act on nothing.
+        self.robot_model = (
+            mjx.put_model(build_robot_model(cfg, robot), device=jax.local_devices()[0])
+            if self.shared
+            else None
+        )
         self.timestep = float(self.mj_model.opt.timestep)  # s per physics step
         self.substeps = _physics_substeps(cfg, self.timestep, source)  # physics steps per control
         self.floor = name("floor")
@@ -332,9 +368,15 @@ class Scene:
 
     def physics_model(self, params) -> mjx.Model:
         """The model the physics steps one env with: its own (`model_for`), or without MJX's
-        contacts (`SceneConfig.fast_contacts` off) the shared one, since then nothing the robot
-        does depends on where the room's geoms are."""
-        return self.model if self.shared else self.model_for(params)
+        contacts (`SceneConfig.fast_contacts` off) the robot alone (`build_robot_model`), one
+        for every env, since then nothing the robot does depends on the room's geoms. Its
+        joints, and so `qpos` and `qvel`, are the room model's."""
+        return self.robot_model if self.shared else self.model_for(params)
+
+    @property
+    def data_model(self) -> mjx.Model:
+        """The model whose `mjx.Data` the physics steps: `physics_model`'s structure."""
+        return self.robot_model if self.shared else self.model
 
     def batched_model(self, params) -> tuple[mjx.Model, mjx.Model]:
         """A batch's model with leading-axis geom fields, and the `in_axes` tree to vmap it with."""

@@ -205,12 +205,14 @@ def load_meta(ckpt: Path) -> dict:
     return meta
 
 
-def load_tree(file: Path, template):
+def load_tree(file: Path, template, renewable: str | None = None):
     """The tree saved by `save_tree` in `file`, shaped (and placed) like `template`, each leaf
     found by its path.
 
     A missing or extra entry, or a leaf whose shape or dtype differs, raises CheckpointError naming
-    the file and the first such entry.
+    the file and the first such entry; except under the path prefix `renewable`, where any
+    difference keeps that whole part of `template` instead (see `restore_train_state`). Returns
+    the tree, and with `renewable` given, (tree, whether that part was kept from `template`).
     """
     try:
         with np.load(file, allow_pickle=False) as data:
@@ -226,25 +228,45 @@ def load_tree(file: Path, template):
     if version is None or int(version) != FORMAT_VERSION:
         raise CheckpointError(f"{file}: format {version}; this jaxnav reads {FORMAT_VERSION}")
     named, treedef = jax.tree_util.tree_flatten_with_path(template)
-    keys = [jax.tree_util.keystr(path) for path, _ in named]
-    missing = [k for k in keys if k not in saved]
-    extra = sorted(set(saved) - set(keys))
+    template_leaves = {jax.tree_util.keystr(path): leaf for path, leaf in named}
+    wanted = dict(template_leaves)
+    part = lambda k: renewable is not None and k.startswith(renewable)  # noqa: E731
+    mine = {k: leaf for k, leaf in wanted.items() if part(k)}
+    renew = bool(mine) and _mismatch({k: v for k, v in saved.items() if part(k)}, mine) is not None
+    if renew:  # the template's part stands in for the saved one
+        saved = {k: v for k, v in saved.items() if not part(k)}
+        wanted = {k: leaf for k, leaf in wanted.items() if not part(k)}
+    problem = _mismatch(saved, wanted)
+    if problem is not None:
+        raise CheckpointError(f"{file}: {problem}")
+    leaves = [
+        leaf if renew and k in mine else _place(saved[k], leaf)
+        for k, leaf in template_leaves.items()
+    ]
+    tree = jax.tree_util.tree_unflatten(treedef, leaves)
+    return tree if renewable is None else (tree, renew)
+
+
+def _mismatch(saved: dict, wanted: dict) -> str | None:
+    """What first differs between the `saved` arrays and the `wanted` leaves, by entry name (the
+    message's tail after the file name); None where every entry matches in shape and dtype."""
+    missing = [k for k in wanted if k not in saved]
+    extra = sorted(set(saved) - set(wanted))
     if missing or extra:
         what = f"no entry {missing[0]}" if missing else f"unexpected entry {extra[0]}"
-        raise CheckpointError(
-            f"{file}: {what} (the saved state does not match this configuration, or an older "
+        return (
+            f"{what} (the saved state does not match this configuration, or an older "
             "jaxnav wrote it: evaluate and export still read the run's policy.msgpack)"
         )
-    for key, (_, leaf) in zip(keys, named, strict=True):
+    for key, leaf in wanted.items():
         dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
         want = (np.shape(leaf), np.dtype(dtype))
         if (saved[key].shape, saved[key].dtype) != want:
-            raise CheckpointError(
-                f"{file}: {key} is {saved[key].dtype}{list(saved[key].shape)}, "
+            return (
+                f"{key} is {saved[key].dtype}{list(saved[key].shape)}, "
                 f"this configuration needs {want[1]}{list(want[0])}"
             )
-    leaves = [_place(saved[k], leaf) for k, (_, leaf) in zip(keys, named, strict=True)]
-    return jax.tree_util.tree_unflatten(treedef, leaves)
+    return None
 
 
 def _place(value: np.ndarray, like):
@@ -257,7 +279,19 @@ def _place(value: np.ndarray, like):
 
 
 def restore_train_state(ckpt: Path, template):
-    """The TrainState saved in `ckpt`, shaped like `template` (a fresh `Trainer.init` result)."""
-    ts = load_tree(ckpt / "train_state.npz", template)
+    """The TrainState saved in `ckpt`, shaped like `template` (a fresh `Trainer.init` result).
+
+    The robots' state (`env_state`: poses, episodes under way) is saved so that a resumed run
+    goes on exactly as an unbroken one; where it no longer fits (a jaxnav whose physics state
+    has other fields wrote it), the robots start new episodes from `template`'s and everything
+    learnt (weights, optimiser, normaliser, RNG, update count) is restored, with a note."""
+    ts, renewed = load_tree(ckpt / "train_state.npz", template, renewable=".env_state")
     verify(ckpt)  # after the content checks: their messages name the field at fault
+    if renewed:
+        print(
+            f"jaxnav: {ckpt}: the robots' saved state does not fit this jaxnav's physics "
+            "state; the robots start new episodes, everything learnt is restored",
+            file=sys.stderr,
+            flush=True,
+        )
     return ts

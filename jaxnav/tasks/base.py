@@ -176,7 +176,7 @@ class NavTask:
         self.observation_size = observation_size(task, sensor)
         self.bank = bank
         self.scene = Scene(scene, robot)
-        self._data0 = mjx.make_data(self.scene.model, device=jax.local_devices()[0])
+        self._data0 = mjx.make_data(self.scene.data_model, device=jax.local_devices()[0])
         # Static: obstacles move in this env (added movers, or a layout's motions).
         self.moving = randomize.moving_count[1] > 0 or bank.rooms.motion is not None
         self.walkers = walker_config(randomize)  # the people the randomisation adds
