@@ -21,6 +21,7 @@ import datetime
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -73,7 +74,13 @@ def sh(*args: str) -> None:
 
 
 def train(run: Path, *flags: str) -> float:
-    """Wall seconds of `python -m jaxnav.train --out run *flags`."""
+    """Wall seconds of `python -m jaxnav.train --out run *flags`. A run of this script's own
+    (its default folders under RESULTS, git-ignored) is replaced; any other folder must be new."""
+    if run.exists():
+        if run.parent.resolve() != RESULTS.resolve():
+            raise SystemExit(f"readme_results.py: {run} already exists; give --run a new folder")
+        print(f"readme_results.py: replacing this script's earlier run in {run}", flush=True)
+        shutil.rmtree(run)
     tick = time.perf_counter()
     sh(sys.executable, "-m", "jaxnav.train", "--out", str(run), "--no-progress", *flags)
     return time.perf_counter() - tick
