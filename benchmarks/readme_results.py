@@ -32,6 +32,8 @@ from report import write_json
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 OUT = RESULTS / "readme.json"
+# The runs this script trains by default (git-ignored), which a new run of it replaces.
+OWN_RUNS = (RESULTS / "readme-run", RESULTS / "readme-run-paper")
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 QUICK = "python -m jaxnav.train"
 SUITE = ("--suite", "benchmark", "--episodes", "20")  # how the README judges a policy on the suite
@@ -74,11 +76,10 @@ def sh(*args: str) -> None:
 
 
 def train(run: Path, *flags: str) -> float:
-    """Wall seconds of `python -m jaxnav.train --out run *flags`. A run of this script's own
-    (its default folders under RESULTS, git-ignored) is replaced; any other folder must be new."""
-    if run.exists():
-        if run.parent.resolve() != RESULTS.resolve():
-            raise SystemExit(f"readme_results.py: {run} already exists; give --run a new folder")
+    """Wall seconds of `python -m jaxnav.train --out run *flags`. A run this script trained before
+    in its own folders (`OWN_RUNS`, git-ignored) is replaced; any other folder must be new (the
+    training refuses one that holds a run)."""
+    if run.resolve() in OWN_RUNS and run.exists():
         print(f"readme_results.py: replacing this script's earlier run in {run}", flush=True)
         shutil.rmtree(run)
     tick = time.perf_counter()
@@ -113,7 +114,7 @@ def suite_text(ev: dict) -> str:
 
 
 def cpu_lines(args) -> list[dict]:
-    run = Path(args.run or RESULTS / "readme-run")
+    run = Path(args.run or OWN_RUNS[0]).resolve()  # the subprocesses run in ROOT
     lines, today = [], datetime.date.today().isoformat()
     line = lambda what, command, result: dict(  # noqa: E731
         what=what, command=command, machine=machine(), date=today, result=result
@@ -266,7 +267,7 @@ def main() -> None:
     else:
         cpu = cpu_lines(args)
     if args.paper:
-        cpu.append(paper_line(Path(args.run or RESULTS / "readme-run")))
+        cpu.append(paper_line(Path(args.run or OWN_RUNS[0]).resolve()))
     results = {"lines": cpu + gathered_lines()}
     write_json(OUT, results)  # with the command and commit
     print(render(results))

@@ -92,6 +92,42 @@ def test_fast_physics_steps_the_robot_alone():
         runs.append(np.array(poses))
     np.testing.assert_array_equal(runs[0], runs[1])
     assert np.abs(runs[0][-1, :3] - [0.5, -1.0, 0.3]).max() > 0.1  # it moved
+    # ... and that is what the env steps, unless MJX's contacts are on (the room model then).
+    assert jaxnav.make_env("avoid").scene.physics_model(None).ngeom == 0
+    contacts = jaxnav.make_env("avoid", scene=SceneConfig(fast_contacts=True)).scene
+    assert contacts.data_model.ngeom == room.ngeom
+
+
+def test_robot_alone_from_a_robots_own_mjcf(tmp_path):
+    """A robot's MJCF with sensors on its sites still builds its robot-alone model (the sensors
+    go with the sites); one whose motors act through a site cannot, and says so in one line
+    naming the file and the flag that steps the whole model."""
+    import dataclasses
+
+    from jaxnav.core.robot import TURTLEBOT2I
+    from jaxnav.core.scene import SCENES_DIR, Scene
+
+    xml = (SCENES_DIR / TURTLEBOT2I.mjcf).read_text()
+    sensed = tmp_path / "sensed.xml"
+    sensor = '<sensor><framepos objtype="site" objname="camera"/></sensor></mujoco>'
+    sensed.write_text(xml.replace("</mujoco>", sensor))
+    scene = Scene(SceneConfig(), dataclasses.replace(TURTLEBOT2I, mjcf=str(sensed)))
+    assert scene.data_model.ngeom == 0 and scene.data_model.nsensor == 0
+    pushed = tmp_path / "pushed.xml"
+    site_motor = '<motor name="push" site="camera" gear="1 0 0 0 0 0"/></actuator>'
+    pushed.write_text(xml.replace("</actuator>", site_motor))
+    with pytest.raises(ValueError, match=r"RobotSpec.mjcf: .*pushed.xml: .*--scene.fast-contacts"):
+        Scene(SceneConfig(), dataclasses.replace(TURTLEBOT2I, mjcf=str(pushed)))
+
+
+def test_robot_alone_keeps_every_bodys_inertia():
+    """A robot of several bodies (the wheeled model: base, two wheels) keeps each body's mass
+    and inertia, in the compiled order, when its geoms go."""
+    cfg = SceneConfig(physics="wheeled")
+    room, alone = jaxnav.core.scene.build_mj_model(cfg), jaxnav.core.scene.build_robot_model(cfg)
+    assert alone.nbody == 4 and alone.ngeom == 0
+    for field in ("body_mass", "body_inertia", "body_ipos", "body_iquat", "body_parentid"):
+        np.testing.assert_array_equal(getattr(alone, field), getattr(room, field)[:4], field)
 
 
 @pytest.mark.slow  # two env steps and a reset to compile: about 80 s on a 2-core CPU

@@ -9,7 +9,9 @@ Two physics models of the robot (`SceneConfig.physics`): "fast", the base pushed
 forces that track the command (`RobotSpec.mjcf`, one 0.1 s step per control step), and "wheeled",
 the validation model: the base on two driven wheels and castors with gravity and friction contacts
 (`RobotSpec.wheeled_mjcf`, its own timestep and solver). In both, qpos[:3] is the base's pose
-(x, y, yaw): the sensor, collision detection and evaluation read only that.
+(x, y, yaw): the sensor, collision detection and evaluation read only that. By default (MJX's
+contacts skipped, `SceneConfig.fast_contacts`) the fast physics steps a model of the robot alone
+(`build_robot_model`); the room model serves the contacts, the wheeled physics and rendering.
 """
 
 from __future__ import annotations
@@ -67,9 +69,10 @@ class SceneConfig:
     Off (default), MJX skips both and steps the robot alone (`build_robot_model`): a contact
     only ever ends the episode, which the analytic collision test (`NavTask.touching`) does at
     the first touch, and MuJoCo applies contact forces only from a pose that already penetrates,
-    never the start of a step of a live episode. So episodes are bit-identical to the full path with one substep, the
-    colliding step included (tested); with more, the rest of the colliding step goes on into the
-    obstacle. The wheeled physics always runs them (its wheels roll on floor contacts)."""
+    never the start of a step of a live episode. So episodes are bit-identical to the full path
+    with one substep, the colliding step included (tested); with more, the rest of the colliding
+    step goes on into the obstacle. The wheeled physics always runs them (its wheels roll on
+    floor contacts)."""
 
     def __post_init__(self):
         if self.physics not in PHYSICS:
@@ -147,19 +150,28 @@ def build_robot_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoc
     """The robot's bodies, joints and actuators alone, with `build_mj_model`'s options: what the
     fast physics without MJX contacts steps (`Scene.physics_model`). There nothing acts on the
     robot but its motors, and nothing reads more than `qpos` and `qvel`: the room's geoms and the
-    robot's own (its shapes, sites, camera) would only add their poses to every step's
-    kinematics. Each body keeps its mass and inertia as the whole MJCF has them (geoms may give
-    them), so the dynamics are the full model's."""
+    robot's own (its shapes, sites, camera, sensors, contact pairs) would only add work to every
+    step. Each body keeps its mass and inertia as the whole MJCF has them (geoms may give them),
+    so the dynamics are the full model's."""
     spec = _robot_spec(cfg, robot)
     whole = spec.compile()
-    for i, body in enumerate(spec.bodies[1:], 1):  # in the compiled order; world has none
+    for body in spec.bodies[1:]:  # the world body has no inertia of its own
+        i = body.id  # its index in `whole`
         body.mass, body.inertia = whole.body_mass[i], whole.body_inertia[i]
         body.ipos, body.iquat = whole.body_ipos[i], whole.body_iquat[i]
         body.explicitinertial = True
-    for kind in ("geoms", "sites", "cameras", "lights"):
+    for kind in ("sensors", "pairs", "excludes", "geoms", "sites", "cameras", "lights"):
         for element in list(getattr(spec, kind)):
             spec.delete(element)
-    return _compiled(spec)
+    try:
+        return _compiled(spec)
+    except ValueError as err:  # e.g. an actuator or tendon on a site
+        field = mjcf_field(cfg.physics)
+        raise ValueError(
+            f"RobotSpec.{field}: {getattr(robot, field)}: the robot without its geoms and sites "
+            f"does not compile ({' '.join(str(err).split())}); run its physics with MJX's "
+            "contacts (--scene.fast-contacts true), which steps the whole model"
+        ) from None
 
 
 def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.MjModel:
@@ -287,7 +299,8 @@ def _wheel_radius(m: mujoco.MjModel, robot: RobotSpec, source: str) -> float:
 
 
 class Scene:
-    """The compiled room model and the map from `SceneParams` to per-env `mjx.Model` fields."""
+    """The compiled room model, the map from `SceneParams` to per-env `mjx.Model` fields, and the
+    model the physics steps (`physics_model`)."""
 
     def __init__(self, cfg: SceneConfig = SceneConfig(), robot: RobotSpec = TURTLEBOT2I):
         self.cfg, self.robot = cfg, robot
@@ -316,11 +329,12 @@ class Scene:
         self.yaw_inertia = float(self.mj_model.body_inertia[self.robot_body, 2])
         self.wheeled = cfg.physics == "wheeled"
         self.shared = not (self.wheeled or cfg.fast_contacts)  # one model for every env
-        # What the physics steps: the robot alone where the room's geoms act on nothing.
-        self.robot_model = (
+        # What the physics steps: the robot alone where the room's geoms act on nothing (the
+        # model of its `mjx.Data`), else the room model (with each env's geometry).
+        self.data_model = (
             mjx.put_model(build_robot_model(cfg, robot), device=jax.local_devices()[0])
             if self.shared
-            else None
+            else self.model
         )
         self.timestep = float(self.mj_model.opt.timestep)  # s per physics step
         self.substeps = _physics_substeps(cfg, self.timestep, source)  # physics steps per control
@@ -371,12 +385,7 @@ class Scene:
         contacts (`SceneConfig.fast_contacts` off) the robot alone (`build_robot_model`), one
         for every env, since then nothing the robot does depends on the room's geoms. Its
         joints, and so `qpos` and `qvel`, are the room model's."""
-        return self.robot_model if self.shared else self.model_for(params)
-
-    @property
-    def data_model(self) -> mjx.Model:
-        """The model whose `mjx.Data` the physics steps: `physics_model`'s structure."""
-        return self.robot_model if self.shared else self.model
+        return self.data_model if self.shared else self.model_for(params)
 
     def batched_model(self, params) -> tuple[mjx.Model, mjx.Model]:
         """A batch's model with leading-axis geom fields, and the `in_axes` tree to vmap it with."""

@@ -205,15 +205,20 @@ def load_meta(ckpt: Path) -> dict:
     return meta
 
 
-def load_tree(file: Path, template, renewable: str | None = None):
+def load_tree(file: Path, template):
     """The tree saved by `save_tree` in `file`, shaped (and placed) like `template`, each leaf
     found by its path.
 
     A missing or extra entry, or a leaf whose shape or dtype differs, raises CheckpointError naming
-    the file and the first such entry; except under the path prefix `renewable`, where any
-    difference keeps that whole part of `template` instead (see `restore_train_state`). Returns
-    the tree, and with `renewable` given, (tree, whether that part was kept from `template`).
+    the file and the first such entry.
     """
+    return _load(file, template)[0]
+
+
+def _load(file: Path, template, renewable: str | None = None):
+    """(`load_tree`'s tree, None); with `renewable`, a tree path (e.g. ".env_state"), any
+    difference within that part keeps the whole part as `template` has it, and the second item
+    says what differed there first (None: the saved part fitted and was restored)."""
     try:
         with np.load(file, allow_pickle=False) as data:
             saved = {k: data[k] for k in data.files}
@@ -229,22 +234,31 @@ def load_tree(file: Path, template, renewable: str | None = None):
         raise CheckpointError(f"{file}: format {version}; this jaxnav reads {FORMAT_VERSION}")
     named, treedef = jax.tree_util.tree_flatten_with_path(template)
     template_leaves = {jax.tree_util.keystr(path): leaf for path, leaf in named}
-    wanted = dict(template_leaves)
-    part = lambda k: renewable is not None and k.startswith(renewable)  # noqa: E731
-    mine = {k: leaf for k, leaf in wanted.items() if part(k)}
-    renew = bool(mine) and _mismatch({k: v for k, v in saved.items() if part(k)}, mine) is not None
-    if renew:  # the template's part stands in for the saved one
-        saved = {k: v for k, v in saved.items() if not part(k)}
-        wanted = {k: leaf for k, leaf in wanted.items() if not part(k)}
+    within = lambda k: (
+        renewable is not None
+        and (  # noqa: E731
+            k == renewable or k.startswith((renewable + ".", renewable + "["))
+        )
+    )
+    mine = {k: leaf for k, leaf in template_leaves.items() if within(k)}
+    renewed = _mismatch({k: v for k, v in saved.items() if within(k)}, mine) if mine else None
+    wanted = template_leaves
+    if renewed is not None:  # the template's part stands in for the saved one
+        saved = {k: v for k, v in saved.items() if not within(k)}
+        wanted = {k: leaf for k, leaf in template_leaves.items() if not within(k)}
     problem = _mismatch(saved, wanted)
     if problem is not None:
+        if problem.startswith(("no entry ", "unexpected entry ")):  # other names
+            problem += (
+                " (the saved state does not match this configuration, or an older jaxnav wrote "
+                "it: evaluate and export still read the run's policy.msgpack)"
+            )
         raise CheckpointError(f"{file}: {problem}")
     leaves = [
-        leaf if renew and k in mine else _place(saved[k], leaf)
+        leaf if renewed is not None and k in mine else _place(saved[k], leaf)
         for k, leaf in template_leaves.items()
     ]
-    tree = jax.tree_util.tree_unflatten(treedef, leaves)
-    return tree if renewable is None else (tree, renew)
+    return jax.tree_util.tree_unflatten(treedef, leaves), renewed
 
 
 def _mismatch(saved: dict, wanted: dict) -> str | None:
@@ -253,11 +267,7 @@ def _mismatch(saved: dict, wanted: dict) -> str | None:
     missing = [k for k in wanted if k not in saved]
     extra = sorted(set(saved) - set(wanted))
     if missing or extra:
-        what = f"no entry {missing[0]}" if missing else f"unexpected entry {extra[0]}"
-        return (
-            f"{what} (the saved state does not match this configuration, or an older "
-            "jaxnav wrote it: evaluate and export still read the run's policy.msgpack)"
-        )
+        return f"no entry {missing[0]}" if missing else f"unexpected entry {extra[0]}"
     for key, leaf in wanted.items():
         dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
         want = (np.shape(leaf), np.dtype(dtype))
@@ -282,15 +292,16 @@ def restore_train_state(ckpt: Path, template):
     """The TrainState saved in `ckpt`, shaped like `template` (a fresh `Trainer.init` result).
 
     The robots' state (`env_state`: poses, episodes under way) is saved so that a resumed run
-    goes on exactly as an unbroken one; where it no longer fits (a jaxnav whose physics state
-    has other fields wrote it), the robots start new episodes from `template`'s and everything
-    learnt (weights, optimiser, normaliser, RNG, update count) is restored, with a note."""
-    ts, renewed = load_tree(ckpt / "train_state.npz", template, renewable=".env_state")
+    goes on exactly as an unbroken one; where it no longer fits (another jaxnav's robots' state,
+    e.g. one whose physics state had other fields), the robots start new episodes from
+    `template`'s and everything learnt (weights, optimiser, normaliser, RNG, update count) is
+    restored, with a warning."""
+    ts, renewed = _load(ckpt / "train_state.npz", template, renewable=".env_state")
     verify(ckpt)  # after the content checks: their messages name the field at fault
-    if renewed:
+    if renewed is not None:
         print(
-            f"jaxnav: {ckpt}: the robots' saved state does not fit this jaxnav's physics "
-            "state; the robots start new episodes, everything learnt is restored",
+            f"warning: {ckpt}: the robots' saved state does not fit this jaxnav's ({renewed}); "
+            "the robots start new episodes, everything learnt is restored",
             file=sys.stderr,
             flush=True,
         )
