@@ -101,7 +101,7 @@ def test_fast_physics_steps_the_robot_alone():
 def test_robot_alone_from_a_robots_own_mjcf(tmp_path):
     """A robot's MJCF with sensors on its sites still builds its robot-alone model (the sensors
     go with the sites); one whose motors act through a site cannot, and says so in one line
-    naming the file and the flag that steps the whole model."""
+    naming the file and the flag that steps the whole model; a malformed one is named too."""
     import dataclasses
 
     from jaxnav.core.robot import TURTLEBOT2I
@@ -118,6 +118,10 @@ def test_robot_alone_from_a_robots_own_mjcf(tmp_path):
     pushed.write_text(xml.replace("</actuator>", site_motor))
     with pytest.raises(ValueError, match=r"RobotSpec.mjcf: .*pushed.xml: .*--scene.fast-contacts"):
         Scene(SceneConfig(), dataclasses.replace(TURTLEBOT2I, mjcf=str(pushed)))
+    broken = tmp_path / "broken.xml"  # and a file MuJoCo cannot read at all
+    broken.write_text(xml.replace('<geom name="shell"', '<geom name="shell" colour="red"'))
+    with pytest.raises(ValueError, match=r"^RobotSpec.mjcf: .*broken.xml: XML Error: [^\n]*$"):
+        Scene(SceneConfig(), dataclasses.replace(TURTLEBOT2I, mjcf=str(broken)))
 
 
 def test_robot_alone_keeps_every_bodys_inertia():

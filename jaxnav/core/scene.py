@@ -125,10 +125,19 @@ def robot_mjcf(robot: RobotSpec, physics: str = "fast") -> Path:
     return path
 
 
+def _mjcf_error(cfg: SceneConfig, robot: RobotSpec, problem: str) -> ValueError:
+    """One line naming the robot's MJCF field and file, for what MuJoCo said of it."""
+    field = mjcf_field(cfg.physics)
+    return ValueError(f"RobotSpec.{field}: {getattr(robot, field)}: {' '.join(problem.split())}")
+
+
 def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
     """The robot's MJCF of `cfg.physics` as a spec; the fast physics with `cfg`'s timestep and
     solver iterations, the wheeled model with its MJCF's own."""
-    spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot, cfg.physics)))
+    try:
+        spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot, cfg.physics)))
+    except ValueError as err:  # MuJoCo's parser: a malformed file
+        raise _mjcf_error(cfg, robot, str(err)) from None
     if cfg.physics == "fast":
         spec.option.timestep = cfg.timestep
         spec.option.iterations = cfg.solver_iterations
@@ -138,8 +147,15 @@ def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
     return spec
 
 
-def _compiled(spec: mujoco.MjSpec) -> mujoco.MjModel:
-    m = spec.compile()
+def _compiled(
+    spec: mujoco.MjSpec, cfg: SceneConfig, robot: RobotSpec, why: str = ""
+) -> mujoco.MjModel:
+    """`spec` compiled, with MuJoCo's Euler damping off where it would add nothing; a compiler
+    error names the robot's MJCF (and ends with `why`)."""
+    try:
+        m = spec.compile()
+    except ValueError as err:
+        raise _mjcf_error(cfg, robot, f"{err}{why}") from None
     if m.opt.disableflags & _NO_CONTACTS and not m.dof_damping.any():
         # Euler's implicit damping would refactor M to add nothing (MuJoCo itself skips it then).
         m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
@@ -154,7 +170,7 @@ def build_robot_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoc
     step. Each body keeps its mass and inertia as the whole MJCF has them (geoms may give them),
     so the dynamics are the full model's."""
     spec = _robot_spec(cfg, robot)
-    whole = spec.compile()
+    whole = _compiled(spec, cfg, robot)
     for body in spec.bodies[1:]:  # the world body has no inertia of its own
         i = body.id  # its index in `whole`
         body.mass, body.inertia = whole.body_mass[i], whole.body_inertia[i]
@@ -163,15 +179,10 @@ def build_robot_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoc
     for kind in ("sensors", "pairs", "excludes", "geoms", "sites", "cameras", "lights"):
         for element in list(getattr(spec, kind)):
             spec.delete(element)
-    try:
-        return _compiled(spec)
-    except ValueError as err:  # e.g. an actuator or tendon on a site
-        field = mjcf_field(cfg.physics)
-        raise ValueError(
-            f"RobotSpec.{field}: {getattr(robot, field)}: the robot without its geoms and sites "
-            f"does not compile ({' '.join(str(err).split())}); run its physics with MJX's "
-            "contacts (--scene.fast-contacts true), which steps the whole model"
-        ) from None
+    # E.g. an actuator or a tendon on a site cannot do without it:
+    alone = "; so the robot without its geoms and sites does not compile: run its physics with "
+    alone += "MJX's contacts (--scene.fast-contacts true), which steps the whole model"
+    return _compiled(spec, cfg, robot, alone)
 
 
 def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.MjModel:
@@ -226,7 +237,7 @@ def build_mj_model(cfg: SceneConfig, robot: RobotSpec = TURTLEBOT2I) -> mujoco.M
             material="obstacle",
             **solid,
         )
-    return _compiled(spec)
+    return _compiled(spec, cfg, robot)
 
 
 def _bumper_span(m: mujoco.MjModel, bumper: int, source: str) -> tuple[tuple[float, float], float]:
