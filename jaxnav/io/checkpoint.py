@@ -234,12 +234,12 @@ def _load(file: Path, template, renewable: str | None = None):
         raise CheckpointError(f"{file}: format {version}; this jaxnav reads {FORMAT_VERSION}")
     named, treedef = jax.tree_util.tree_flatten_with_path(template)
     template_leaves = {jax.tree_util.keystr(path): leaf for path, leaf in named}
-    within = lambda k: (
-        renewable is not None
-        and (  # noqa: E731
-            k == renewable or k.startswith((renewable + ".", renewable + "["))
-        )
-    )
+
+    def within(key: str) -> bool:  # in the renewable part
+        if renewable is None:
+            return False
+        return key == renewable or key.startswith((renewable + ".", renewable + "["))
+
     mine = {k: leaf for k, leaf in template_leaves.items() if within(k)}
     renewed = _mismatch({k: v for k, v in saved.items() if within(k)}, mine) if mine else None
     wanted = template_leaves
