@@ -113,8 +113,7 @@ def suite_text(ev: dict) -> str:
     )
 
 
-def cpu_lines(args) -> list[dict]:
-    run = Path(args.run or OWN_RUNS[0]).resolve()  # the subprocesses run in ROOT
+def cpu_lines(args, run: Path) -> list[dict]:
     lines, today = [], datetime.date.today().isoformat()
     line = lambda what, command, result: dict(  # noqa: E731
         what=what, command=command, machine=machine(), date=today, result=result
@@ -260,14 +259,15 @@ def main() -> None:
     )
     parser.add_argument("--write-readme", action="store_true")
     args = parser.parse_args()
+    run = Path(args.run or OWN_RUNS[0]).resolve()  # the subprocesses run in ROOT
     if args.gather_only and OUT.exists():
         old = json.loads(OUT.read_text())["lines"]
         cpu = [ln for ln in old if "CPU" in ln["machine"]]
         cpu = [ln for ln in cpu if not (args.paper and ln["what"] == PAPER_WHAT)]
     else:
-        cpu = cpu_lines(args)
+        cpu = cpu_lines(args, run)
     if args.paper:
-        cpu.append(paper_line(Path(args.run or OWN_RUNS[0]).resolve()))
+        cpu.append(paper_line(run))
     results = {"lines": cpu + gathered_lines()}
     write_json(OUT, results)  # with the command and commit
     print(render(results))

@@ -105,9 +105,9 @@ def test_robot_alone_from_a_robots_own_mjcf(tmp_path):
     import dataclasses
 
     from jaxnav.core.robot import TURTLEBOT2I
-    from jaxnav.core.scene import SCENES_DIR, Scene
+    from jaxnav.core.scene import Scene, robot_mjcf
 
-    xml = (SCENES_DIR / TURTLEBOT2I.mjcf).read_text()
+    xml = robot_mjcf(TURTLEBOT2I).read_text()
     sensed = tmp_path / "sensed.xml"
     sensor = '<sensor><framepos objtype="site" objname="camera"/></sensor></mujoco>'
     sensed.write_text(xml.replace("</mujoco>", sensor))

@@ -125,10 +125,15 @@ def robot_mjcf(robot: RobotSpec, physics: str = "fast") -> Path:
     return path
 
 
+def _mjcf_source(robot: RobotSpec, physics: str) -> str:
+    """'RobotSpec.<field>: <file>': the robot's MJCF of `physics`, as error messages name it."""
+    field = mjcf_field(physics)
+    return f"RobotSpec.{field}: {getattr(robot, field)}"
+
+
 def _mjcf_error(cfg: SceneConfig, robot: RobotSpec, problem: str) -> ValueError:
     """One line naming the robot's MJCF field and file, for what MuJoCo said of it."""
-    field = mjcf_field(cfg.physics)
-    return ValueError(f"RobotSpec.{field}: {getattr(robot, field)}: {' '.join(problem.split())}")
+    return ValueError(f"{_mjcf_source(robot, cfg.physics)}: {' '.join(problem.split())}")
 
 
 def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
@@ -316,8 +321,7 @@ class Scene:
     def __init__(self, cfg: SceneConfig = SceneConfig(), robot: RobotSpec = TURTLEBOT2I):
         self.cfg, self.robot = cfg, robot
         self.mj_model = build_mj_model(cfg, robot)
-        field = mjcf_field(cfg.physics)
-        source = f"RobotSpec.{field}: {getattr(robot, field)}"  # for error messages
+        source = _mjcf_source(robot, cfg.physics)  # for error messages
         # On this process's first device: MJX's default, jax.devices()[0], belongs to process 0
         # in a run of several processes.
         self.model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
