@@ -158,6 +158,12 @@ class Stored:
         return _Lowered(self._jitted.lower(*self._leaves(args)), self.out_tree)
 
 
+# Custom calls jax.export does not vouch for across versions, which the programs may hold: the
+# goal flood's Triton kernel on a GPU (`core.flood_kernel`). A stored program is read back only by
+# the same library versions and device (its key), for which they are the same kernels.
+KERNELS = [export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")]
+
+
 class _Lowered:
     """A lowered `Stored` program, whose compiled form takes and returns the pytrees."""
 
@@ -183,7 +189,7 @@ def _export(name: str, fn, args) -> tuple[bytes, object, object]:
         return out
 
     flat.__name__ = flat.__qualname__ = name
-    exported = export.export(jax.jit(flat))(*leaves)
+    exported = export.export(jax.jit(flat), disabled_checks=KERNELS)(*leaves)
     return exported.serialize(), in_tree, trees[0]
 
 

@@ -11,7 +11,7 @@ import pytest
 from conftest import EXACT, start_in, traced_once
 
 import jaxnav
-from jaxnav.core import families, goals
+from jaxnav.core import families, flood_kernel, goals
 from jaxnav.core.geometry import signed_distance
 from jaxnav.core.goals import GRID_CELL, grid_steps, shortest_paths
 from jaxnav.core.motion import still
@@ -358,12 +358,13 @@ def test_traced_flood_matches_breadth_first_search():
     free, seed, want = _grids(rng, (6, 30, 30), (5, 5))
     got = np.asarray(jax.vmap(lambda f, s: grid_steps(f, s, sweeps=40))(free, seed))
     np.testing.assert_array_equal(got, want)
-    # Nested vmaps, a seed shared by the batch, and both floods (the CPU's loop over rows, the
-    # other platforms' associative scans) called directly on a batch, all alike.
+    # Nested vmaps, a seed shared by the batch, and the three floods (the CPU's loop over rows,
+    # one GPU's kernel, through Pallas' interpreter here, the other platforms' associative scans)
+    # called directly on a batch, all alike.
     nested = jax.vmap(jax.vmap(lambda f, s: grid_steps(f, s, sweeps=40), (0, None)), (0, None))
     got = nested(free.reshape(2, 3, 30, 30), seed[0])
     np.testing.assert_array_equal(np.asarray(got).reshape(want.shape), want)
-    for flood in (goals._flood_rows, goals._flood_scans):
+    for flood in (goals._flood_rows, goals._flood_scans, _kernel_flood):
         np.testing.assert_array_equal(
             np.asarray(jax.jit(flood, static_argnums=2)(free, seed, 40)), want
         )
@@ -375,6 +376,12 @@ def test_traced_flood_matches_breadth_first_search():
     got = np.asarray(jax.vmap(lambda f, s: grid_steps(f, s, sweeps=40))(wide, start))
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(np.asarray(goals._flood_scans(wide, start, 40)), want)
+    np.testing.assert_array_equal(np.asarray(_kernel_flood(wide[None], start[None], 40))[0], want)
+
+
+def _kernel_flood(free, seed, sweeps):
+    """The GPU's flood kernel (`flood_kernel.flood`), run by Pallas' interpreter on the CPU."""
+    return flood_kernel.flood(jnp.asarray(free), jnp.asarray(seed), sweeps, interpret=True)
 
 
 def _nine_cells(field, xy, half):

@@ -30,6 +30,7 @@ steps only where both cells beside them are free, so no corner is cut).
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +40,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from jaxnav.core import families
+from jaxnav.core import families, flood_kernel
 from jaxnav.core import layout as lay
 from jaxnav.core.draws import Draws
 from jaxnav.core.geometry import planar_distance, signed_distance
@@ -177,25 +178,39 @@ def grid_steps(free: jax.Array, seed: jax.Array, sweeps: int = SWEEPS) -> jax.Ar
     west, north and south: along a scan a free cell takes min(its own, its predecessor's + 1) and
     a blocked one stays unreached.
 
-    On the CPU, under `jax.vmap`, a rule of its own (`jax.custom_batching.custom_vmap`) hands
-    the whole batch to one flood that loops over the rows with the batch on the arrays' minor axis
-    (`_flood_rows`; docs/results.md, "A flood a row at a time"); on an accelerator,
-    where a loop over single rows would be a kernel a row, every scan is a log-depth
-    `associative_scan` (`_flood_scans`). Both give the same steps, bit for bit."""
-    if jax.default_backend() != "cpu":
+    Under `jax.vmap`, a rule of its own (`jax.custom_batching.custom_vmap`) hands the whole batch
+    to one flood: on the CPU one that loops over the rows with the batch on the arrays' minor axis
+    (`_flood_rows`; docs/results.md, "A flood a row at a time"), on one GPU a Pallas kernel that
+    runs every scan of a block of grids in one program (`flood_kernel`) where the batch is large
+    enough. Elsewhere (smaller batches; several devices, whose batch a kernel cannot split
+    between them; other accelerators) every scan is a log-depth `associative_scan`
+    (`_flood_scans`). All give the same steps, bit for bit."""
+    backend = jax.default_backend()
+    one_gpu = backend == "gpu" and jax.device_count() == 1 and _fits_kernel(free.shape)
+    if backend != "cpu" and not one_gpu:
         return _flood_scans(free, seed, sweeps)
     free, seed = jnp.broadcast_arrays(free, seed)
-    return _batched_steps(sweeps)(free, seed)
+    return _batched_steps(sweeps, one_gpu)(free, seed)
+
+
+def _fits_kernel(shape) -> bool:
+    """Whether `flood_kernel` takes grids of `shape` [..., H, W]."""
+    return shape[-2] * shape[-1] < flood_kernel.MAX_CELLS
 
 
 @functools.cache
-def _batched_steps(sweeps: int):
-    """The CPU's `grid_steps` with `sweeps` rounds, whose vmap passes the batch to one
-    `_flood_rows`."""
+def _batched_steps(sweeps: int, gpu: bool):
+    """`grid_steps` with `sweeps` rounds, whose vmap passes the batch to one flood: one GPU's
+    (`gpu`: the kernel for a batch of at least `flood_kernel.MIN_BATCH` grids, else the
+    associative scans) or the CPU's `_flood_rows`."""
 
     @jax.custom_batching.custom_vmap
     def steps(free, seed):
-        return _flood_rows(free, seed, sweeps)
+        if not gpu:
+            return _flood_rows(free, seed, sweeps)
+        if math.prod(free.shape[:-2]) >= flood_kernel.MIN_BATCH:
+            return flood_kernel.flood(free, seed, sweeps)
+        return _flood_scans(free, seed, sweeps)
 
     @steps.def_vmap
     def _batched(axis_size, in_batched, free, seed):
@@ -386,6 +401,25 @@ def goal_field(params: SceneParams, extent: tuple[float, float], goal: jax.Array
     return _flood(_free(params, extent, radius)[1], centres, goal)
 
 
+FIELD_FAR = np.iinfo(np.int16).max  # a packed field's unreached cells
+
+
+def pack_field(field: jax.Array) -> jax.Array:
+    """`goal_field`'s [rows, cols] steps as int16 (FIELD_FAR where unreached) where every count
+    fits, as an episode's state keeps them: the same values in half the bytes, which the
+    auto-reset moves every step. `geodesics` reads either form."""
+    if field.shape[-2] * field.shape[-1] >= FIELD_FAR:
+        return field
+    return jnp.where(jnp.isfinite(field), field, FIELD_FAR).astype(jnp.int16)
+
+
+def _unpack(steps: jax.Array) -> jax.Array:
+    """float32 steps (inf where unreached) of a field or part of one, packed or not."""
+    if steps.dtype != jnp.int16:
+        return steps
+    return jnp.where(steps == FIELD_FAR, jnp.inf, steps.astype(jnp.float32))
+
+
 def geodesic(
     field: jax.Array, goal: jax.Array, xy: jax.Array, blocked=None, room_half=None
 ) -> jax.Array:
@@ -406,14 +440,14 @@ def geodesics(field, centre, points, reach: float, room_half=None) -> jax.Array:
     a point's cells are those of the window between its cell -1 and +1, clipped to the grid, and
     a point within `reach` > 0 lies at most floor(reach / GRID_CELL + 1) cells from `centre`'s.
     The values of reading each point's nine cells on their own, to float32 rounding
-    (`tests/test_goal.py`)."""
+    (`tests/test_goal.py`). `field`: `goal_field`'s, or `pack_field`'s."""
     shape = field.shape  # rows, cols
     transposed = _transposed(shape, room_half)
     k = 1 + (int(np.floor(reach / GRID_CELL + 1)) if reach > 0 else 0)  # to a point's neighbour
     size = np.minimum(2 * k + 1, shape)  # [2] the window's rows, cols
     last = np.array(shape[::-1]) - 1  # [2] the last col, row
     start = jnp.clip(_grid_cell(shape, centre, transposed) - k, 0, last + 1 - size[::-1])
-    window = jax.lax.dynamic_slice(field, (start[1], start[0]), tuple(size))  # [h, w]
+    window = _unpack(jax.lax.dynamic_slice(field, (start[1], start[0]), tuple(size)))  # [h, w]
     half = _half_extents(shape)
     cols = start[0] + jnp.arange(size[1])  # [w]
     rows = start[1] + jnp.arange(size[0])  # [h]

@@ -40,7 +40,14 @@ import numpy as np
 from jaxnav.core.checks import require_finite
 from jaxnav.core.episode import sample
 from jaxnav.core.families import LARGE_EXTENTS
-from jaxnav.core.goals import GRID_HALF, geodesic, geodesics, sample_goal, shortest_paths
+from jaxnav.core.goals import (
+    GRID_HALF,
+    geodesic,
+    geodesics,
+    pack_field,
+    sample_goal,
+    shortest_paths,
+)
 from jaxnav.core.randomize import family_weights
 from jaxnav.core.robot import RobotSpec
 from jaxnav.core.types import ActionSpec, EnvState
@@ -281,7 +288,7 @@ class GoalEnv(NavTask):
         )
         info = {"goal": goal, "steps": jnp.int32(0), "key": key}
         if t.progress == "geodesic":  # the still room's: movers do not stay where they start
-            info["field"] = field  # [rows, cols]
+            info["field"] = pack_field(field)  # [rows, cols] int16 steps
         params = self.with_movers(k_scene, params, goal)
         data = self.place(params)
         command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
