@@ -402,7 +402,8 @@ def _nine_cells(field, xy, half):
 def test_probes_read_the_geodesic_from_one_window():
     """`geodesics` reads every probe's nine cells from one slice of the field around the robot:
     the values of reading each probe's own cells, to float32 rounding, at the grid's edges and
-    beyond them, on square grids and on a hall's grid lying either way round."""
+    beyond them, on square grids and on a hall's grid lying either way round; from the float32
+    field and from the int16 steps an episode keeps (`pack_field`) alike."""
     from jaxnav.tasks.goal import LOOK, LOOK_DIRECTIONS
 
     rng = np.random.default_rng(0)
@@ -417,11 +418,14 @@ def test_probes_read_the_geodesic_from_one_window():
             np.float32
         )  # [64, 8, 2]
         read = jax.vmap(goals.geodesics, (0, 0, 0, None, None))
-        got = read(field, xy, probes, LOOK, jnp.asarray(half))
         want = [[_nine_cells(f, p, half) for p in ps] for f, ps in zip(field, probes, strict=True)]
-        np.testing.assert_allclose(
-            np.asarray(got), np.array(want, np.float32), rtol=1e-6, atol=1e-6
-        )
+        packed = goals.pack_field(jnp.asarray(field))
+        assert packed.dtype == jnp.int16 and packed.nbytes == field.nbytes // 2
+        for grid in (field, packed):
+            got = read(grid, xy, probes, LOOK, jnp.asarray(half))
+            np.testing.assert_allclose(
+                np.asarray(got), np.array(want, np.float32), rtol=1e-6, atol=1e-6
+            )
         assert np.isinf(want).any() and np.isfinite(want).any()
 
 
