@@ -21,8 +21,6 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as pltriton
 
 LANES = 64  # grids per program: 128 B of int16 steps per row of a tile
 FAR = 30_000  # int16 steps of an unreached cell (every reachable count is below it)
@@ -45,30 +43,31 @@ def _kernel(free_ref, steps_ref, out_ref, *, sweeps: int, interpret: bool):
     h, w, lanes = out_ref.shape
     far, one = jnp.int16(FAR), jnp.int16(1)
 
-    def scan(length: int, tile, reverse: bool):
-        def cell(i, run):
+    def scan(along_rows: bool, reverse: bool):
+        """Along every row (a tile: column j of the H rows) or every column (row j)."""
+        length, size = (w, h) if along_rows else (h, w)  # the scan's steps, the tile's rows
+
+        def cell(i, run):  # run: [size, lanes]
             j = length - 1 - i if reverse else i
-            here = out_ref[tile(j)]
-            run = jnp.where(free_ref[tile(j)] != 0, jnp.minimum(here, run + one), far)
-            out_ref[tile(j)] = run
+            tile = (slice(None), j, slice(None)) if along_rows else (j, slice(None), slice(None))
+            here = out_ref[tile]
+            run = jnp.where(free_ref[tile] != 0, jnp.minimum(here, run + one), far)
+            out_ref[tile] = run
             return run
 
-        size = h if length == w else w  # the tile's rows
         jax.lax.fori_loop(0, length, cell, jnp.full((size, lanes), FAR, jnp.int16))
 
-    def barrier():  # the next scan reads cells another thread of the program wrote
+    def barrier():  # the next scans read cells other threads of the program wrote
         if not interpret:
+            from jax.experimental.pallas import triton as pltriton
+
             pltriton.debug_barrier()
 
     def round_(_, carry):
-        along_rows = lambda j: (slice(None), j, slice(None))  # noqa: E731  [H, lanes]
-        along_cols = lambda j: (j, slice(None), slice(None))  # noqa: E731  [W, lanes]
-        scan(w, along_rows, False)
-        scan(w, along_rows, True)
-        barrier()
-        scan(h, along_cols, False)
-        scan(h, along_cols, True)
-        barrier()
+        for along_rows in (True, False):
+            scan(along_rows, False)
+            scan(along_rows, True)
+            barrier()
         return carry
 
     jax.lax.fori_loop(0, sweeps, round_, 0)
@@ -78,6 +77,9 @@ def flood(free: jax.Array, seed: jax.Array, sweeps: int, interpret: bool = False
     """`goals.grid_steps` of grids [..., H, W] (bool `free` and `seed`, same shape), as float32
     steps (inf where unreached). H and W are padded to powers of two with blocked cells, the
     batch to a multiple of LANES with empty grids."""
+    from jax.experimental import pallas as pl  # here: a GPU's goal task only needs it
+    from jax.experimental.pallas import triton as pltriton
+
     lead, (h, w) = free.shape[:-2], free.shape[-2:]
     if h * w >= MAX_CELLS:
         raise ValueError(f"flood_kernel.flood: a grid of {h} x {w} cells is over {MAX_CELLS}")
