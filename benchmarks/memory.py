@@ -15,7 +15,8 @@ training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turni
 in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing away too:
 `_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`); and the cpu preset
 as it is (`cpu_preset`, with `--preset cpu`: the README's goal run, whose training wall time is
-its row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`).
+its row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`, and the memory
+too: `cpu_preset_memory_margin7`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -127,6 +128,11 @@ VARIANTS["memory_hall_margin5"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.05"
 VARIANTS["memory_hall_margin10"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.1", "0.1")
 VARIANTS["memory_hall_margin7"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.075", "0.075")
 VARIANTS["cpu_preset_margin7"] = (*VARIANTS["cpu_preset"][:-3], MARGIN, "0.075", "0.075")
+VARIANTS["cpu_preset_memory_margin7"] = (
+    "--task.memory-bins",
+    "16",
+    *VARIANTS["cpu_preset_margin7"][2:],
+)
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")
