@@ -5,9 +5,9 @@ directional min-plus scans. Written in XLA's operations, every scan is a pass ov
 in memory (`goals._flood_scans`: log-depth passes each), or a kernel a row (`goals._flood_rows`);
 on a GPU either is bound by memory traffic or by kernel launches. This kernel gives each program
 `LANES` grids, laid out [H, W, lanes] (the grids on the minor axis, so a row of cells is one
-contiguous load), and runs every round's scans inside it: a scan along the columns is a loop over
-them, each iteration one [H, lanes] tile, and a scan along the rows one [W, lanes] tile per row.
-The cells a program writes stay in the GPU's cache for its next scan.
+contiguous load), and runs every round's scans inside it: an east or west scan loops over the
+columns, one [H, lanes] tile (column j of every row) a step, a south or north scan over the rows,
+one [W, lanes] tile a step. The cells a program writes stay in the GPU's cache for its next scan.
 
 Same rule and integer steps as `goals._flood_rows`, so the same result bit for bit
 (`tests/test_goal.py` runs it through Pallas' interpreter on the CPU; docs/results.md has the
