@@ -8,17 +8,17 @@ shapes: 54 x 54 cells (rooms up to 10.5 m) and 60 x 150 (the gpu preset's, long 
 flooded by the task's 8 rounds. `scans`: log-depth associative scans (`goals._flood_scans`, any
 device); `kernel`: the Pallas kernel of one GPU (`core.flood_kernel`); `rows`: the CPU's loop
 over rows (`goals._flood_rows`). Each timing is the best of `--repeats` jitted calls after a
-compile; `same` compares every implementation's steps with the first's.
+compile (`throughput.timed`); `same` compares every implementation's steps with the first's.
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import numpy as np
 from report import run_info, write_json
+from throughput import timed
 
 from jaxnav.core import flood_kernel, goals
 
@@ -45,16 +45,6 @@ def grids(n: int, shape: tuple[int, int], seed: int = 0):
     return jax.numpy.asarray(free), jax.numpy.asarray(start)
 
 
-def timed(fn, *args, repeats: int) -> tuple[float, np.ndarray]:
-    out = np.asarray(jax.block_until_ready(fn(*args)))
-    best = float("inf")
-    for _ in range(repeats):
-        tick = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - tick)
-    return best, out
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="1024,4096,32768", help="comma-separated batch sizes")
@@ -69,7 +59,9 @@ def main() -> None:
             free, seed = grids(n, shape)
             row, ref, same = {"grids": n, "shape": list(shape)}, None, True
             for name, fn in impls.items():
-                best, out = timed(jax.jit(fn), free, seed, repeats=args.repeats)
+                flood = jax.jit(fn)
+                _, best = timed(flood, free, seed, repeats=args.repeats)
+                out = np.asarray(flood(free, seed))
                 row[f"{name}_ms"] = round(1e3 * best, 3)
                 ref = out if ref is None else ref
                 same = same and np.array_equal(out, ref)
