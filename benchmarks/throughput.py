@@ -65,6 +65,8 @@ VARIANTS = {
     # New episodes for 1/64 of the robots per step instead of 1/16 (PPOConfig.reset_share).
     "pool64": {"ppo": {"reset_share": 1 / 64}},
     "pool64_ahead": {"ppo": {"reset_share": 1 / 64, "reset_ahead": True}},
+    # The learner's gradient as XLA's kernels of jax.grad rather than one (PPOConfig.fused_learner).
+    "xla_learner": {"ppo": {"fused_learner": False}},
 }
 
 

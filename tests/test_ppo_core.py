@@ -395,3 +395,68 @@ def test_update_is_its_rollout_then_its_learner():
     for k, v in split_metrics.items():
         np.testing.assert_array_equal(np.asarray(v), np.asarray(whole_metrics[k]))
         np.testing.assert_array_equal(np.asarray(v), np.asarray(chunk_metrics[k][0]))
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        {"clip_value": True},  # the cpu preset's network, value clipping on
+        {"critic_output": "tanh", "hidden": (32, 48, 20), "critic": 5},  # paper's critic, 3 layers
+    ],
+)
+def test_fused_gradient_matches_jax_grad(case):
+    """The learner's one-kernel gradient (`jaxnav.ppo.fused`, through Pallas' interpreter) is
+    jax.grad's of `ppo_loss`, and its metrics the loss's, to float32 rounding; ratios spread on
+    both sides of the clip, a state the critic alone reads."""
+    from jaxnav.core.types import DiscreteActions
+    from jaxnav.ppo import fused
+    from jaxnav.ppo.config import preset
+    from jaxnav.ppo.distributions import make_distribution
+    from jaxnav.ppo.train import make_network
+
+    case = dict(case)
+    c = case.pop("critic", 0)
+    rows = 8 * fused.ROWS
+    cfg = preset("cpu", num_envs=rows // 32, minibatch_size=rows, **case)
+    spec = DiscreteActions(("f", "l", "r"), ((0.25, 0.0), (0.0, 1.0), (0.0, -1.0)))
+    dist = make_distribution(spec)
+    net = make_network(cfg, spec, c)
+    k = jax.random.split(jax.random.PRNGKey(3), 9)
+    obs = jax.random.normal(k[0], (rows, 8))
+    extra = jax.random.normal(k[1], (rows, c)) if c else None
+    params = net.init(k[2], obs[:1], None if extra is None else extra[:1])
+    params = jax.tree_util.tree_map(lambda p: p + 0.3 * jax.random.normal(k[3], p.shape), params)
+    logits, value = net.apply(params, obs, extra)
+    action = jax.random.randint(k[4], (rows,), 0, 3)
+    noise = lambda key: 0.3 * jax.random.normal(key, (rows,))  # noqa: E731
+    batch = Batch(
+        (obs, extra),
+        action,
+        dist.log_prob(logits, action) + noise(k[5]),
+        value + noise(k[6]),
+        jax.random.normal(k[7], (rows,)),
+        jax.random.normal(k[8], (rows,)),
+    )
+    apply = lambda p, inputs: net.apply(p, *inputs)  # noqa: E731
+    want, want_m = jax.grad(ppo_loss, has_aux=True)(
+        params,
+        apply,
+        batch,
+        clip_eps=cfg.clip_eps,
+        vf_coef=cfg.vf_coef,
+        ent_coef=cfg.ent_coef,
+        clip_value=cfg.clip_value,
+        dist=dist,
+    )
+    grad = fused.make(cfg, net, dist, jax.devices(), (8, 8 + c), interpret=True)
+    got, got_m = jax.jit(grad)(params, batch)
+    assert 0.2 < float(want_m["clip_fraction"]) < 0.8  # both sides of the clip are exercised
+    assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(want)
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        assert g.shape == w.shape
+        np.testing.assert_allclose(g, w, atol=2e-6 * float(jnp.abs(w).max()) + 1e-9)
+    for name, w in want_m.items():
+        np.testing.assert_allclose(got_m[name], w, rtol=2e-5, atol=1e-6)
+    # Where it does not apply, the trainer keeps jax.grad: not a GPU, or a layer over MAX_WIDTH.
+    assert fused.make(cfg, net, dist, jax.devices(), (8, 8 + c)) is None
+    assert fused.make(cfg, net, dist, jax.devices(), (200, 200), interpret=True) is None

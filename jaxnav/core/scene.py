@@ -138,7 +138,7 @@ def _mjcf_error(cfg: SceneConfig, robot: RobotSpec, problem: str) -> ValueError:
 
 def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
     """The robot's MJCF of `cfg.physics` as a spec; the fast physics with `cfg`'s timestep and
-    solver iterations, the wheeled model with its MJCF's own."""
+    solver iterations and a sparse mass matrix, the wheeled model with its MJCF's own options."""
     try:
         spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot, cfg.physics)))
     except ValueError as err:  # MuJoCo's parser: a malformed file
@@ -149,6 +149,9 @@ def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
         spec.option.ls_iterations = cfg.solver_iterations
         if not cfg.fast_contacts:
             spec.option.disableflags |= _NO_CONTACTS
+        # The base's three joints: MJX's sparse factorisation of M is a few fused element-wise
+        # ops, where its dense one calls the GPU's batched Cholesky and triangular solves.
+        spec.option.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     return spec
 
 

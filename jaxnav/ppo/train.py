@@ -18,6 +18,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.core.types import ContinuousActions
 from jaxnav.core.xla import compiler_options, threefry_kernel
+from jaxnav.ppo import fused
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
@@ -149,6 +150,9 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     """
     network = make_network(cfg, env.action_spec, critic_inputs(cfg, env))
     dist = make_distribution(env.action_spec)
+    devices_used = list(devices or jax.devices())
+    inputs = (env.observation_size, env.observation_size + critic_inputs(cfg, env))
+    fused_grad = fused.make(cfg, network, dist, devices_used, inputs)  # None: jax.grad's
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
     g = block_count(cfg, devices)
@@ -209,9 +213,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             )
         return env_state, key, traj
 
-    def _update_minibatch(carry, batch: Batch):
-        params, opt_state = carry
-        grads, metrics = jax.grad(ppo_loss, has_aux=True)(
+    def loss_grad(params, batch: Batch):
+        return jax.grad(ppo_loss, has_aux=True)(
             params,
             apply,
             batch,
@@ -221,6 +224,12 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             clip_value=cfg.clip_value,
             dist=dist,
         )
+
+    grad = fused_grad or loss_grad  # (grads, metrics) of a minibatch
+
+    def _update_minibatch(carry, batch: Batch):
+        params, opt_state = carry
+        grads, metrics = grad(params, batch)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return (optax.apply_updates(params, updates), opt_state), metrics
 
@@ -308,7 +317,6 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         "init": init,
         "chunk": run_chunk,
     }
-    devices_used = list(devices or jax.devices())
     platform = devices_used[0].platform
     options = compiler_options(platform)
     # On one device only: XLA cannot split the kernel's call over the devices the robots are
