@@ -30,7 +30,7 @@ from jaxnav.ppo.networks import LEAKY_SLOPE
 # Transitions and Triton warps per program: of 32 or 64 rows and 2 or 4 warps, the fastest on one
 # H200 at minibatches of 524,288 and 16,384 rows (1.19 and 0.15 ms against XLA's 1.53 and 0.28 ms
 # for the default network; 64 rows and 2 warps took 12.8 and 0.57 ms: docs/results.md).
-ROWS = 32
+ROWS = 64
 WARPS = 4
 MAX_WIDTH = 64  # the widest layer (input, hidden or output, padded) a program holds
 MIN_ROWS = 16384  # the smallest minibatch given to the kernel (the smallest measured)
