@@ -48,7 +48,7 @@ GATHERED = (
     (
         "throughput_h200.json",
         "python benchmarks/throughput.py --num-envs 65536 --steps 50 --updates 3 --repeats 2 "
-        "--variants default,full --pieces default",
+        "--variants default --pieces none",
         "PPO training throughput, 65,536 robots",
     ),
     (

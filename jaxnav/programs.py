@@ -159,7 +159,7 @@ class Stored:
 
 
 # Custom calls jax.export does not vouch for across versions, which the programs may hold: the
-# goal flood's Triton kernel on a GPU (`core.flood_kernel`). A stored program is read back only by
+# Triton kernels of one GPU (`core.flood_kernel`, `ppo.fused`). A stored program is read back only by
 # the same library versions and device (its key), for which they are the same kernels.
 KERNELS = [export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")]
 

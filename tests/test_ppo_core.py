@@ -454,7 +454,7 @@ def test_fused_gradient_matches_jax_grad(case):
     assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(want)
     for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
         assert g.shape == w.shape
-        np.testing.assert_allclose(g, w, atol=2e-6 * float(jnp.abs(w).max()) + 1e-9)
+        np.testing.assert_allclose(g, w, atol=1e-5 * float(jnp.abs(w).max()) + 1e-9)
     for name, w in want_m.items():
         np.testing.assert_allclose(got_m[name], w, rtol=2e-5, atol=1e-6)
     # Where it does not apply, the trainer keeps jax.grad: not a GPU, or a layer over MAX_WIDTH.

@@ -138,7 +138,8 @@ def _mjcf_error(cfg: SceneConfig, robot: RobotSpec, problem: str) -> ValueError:
 
 def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
     """The robot's MJCF of `cfg.physics` as a spec; the fast physics with `cfg`'s timestep and
-    solver iterations and a sparse mass matrix, the wheeled model with its MJCF's own options."""
+    solver iterations (and on a GPU a sparse mass matrix), the wheeled model with its MJCF's own
+    options."""
     try:
         spec = mujoco.MjSpec.from_file(str(robot_mjcf(robot, cfg.physics)))
     except ValueError as err:  # MuJoCo's parser: a malformed file
@@ -149,9 +150,12 @@ def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
         spec.option.ls_iterations = cfg.solver_iterations
         if not cfg.fast_contacts:
             spec.option.disableflags |= _NO_CONTACTS
-        # The base's three joints: MJX's sparse factorisation of M is a few fused element-wise
-        # ops, where its dense one calls the GPU's batched Cholesky and triangular solves.
-        spec.option.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
+        if jax.default_backend() == "gpu":
+            # The base's three joints: MJX factors M densely (below 60 degrees of freedom, but on
+            # a TPU), on a GPU a batched Cholesky call and two triangular solves a step; its
+            # sparse factorisation is a few element-wise ops that fuse. On the CPU the dense one
+            # steps faster (docs/results.md, "The mass matrix factored sparsely").
+            spec.option.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     return spec
 
 

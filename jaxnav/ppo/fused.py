@@ -8,8 +8,9 @@ terms and the actor backward, then the same for the critic and the value term, a
 it writes its share of every weight's gradient and of the loss's sums, which XLA then adds.
 
 The same loss as `losses.ppo_loss` (ties of its min, max and clip split the gradient as JAX's
-do), for a categorical actor of LeakyReLU layers; the same gradient to float32 rounding (the sums
-run in another order; `tests/test_ppo_core.py` runs the kernel through Pallas' interpreter). Every
+do), for a categorical actor of LeakyReLU layers; the same gradient to rounding: float32's through
+Pallas' interpreter (`tests/test_ppo_core.py`), TF32's on the GPU, where XLA's products multiply
+in TF32 too, in another order (`benchmarks/learner.py`). Every
 matrix side is padded to a power of two of at least 16 (Triton's smallest product) with zeros,
 which add nothing. `make` returns None where it does not apply, and the trainer keeps
 `jax.grad(ppo_loss)`.
@@ -28,8 +29,9 @@ from jaxnav.ppo.losses import Batch
 from jaxnav.ppo.networks import LEAKY_SLOPE
 
 # Transitions and Triton warps per program: of 32 or 64 rows and 2 or 4 warps, the fastest on one
-# H200 at minibatches of 524,288 and 16,384 rows (1.19 and 0.15 ms against XLA's 1.53 and 0.28 ms
-# for the default network; 64 rows and 2 warps took 12.8 and 0.57 ms: docs/results.md).
+# H200 at minibatches of 524,288 and 16,384 rows: 1.22 and 0.27 ms against XLA's 1.82 and 0.37 ms
+# for the default network (32 rows: 1.45 and 0.27 ms; 2 warps: 2.35-3.31 and 0.37-0.38 ms;
+# benchmarks/results/learner_h200.json).
 ROWS = 64
 WARPS = 4
 MAX_WIDTH = 64  # the widest layer (input, hidden or output, padded) a program holds
@@ -283,9 +285,14 @@ def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret):
     )(*data, *weights)
     n = 2 * len(pa)
     grads = _tree(_unpadded(shares[:n], actor), _unpadded(shares[n:], critic))
+    return grads, _metrics(sums, rows, loss)
+
+
+def _metrics(sums, rows: int, loss: dict) -> dict:
+    """`ppo_loss`'s metrics from the programs' sums [P, 8] (`SUMS` order) of `rows` transitions."""
     s = dict(zip(SUMS, sums.sum(0)[: len(SUMS)] / rows, strict=True))
     policy_loss, value_loss = -s["surrogate"], 0.5 * s["value_err"]
-    metrics = {
+    return {
         "total": policy_loss + loss["vf_coef"] * value_loss - loss["ent_coef"] * s["entropy"],
         "policy_loss": policy_loss,
         "value_loss": value_loss,
@@ -293,4 +300,3 @@ def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret):
         "approx_kl": s["approx_kl"],
         "clip_fraction": s["clipped"],
     }
-    return grads, metrics
