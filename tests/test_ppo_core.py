@@ -460,3 +460,35 @@ def test_fused_gradient_matches_jax_grad(case):
     # Where it does not apply, the trainer keeps jax.grad: not a GPU, or a layer over MAX_WIDTH.
     assert fused.make(cfg, net, dist, jax.devices(), (8, 8 + c)) is None
     assert fused.make(cfg, net, dist, jax.devices(), (200, 200), interpret=True) is None
+
+
+def test_fused_gradient_applies_where_it_was_measured():
+    """The trainer takes the kernel on one GPU for the avoid task's network and minibatches of at
+    least `MIN_ROWS`; elsewhere (several GPUs, the goal task's 221 inputs or the gpu preset's
+    256-unit layers, continuous commands, small or ragged minibatches, switched off) jax.grad."""
+    from types import SimpleNamespace
+
+    import jaxnav
+    from jaxnav.ppo import fused
+    from jaxnav.ppo.config import preset
+    from jaxnav.ppo.distributions import make_distribution
+    from jaxnav.ppo.train import make_network
+
+    gpu = [SimpleNamespace(platform="gpu")]
+    avoid = jaxnav.make_env("avoid")
+    d = avoid.observation_size
+
+    def make(devices=gpu, inputs=(d, d), spec=avoid.action_spec, **ppo):
+        cfg = preset("gpu", **ppo)
+        return fused.make(cfg, make_network(cfg, spec), make_distribution(spec), devices, inputs)
+
+    assert make() is not None  # the gpu preset's avoid: 8 inputs, 2 x 64, minibatches of 16,384
+    assert make(devices=gpu * 2) is None
+    assert make(devices=[SimpleNamespace(platform="cpu")]) is None
+    assert make(inputs=(221, 231)) is None  # the goal task's observation and critic inputs
+    assert make(hidden=(256, 256)) is None
+    assert make(minibatch_size=fused.MIN_ROWS // 2) is None
+    assert make(num_envs=8190, minibatch_size=16380) is None  # not whole programs of ROWS
+    assert make(fused_learner=False) is None
+    continuous = jaxnav.make_env("avoid", actions="continuous").action_spec
+    assert make(spec=continuous) is None
