@@ -153,8 +153,8 @@ def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
         if jax.default_backend() == "gpu":
             # The base's three joints: MJX factors M densely (below 60 degrees of freedom, but on
             # a TPU), on a GPU a batched Cholesky call and two triangular solves a step; its
-            # sparse factorisation is a few element-wise ops that fuse. On the CPU the dense one
-            # steps faster (docs/results.md, "The mass matrix factored sparsely").
+            # sparse factorisation is a few element-wise ops that fuse. On the CPU the sparse one
+            # stepped no faster (docs/results.md, "The mass matrix factored sparsely").
             spec.option.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     return spec
 
