@@ -26,8 +26,8 @@ import jaxnav
 from jaxnav.ppo import fused
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.distributions import make_distribution
-from jaxnav.ppo.losses import Batch, ppo_loss
-from jaxnav.ppo.train import make_network
+from jaxnav.ppo.losses import Batch
+from jaxnav.ppo.train import loss_grad, make_network
 
 
 def problem(rows: int, seed: int = 0):
@@ -74,28 +74,16 @@ def main() -> None:
     print(f"{'minibatch':>10} {'gradient':>16} {'ms':>8} {'rel_err':>8}")
     for m in (int(x) for x in args.minibatches.split(",")):
         cfg, net, dist, d, params, batch = problem(m)
-        xla = jax.jit(
-            lambda p, b, cfg=cfg, net=net, dist=dist: jax.grad(ppo_loss, has_aux=True)(
-                p,
-                lambda q, inputs: net.apply(q, *inputs),
-                b,
-                clip_eps=cfg.clip_eps,
-                vf_coef=cfg.vf_coef,
-                ent_coef=cfg.ent_coef,
-                clip_value=cfg.clip_value,
-                dist=dist,
-            )
-        )
+        xla = jax.jit(loss_grad(cfg, net, dist))
         ref = xla(params, batch)[0]
         runs = [("xla", None, None, xla)]
         for rows in (int(x) for x in args.rows.split(",")):
             for warps in (int(x) for x in args.warps.split(",")):
                 fused.ROWS, fused.WARPS = rows, warps
                 grad = fused.make(cfg, net, dist, jax.devices(), (d, d))
-                if grad is not None:
-                    runs.append((f"fused {rows} rows", rows, warps, jax.jit(grad)))
-                    # Traced now, with this program shape.
-                    runs[-1] = (*runs[-1][:3], runs[-1][3].lower(params, batch).compile())
+                if grad is not None:  # compiled now, with this program shape
+                    fn = jax.jit(grad).lower(params, batch).compile()
+                    runs.append((f"fused {rows} rows", rows, warps, fn))
         for name, rows, warps, fn in runs:
             _, best = timed(fn, params, batch, repeats=args.repeats)
             err = rel_err(ref, fn(params, batch)[0])

@@ -412,7 +412,7 @@ def test_fused_gradient_matches_jax_grad(case):
     from jaxnav.ppo import fused
     from jaxnav.ppo.config import preset
     from jaxnav.ppo.distributions import make_distribution
-    from jaxnav.ppo.train import make_network
+    from jaxnav.ppo.train import loss_grad, make_network
 
     case = dict(case)
     c = case.pop("critic", 0)
@@ -437,17 +437,7 @@ def test_fused_gradient_matches_jax_grad(case):
         jax.random.normal(k[7], (rows,)),
         jax.random.normal(k[8], (rows,)),
     )
-    apply = lambda p, inputs: net.apply(p, *inputs)  # noqa: E731
-    want, want_m = jax.grad(ppo_loss, has_aux=True)(
-        params,
-        apply,
-        batch,
-        clip_eps=cfg.clip_eps,
-        vf_coef=cfg.vf_coef,
-        ent_coef=cfg.ent_coef,
-        clip_value=cfg.clip_value,
-        dist=dist,
-    )
+    want, want_m = loss_grad(cfg, net, dist)(params, batch)  # the trainer's jax.grad of ppo_loss
     grad = fused.make(cfg, net, dist, jax.devices(), (8, 8 + c), interpret=True)
     got, got_m = jax.jit(grad)(params, batch)
     assert 0.2 < float(want_m["clip_fraction"]) < 0.8  # both sides of the clip are exercised

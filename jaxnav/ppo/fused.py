@@ -210,7 +210,6 @@ def make(cfg, network, dist, devices, inputs: tuple[int, int], interpret: bool =
         cfg.fused_learner
         and (gpu or interpret)
         and categorical
-        and not network.continuous
         and max(_pad(w) for w in widths) <= MAX_WIDTH
         and cfg.minibatch_size % ROWS == 0
         and (cfg.minibatch_size >= MIN_ROWS or interpret)

@@ -98,6 +98,26 @@ def make_network(cfg: PPOConfig, action_spec, critic_inputs: int = 0) -> ActorCr
     )
 
 
+def loss_grad(cfg: PPOConfig, network: ActorCritic, dist):
+    """`(params, batch) -> (grads, metrics)`: `jax.grad` of `ppo_loss` with `cfg`'s coefficients,
+    for `network`'s outputs read by `dist` (`batch.obs`: the observation and the critic's own
+    inputs, or None)."""
+
+    def grad(params, batch: Batch):
+        return jax.grad(ppo_loss, has_aux=True)(
+            params,
+            lambda p, inputs: network.apply(p, *inputs),
+            batch,
+            clip_eps=cfg.clip_eps,
+            vf_coef=cfg.vf_coef,
+            ent_coef=cfg.ent_coef,
+            clip_value=cfg.clip_value,
+            dist=dist,
+        )
+
+    return grad
+
+
 def log_name(key: str) -> str:
     """The metrics-log column of an episode statistic: return and length get an episode_ prefix."""
     return {"return": "episode_reward", "length": "episode_length"}.get(key, key)
@@ -148,10 +168,11 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     The robots are sharded over `devices` (default: every device of every process). On one GPU it
     sets how this process lowers jax.random from now on (`cfg.threefry_kernel`).
     """
-    network = make_network(cfg, env.action_spec, critic_inputs(cfg, env))
+    extra = critic_inputs(cfg, env)
+    network = make_network(cfg, env.action_spec, extra)
     dist = make_distribution(env.action_spec)
     devices_used = list(devices or jax.devices())
-    inputs = (env.observation_size, env.observation_size + critic_inputs(cfg, env))
+    inputs = (env.observation_size, env.observation_size + extra)
     fused_grad = fused.make(cfg, network, dist, devices_used, inputs)  # None: jax.grad's
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
@@ -163,7 +184,6 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
     # The critic's own inputs [N, C] of a state, or None; the loss's inputs are (obs, those).
     critic_in = lambda state: state.info["critic"] if cfg.privileged_critic else None  # noqa: E731
-    apply = lambda params, inputs: network.apply(params, *inputs)  # noqa: E731
 
     def init(key: jax.Array) -> TrainState:
         k_net, k_env, key = jax.random.split(key, 3)
@@ -213,19 +233,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             )
         return env_state, key, traj
 
-    def loss_grad(params, batch: Batch):
-        return jax.grad(ppo_loss, has_aux=True)(
-            params,
-            apply,
-            batch,
-            clip_eps=cfg.clip_eps,
-            vf_coef=cfg.vf_coef,
-            ent_coef=cfg.ent_coef,
-            clip_value=cfg.clip_value,
-            dist=dist,
-        )
-
-    grad = fused_grad or loss_grad  # (grads, metrics) of a minibatch
+    grad = fused_grad or loss_grad(cfg, network, dist)  # (grads, metrics) of a minibatch
 
     def _update_minibatch(carry, batch: Batch):
         params, opt_state = carry
