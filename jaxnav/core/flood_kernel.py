@@ -20,7 +20,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
+
+from jaxnav.core.xla import pow2
 
 LANES = 64  # grids per program: 128 B of int16 steps per row of a tile
 FAR = 30_000  # int16 steps of an unreached cell (every reachable count is below it)
@@ -30,10 +31,6 @@ MAX_CELLS = 30_000  # the largest grid whose counts fit below FAR
 # idle. At 4,096 grids 3.0 ms against 5.8 ms (54 x 54 cells) and 9.8 against 16.2 ms (60 x 150);
 # at 2,048 1.6 against 3.0 ms and 8.8 against 7.7 ms (benchmarks/results/flood_h200.json).
 MIN_BATCH = 4096
-
-
-def _pow2(n: int) -> int:
-    return 1 << int(np.ceil(np.log2(max(n, 1))))
 
 
 def _kernel(free_ref, steps_ref, out_ref, *, sweeps: int, interpret: bool):
@@ -85,7 +82,7 @@ def flood(free: jax.Array, seed: jax.Array, sweeps: int, interpret: bool = False
         raise ValueError(f"flood_kernel.flood: a grid of {h} x {w} cells is over {MAX_CELLS}")
     free, seed = (x.reshape(-1, h, w) for x in (free, seed))
     b = free.shape[0]
-    hp, wp, bp = _pow2(h), _pow2(w), -(-b // LANES) * LANES
+    hp, wp, bp = pow2(h), pow2(w), -(-b // LANES) * LANES
     pad = ((0, hp - h), (0, wp - w), (0, bp - b))
     ok = jnp.pad(jnp.moveaxis(free, 0, -1).astype(jnp.int16), pad)  # [Hp, Wp, Bp]
     start = jnp.where(seed & free, 0, FAR).astype(jnp.int16)

@@ -10,6 +10,8 @@ On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,
 `PPOConfig.threefry_kernel`). jaxnav's resets draw their numbers in blocks (`jaxnav.core.draws`),
 so few calls are left to inline.
+
+`pow2` rounds a size up as a Pallas (Triton) block's sides must be, for jaxnav's GPU kernels.
 """
 
 from __future__ import annotations
@@ -20,6 +22,11 @@ import jax
 
 CPU_OPT_LEVEL = 2  # LLVM's optimisation level for jaxnav's CPU programs (XLA's own default: 3)
 OPTION = "xla_backend_optimization_level"
+
+
+def pow2(n: int, least: int = 1) -> int:
+    """n rounded up to a power of two, at least `least` (a Triton block's side)."""
+    return max(least, 1 << max(n - 1, 0).bit_length())
 
 
 def compiler_options(backend: str | None = None) -> dict[str, int] | None:

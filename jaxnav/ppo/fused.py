@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxnav.core.xla import pow2
 from jaxnav.ppo.distributions import Categorical
 from jaxnav.ppo.losses import Batch
 from jaxnav.ppo.networks import LEAKY_SLOPE
@@ -40,8 +41,8 @@ SUMS = ("surrogate", "value_err", "entropy", "approx_kl", "clipped")  # per-prog
 
 
 def _pad(n: int) -> int:
-    """n rounded up to a power of two, at least 16."""
-    return max(16, 1 << (n - 1).bit_length())
+    """n rounded up to a power of two, at least 16 (Triton's smallest product)."""
+    return pow2(n, 16)
 
 
 def _dot_t(a, b):
