@@ -16,7 +16,7 @@ in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing
 `_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`); and the cpu preset
 as it is (`cpu_preset`, with `--preset cpu`: the README's goal run, whose training wall time is
 its row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`, and the memory
-too: `cpu_preset_memory_margin7`).
+too: `cpu_preset_memory_margin7`; with long halls in a tenth of its rooms: `cpu_preset_hall`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -72,6 +72,13 @@ VARIANTS = {
     + ("all,dense_field:1,long_hall:1,crowd:1",),
 }
 VARIANTS["cpu_preset"] = ("--task.memory-bins", "0", "--randomize.families", GOAL_CPU_FAMILIES)
+# ... with long halls in about a tenth of its rooms, as the gpu preset has them.
+VARIANTS["cpu_preset_hall"] = (
+    "--task.memory-bins",
+    "0",
+    "--randomize.families",
+    GOAL_CPU_FAMILIES + ",long_hall:1.5",
+)
 VARIANTS["memory_hall_stop"] = VARIANTS["memory_hall"] + ("--task.actions", "discrete_stop")
 VARIANTS["memory_hall_clear10"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.1")
 VARIANTS["memory_hall_clear20"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.2")
