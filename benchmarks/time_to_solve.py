@@ -26,7 +26,8 @@ from report import run_info, write_json
 
 import jaxnav
 from jaxnav.core.goals import ShortestPaths
-from jaxnav.evaluation import eval_randomize, load_suite, make_rollout
+from jaxnav.core.xla import compiler_options
+from jaxnav.evaluation import eval_randomize, load_suite, rollout_program
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
@@ -82,11 +83,12 @@ def make_evaluator(policy, config, episodes: int, steps: int):
     period = env.control_period
     paths = [ShortestPaths(room) for room in layouts] if "success" in env.metric_names else None
 
-    @jax.jit
     def rollout(policy_params, key):
         act = lambda obs, k: policy(policy_params, obs, k)  # noqa: E731
-        track, _ = make_rollout(env, act, episodes, steps, keep=1, pinned=True)(key)
+        track, _ = rollout_program(env, act, episodes, steps, keep=1, pinned=True)(key)
         return track, track.distance / (jnp.maximum(track.steps, 1) * period)
+
+    rollout = jax.jit(rollout, compiler_options=compiler_options())
 
     def evaluate(policy_params, key) -> dict:
         track, speed = jax.device_get(rollout(policy_params, key))

@@ -169,7 +169,14 @@ def run_episodes(env, act, key, episodes: int, steps: int, pinned: bool, start, 
 
 
 def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=False):
-    """A jitted `rollout(key) -> (Track, Kept)`.
+    """`rollout_program` jitted with jaxnav's compiler options."""
+    program = rollout_program(env, act, episodes, steps, keep, pinned=pinned)
+    return jax.jit(program, compiler_options=compiler_options())
+
+
+def rollout_program(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=False):
+    """`rollout(key) -> (Track, Kept)`, not jitted: for a program that calls it inside its own
+    jit (JAX takes compiler options at the top level only).
 
     `pinned`: `episodes` episodes in every layout of the env's bank (E = R * episodes, episode e
     in layout e // episodes), all in one compiled batch; otherwise `episodes` episodes drawn by
@@ -213,7 +220,7 @@ def make_rollout(env, act, episodes, steps, keep=MAX_TRAJECTORIES, *, pinned=Fal
         first = jax.tree_util.tree_map(lambda x: x[firsts], state.info["params"])
         return track, Kept(xy=jnp.swapaxes(path, 0, 1), qpos=jnp.swapaxes(qpos, 0, 1), params=first)
 
-    return jax.jit(rollout, compiler_options=compiler_options())
+    return rollout
 
 
 def make_recorder(env, act, episodes: int, steps: int, record):

@@ -381,3 +381,28 @@ def test_picture_titles_fit_their_figure(tmp_path, monkeypatch):
     box = fig.axes[0].title.get_window_extent(renderer)
     assert fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1, (box, fig.bbox)
     assert fig.axes[0].title.get_text().count("\n") >= 1
+
+
+@pytest.mark.slow
+def test_time_to_solve_evaluator_runs_the_suite_under_its_own_jit(monkeypatch):
+    """`benchmarks/time_to_solve.py`'s evaluator: the benchmark suite in one batch, under one jit
+    of its own with jaxnav's compiler options around `rollout_program` (JAX takes those at the top
+    level only), the policy's parameters an argument: a policy that turns in place stays put and
+    never collides, and the same program driving forward moves. Compiler options as on a CPU
+    outside the tests (here XLA_FLAGS sets the level, so jaxnav passes none), at the tests' level."""
+    from conftest import benchmark_script
+
+    from jaxnav import evaluation
+    from jaxnav.training import build_config
+
+    tts = benchmark_script("time_to_solve")
+    options = lambda backend=None: {"xla_backend_optimization_level": 0}  # noqa: E731
+    for module in (tts, evaluation):
+        monkeypatch.setattr(module, "compiler_options", options)
+    act = lambda action, obs, key: jnp.full(obs.shape[:1], action, jnp.int32)  # noqa: E731
+    evaluate, family = tts.make_evaluator(act, build_config("cpu"), episodes=2, steps=40)
+    turning = evaluate(1, jax.random.PRNGKey(0))  # 1: left, in place
+    assert turning["collided"].shape == turning["speed"].shape == family.shape == (64,)
+    assert not turning["collided"].any() and (turning["speed"] < 0.05).all()
+    forward = evaluate(0, jax.random.PRNGKey(0))
+    assert forward["speed"].mean() > 0.2, forward["speed"]
