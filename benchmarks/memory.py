@@ -13,10 +13,12 @@ training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turni
 `_back_crowd9`, a fifth of them giving way: `_back_nr`), the lidar backing away
 (`lidar_crowd_fast_back`, twice the training: `_long`) and walkers aimed across the robot's way
 in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing away too:
-`_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`); and the cpu preset
-as it is (`cpu_preset`, with `--preset cpu`: the README's goal run, whose training wall time is
-its row's `train_wall_s`; with a 7.5 cm collision margin: `cpu_preset_margin7`, and the memory
-too: `cpu_preset_memory_margin7`; with long halls in a tenth of its rooms: `cpu_preset_hall`).
+`_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`); and with
+`--preset cpu` (the README's goal run, whose training wall time is its row's `train_wall_s`) the
+cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
+collision margin (`cpu_preset_margin7`), with the memory too (`cpu_preset_memory_margin7`; with
+25 M steps: `_25m`; with 23 M steps, the cpu preset since: `_23m`) and with long halls in a tenth
+of its rooms (`cpu_preset_hall`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -71,14 +73,10 @@ VARIANTS = {
     "memory_hard": ("--task.memory-bins", "16", "--randomize.families")
     + ("all,dense_field:1,long_hall:1,crowd:1",),
 }
-VARIANTS["cpu_preset"] = ("--task.memory-bins", "0", "--randomize.families", GOAL_CPU_FAMILIES)
+VARIANTS["cpu_preset"] = ("--task.memory-bins", "0", "--total-steps", "28000000")
+VARIANTS["cpu_preset"] += ("--randomize.families", GOAL_CPU_FAMILIES)
 # ... with long halls in about a tenth of its rooms, as the gpu preset has them.
-VARIANTS["cpu_preset_hall"] = (
-    "--task.memory-bins",
-    "0",
-    "--randomize.families",
-    GOAL_CPU_FAMILIES + ",long_hall:1.5",
-)
+VARIANTS["cpu_preset_hall"] = (*VARIANTS["cpu_preset"][:-1], GOAL_CPU_FAMILIES + ",long_hall:1.5")
 VARIANTS["memory_hall_stop"] = VARIANTS["memory_hall"] + ("--task.actions", "discrete_stop")
 VARIANTS["memory_hall_clear10"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.1")
 VARIANTS["memory_hall_clear20"] = VARIANTS["memory_hall"] + ("--task.clearance", "0.2")
@@ -140,6 +138,11 @@ VARIANTS["cpu_preset_memory_margin7"] = (
     "16",
     *VARIANTS["cpu_preset_margin7"][2:],
 )
+# ... with fewer steps (25 M, 23 M: the memory costs the 2-core CPU a fifth more a step).
+for _steps in (25, 23):
+    _flags = list(VARIANTS["cpu_preset_memory_margin7"])
+    _flags[_flags.index("--total-steps") + 1] = f"{_steps}000000"
+    VARIANTS[f"cpu_preset_memory_margin7_{_steps}m"] = tuple(_flags)
 GROUPS = ("easy", "medium", "hard")
 BARN_KEYS = ("success_rate", "collision_free_rate", "timeout_rate", "spl", "barn_score")
 SUITE_KEYS = ("success_rate", "collision_free_rate", "spl", "mean_speed")

@@ -626,9 +626,9 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
 def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_hard_ones():
     """The goal task's training distribution is `TRAINING` with its sampled rooms drawn from the
     room families and the 'random' rooms alike, on the cpu preset from the families only,
-    corridors and clutter most often, and on the gpu preset with long halls too (and a collision
-    margin); in runs and in `make_env` without layouts, under the user's settings; `avoid` keeps
-    `TRAINING` as it is."""
+    corridors and clutter most often, and on the gpu preset with long halls too (both with a
+    collision margin); in runs and in `make_env` without layouts, under the user's settings;
+    `avoid` keeps `TRAINING` as it is."""
     from jaxnav.tasks.presets import GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES
     from jaxnav.tasks.registry import training_randomize
     from jaxnav.training import build_config
@@ -636,9 +636,9 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
     cpu, gpu = (build_config(p, env="goal").randomize for p in ("cpu", "gpu"))
     assert (cpu.families, gpu.families) == (GOAL_CPU_FAMILIES, GOAL_GPU_FAMILIES)
     assert family_weights(gpu.families)["long_hall"] == pytest.approx(0.1)
-    # The gpu preset trains with a 7.5 cm collision margin, the cpu preset with none.
-    assert (cpu.collision_margin, gpu.collision_margin) == ((0.0, 0.0), (0.075, 0.075))
-    gpu = dataclasses.replace(gpu, collision_margin=(0.0, 0.0))
+    # Both presets train with a 7.5 cm collision margin.
+    assert cpu.collision_margin == gpu.collision_margin == (0.075, 0.075)
+    cpu, gpu = (dataclasses.replace(r, collision_margin=(0.0, 0.0)) for r in (cpu, gpu))
     for r in (cpu, gpu):
         assert dataclasses.replace(r, families="") == TRAINING  # only the families differ
     w = family_weights(cpu.families)
@@ -672,14 +672,14 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     cpu = build_config("cpu", env="goal", overrides={"ppo": {"num_envs": 128}}).ppo
     # The preset's 4 minibatches of the smaller batch (128 x 32 steps).
     assert (cpu.num_envs, cpu.minibatch_size, cpu.num_epochs) == (128, 1024, 2)
-    assert cpu.total_steps == 28_000_000 and build_config("cpu").ppo.num_epochs == 4
+    assert cpu.total_steps == 23_000_000 and build_config("cpu").ppo.num_epochs == 4
     for name in ("cpu", "gpu", "paper"):  # the goal task's critic sees its own inputs too
         assert build_config(name, env="goal").ppo.privileged_critic
         assert not build_config(name, env="avoid").ppo.privileged_critic
     widths = {name: build_config(name, env="goal").ppo.hidden for name in ("cpu", "gpu")}
     assert widths == {"cpu": (64, 64), "gpu": (256, 256)}
     memory = {name: build_config(name, env="goal").task.memory_bins for name in ("cpu", "gpu")}
-    assert memory == {"cpu": 0, "gpu": 16}  # the gpu preset's policy has a memory
+    assert memory == {"cpu": 16, "gpu": 16}  # both presets' policies have a memory
     assert build_config("gpu", env="avoid").ppo.hidden == (64, 64)
     narrow = build_config("gpu", env="goal", overrides={"ppo": {"hidden": (32,)}})
     assert narrow.ppo.hidden == (32,)

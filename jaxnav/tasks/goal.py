@@ -252,7 +252,7 @@ class GoalEnv(NavTask):
             if self.sensor.model != "camera":
                 raise ValueError(
                     "GoalConfig.memory_bins: needs a camera (--sensor.model camera), or no "
-                    "memory (--task.memory-bins 0; the gpu preset has one)"
+                    "memory (--task.memory-bins 0; the cpu and gpu presets have one)"
                 )
             self._memory = MemorySpec(
                 task.memory_bins, task.memory_steps, task.memory_reach, self.robot.camera_forward
