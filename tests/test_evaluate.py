@@ -389,7 +389,8 @@ def test_time_to_solve_evaluator_runs_the_suite_under_its_own_jit(monkeypatch):
     of its own with jaxnav's compiler options around `rollout_program` (JAX takes those at the top
     level only), the policy's parameters an argument: a policy that turns in place stays put and
     never collides, and the same program driving forward moves. Compiler options as on a CPU
-    outside the tests (here XLA_FLAGS sets the level, so jaxnav passes none), at the tests' level."""
+    outside the tests (here XLA_FLAGS sets the level, so jaxnav passes none), at the tests' level.
+    Slow: it compiles a rollout of the whole suite."""
     from conftest import benchmark_script
 
     from jaxnav import evaluation
