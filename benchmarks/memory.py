@@ -138,7 +138,7 @@ VARIANTS["cpu_preset_memory_margin7"] = (
     "16",
     *VARIANTS["cpu_preset_margin7"][2:],
 )
-# ... with fewer steps (25 M, 23 M: the memory costs the 2-core CPU a fifth more a step).
+# ... with fewer steps (25 M, 23 M: the memory costs the 2-core CPU more a step).
 for _steps in (25, 23):
     _flags = list(VARIANTS["cpu_preset_memory_margin7"])
     _flags[_flags.index("--total-steps") + 1] = f"{_steps}000000"
