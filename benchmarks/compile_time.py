@@ -14,8 +14,9 @@ lowered StableHLO, characters of the optimised HLO).
 Per task: in this process, `trainer.run_chunk` lowered (tracing: `jax.stages` `.lower`) and
 compiled (`.compile`) on its own, with the size of its HLO text; then `python -m jaxnav.train` run
 twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
-chunk: the seconds to its "compiled and ran the first chunk" line and the whole command's wall
-time, cold and with the cache warm, and JAX's compile events of each run per program (tracing,
+chunk: the seconds to its "compiled and ran the first chunk" line, to the start of that chunk's run
+(its "compiled in", the chunk compiled and init run: when training starts) and the whole
+command's wall time, cold and with the cache warm, and JAX's compile events of each run per program (tracing,
 lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints the table last; writes the JSON.
 
 `--checkout DIR`: the command-line runs only (those above, or those of `--xla-flags` and
@@ -225,14 +226,23 @@ def cli_runs(env: str, preset: str, checkout: Path | None = None) -> dict:
             cwd=cache if checkout else None,  # not this folder, which `python -m` imports from
         )
         wall = time.perf_counter() - tick
-        found = re.search(r"compiled and ran the first chunk in ([\d.]+) s", proc.stdout)
         out[label] = {
-            "first_chunk_s": float(found.group(1)) if found else None,
+            **_first_chunk(proc.stdout),
             "wall_s": round(wall, 1),
             "rc": proc.returncode,
             **(json.loads(events.read_text()) if events.exists() else {}),
         }
     return out
+
+
+def _first_chunk(stdout: str) -> dict:
+    """{first_chunk_s, compiled_s} of a run's compile line: the seconds from its start to the
+    end of the first chunk, and to the start of its run (init run and the chunk compiled)."""
+    found = re.search(r"first chunk in ([\d.]+) s(?: \(compiled in ([\d.]+) s\))?", stdout)
+    if not found:
+        return {"first_chunk_s": None, "compiled_s": None}
+    compiled = found.group(2)
+    return {"first_chunk_s": float(found.group(1)), "compiled_s": compiled and float(compiled)}
 
 
 def _environ(checkout: Path | None) -> dict:
@@ -301,13 +311,12 @@ def flag_runs(
             cwd=run.parent if checkout else None,  # not this folder, which `python -m` imports from
         )
         wall = time.perf_counter() - tick
-        found = re.search(r"compiled and ran the first chunk in ([\d.]+) s", proc.stdout)
         rows = list(csv.DictReader((run / "metrics.csv").open())) if proc.returncode == 0 else []
         first, last = (rows[cfg.updates_per_chunk - 1], rows[-1]) if rows else ({}, {})
         steps = int(last.get("env_steps", 0)) - int(first.get("env_steps", 0))
         seconds = float(last.get("elapsed_s", 0)) - float(first.get("elapsed_s", 0))
         out[flag or "jaxnav"] = {
-            "first_chunk_s": float(found.group(1)) if found else None,
+            **_first_chunk(proc.stdout),
             "steps_per_s": round(steps / seconds) if seconds > 0 else None,
             "wall_s": round(wall, 1),
             "rc": proc.returncode,
@@ -381,8 +390,10 @@ def main() -> None:
             args.json, {**info, "preset": args.preset, "checkout": str(args.checkout), "rows": rows}
         )
         for env, r in rows.items():
+            cold, warm = r["cold"], r["warm"]
             print(
-                f"{env:<6} cold {r['cold']['first_chunk_s']} s, warm {r['warm']['first_chunk_s']} s"
+                f"{env:<6} cold {cold['first_chunk_s']} s (compiled {cold['compiled_s']} s), "
+                f"warm {warm['first_chunk_s']} s (compiled {warm['compiled_s']} s)"
             )
         return
     if args.xla_flags is not None and args.train_flags is not None:
@@ -400,10 +411,15 @@ def main() -> None:
         info |= {"preset": args.preset, "chunks": args.chunks, "checkout": str(args.checkout or "")}
         write_json(args.json, {**info, "rows": rows})
         what = "training flags" if train else "XLA_FLAGS"
-        print(f"{'env':<6} {what:<44} {'first chunk s':>13} {'steps/s after':>13}")
+        print(
+            f"{'env':<6} {what:<44} {'first chunk s':>13} {'compiled s':>10} {'steps/s after':>13}"
+        )
         for env, table in rows.items():
             for flag, r in table.items():
-                print(f"{env:<6} {flag:<44} {r['first_chunk_s']!s:>13} {r['steps_per_s']!s:>13}")
+                print(
+                    f"{env:<6} {flag:<44} {r['first_chunk_s']!s:>13} {r['compiled_s']!s:>10} "
+                    f"{r['steps_per_s']!s:>13}"
+                )
         return
     if args.pieces:
         only = [x for x in args.only.split(",") if x]
@@ -429,13 +445,16 @@ def main() -> None:
         },
     )
     head = (
-        f"{'env':<6} {'lower':>6} {'compile':>8} {'HLO kchars':>10} {'cold 1st':>9} {'warm 1st':>9}"
+        f"{'env':<6} {'lower':>6} {'compile':>8} {'HLO kchars':>10} {'cold 1st':>9} "
+        f"{'compiled':>9} {'warm 1st':>9} {'compiled':>9}"
     )
     print(head)
     for env, r in rows.items():
+        cold, warm = r["cold"], r["warm"]
         print(
             f"{env:<6} {r['lower_s']:>6} {r['compile_s']:>8} {r['hlo_chars'] // 1000:>10} "
-            f"{r['cold']['first_chunk_s']:>9} {r['warm']['first_chunk_s']:>9}"
+            f"{cold['first_chunk_s']!s:>9} {cold['compiled_s']!s:>9} "
+            f"{warm['first_chunk_s']!s:>9} {warm['compiled_s']!s:>9}"
         )
 
 

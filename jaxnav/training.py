@@ -415,10 +415,14 @@ class _CompiledAhead:
         except BaseException as err:  # noqa: BLE001 (raised by the call that waits for it)
             self._error = err
 
-    def __call__(self, ts):
+    def wait(self) -> None:
+        """Returns once the compile is done; raises its error."""
         self._thread.join()
         if self._error is not None:
             raise self._error
+
+    def __call__(self, ts):
+        self.wait()
         return self._compiled(ts)
 
 
@@ -538,10 +542,15 @@ def _first_chunk(trainer, ts, stop: Interrupts, kept, compiling: _Compiling | No
     """The first chunk of a session (XLA compiles it, or finishes compiling it: `compiling`),
     interruptible at once; then signals wait for the end of a chunk."""
     compiling = compiling or _Compiling()
+    ready = ""  # when the chunk was compiled ahead: the seconds to the start of its run
+    if isinstance(trainer.run_chunk, _CompiledAhead):
+        interruptible(trainer.run_chunk.wait, waiting=compiling)
+        ready = f" (compiled in {compiling.seconds():.1f} s)"
     out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)), waiting=compiling)
     stop.defer(kept)  # before the line: a signal after it waits for the chunk and checkpoint
     compiling.line.end()
-    print(f"jaxnav: compiled and ran the first chunk in {compiling.seconds():.1f} s", flush=True)
+    seconds = compiling.seconds()
+    print(f"jaxnav: compiled and ran the first chunk in {seconds:.1f} s{ready}", flush=True)
     return out
 
 

@@ -2,6 +2,8 @@
 reads both from the program store (`jaxnav.programs`): the same run, bit for bit, as compiling one
 after the other, and nothing is compiled twice."""
 
+import re
+
 import jax
 import numpy as np
 import pytest
@@ -70,12 +72,21 @@ def same_run(got, want) -> None:
 
 
 @pytest.mark.slow
-def test_chunk_compiled_beside_init_trains_the_same_and_compiles_once(tmp_path, monkeypatch):
+def test_chunk_compiled_beside_init_trains_the_same_and_compiles_once(
+    tmp_path, monkeypatch, capsys
+):
     """Slow: tiny training runs in this process, tracing and compiling the trainer. Beside init,
     from the program store (traced and kept by the first run, read back by the second: no trace
-    of the task's programs), the run is the one compiled after init, bit for bit."""
+    of the task's programs), the run is the one compiled after init, bit for bit. Compiled
+    ahead, the compile line also says when the chunk's run began."""
     want = trained(tmp_path / "after", monkeypatch, ahead=False)
+    line = re.search(r"first chunk in ([\d.]+) s(.*)", capsys.readouterr().out)
+    assert line and line.group(2) == "", line  # compiled at its first call: no split to show
     got = trained(tmp_path / "beside", monkeypatch, ahead=True)
+    line = re.search(
+        r"first chunk in ([\d.]+) s \(compiled in ([\d.]+) s\)$", capsys.readouterr().out, re.M
+    )
+    assert line and 0 < float(line.group(2)) <= float(line.group(1)), line
     same_run(got, want)
     # One compile each of init and of the chunk, whose three calls run the compiled program.
     assert sum("(run_chunk)" in name for name in got[2][COMPILE_EVENT]) == 1, got[2]
