@@ -13,7 +13,8 @@ training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turni
 `_back_crowd9`, a fifth of them giving way: `_back_nr`), the lidar backing away
 (`lidar_crowd_fast_back`, twice the training: `_long`) and walkers aimed across the robot's way
 in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing away too:
-`_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`); and with
+`_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`; all, with a collision costing 30 rather than 10:
+`_aimed_all_c30`, a discount of 0.995: `_g995`, both: `_c30_g995`); and with
 `--preset cpu` (the README's goal run, whose training wall time is its row's `train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
 collision margin (`cpu_preset_margin7`), with the memory too (`cpu_preset_memory_margin7`; with
@@ -125,6 +126,15 @@ VARIANTS["lidar_crowd_fast_back_long"] = VARIANTS["lidar_crowd_fast_back"] + LON
 VARIANTS["memory_crowd_fast_aimed_back"] = VARIANTS["memory_crowd_fast_aimed"] + BACK
 VARIANTS["memory_crowd_fast_aimed_all_back"] = VARIANTS["memory_crowd_fast_aimed_all"] + BACK
 VARIANTS["memory_crowd_fast_aimed_all_long"] = VARIANTS["memory_crowd_fast_aimed_all"] + LONG
+# ... and a collision that costs 30 rather than 10, a longer horizon (discount 0.995 rather than
+# 0.99), or both: waiting for a person to pass costs less against a collision.
+COLLISION_30 = ("--task.collision-reward", "-30")
+GAMMA_995 = ("--gamma", "0.995")
+VARIANTS["memory_crowd_fast_aimed_all_c30"] = VARIANTS["memory_crowd_fast_aimed_all"] + COLLISION_30
+VARIANTS["memory_crowd_fast_aimed_all_g995"] = VARIANTS["memory_crowd_fast_aimed_all"] + GAMMA_995
+VARIANTS["memory_crowd_fast_aimed_all_c30_g995"] = (
+    VARIANTS["memory_crowd_fast_aimed_all_c30"] + GAMMA_995
+)
 # Every variant names its collision margin (none unless it says), so that its row does not
 # depend on the preset's default.
 MARGIN = "--randomize.collision-margin"
