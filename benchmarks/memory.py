@@ -3,7 +3,8 @@ and a 25 m hall: goal policies trained with and without the memory, with BARN-li
 walkers or long halls in their room mix, weighted as the cpu preset weighs its families, at the
 Kobuki's top speed, trained twice as long (`memory_hall_long`), and the gpu preset with a clearance
 cost (`memory_hall_clear10`, `_clear20`), a stop action (`memory_hall_stop`), a collision margin
-in training (5, 7.5 and 10 cm: `memory_hall_margin5`, `_margin7`, `_margin10`) or 12 sectors of 5
+in training (5, 7.5 and 10 cm: `memory_hall_margin5`, `_margin7`, `_margin10`; 7.5 cm with a
+collision costing 30 and a discount of 0.995: `_margin7_c30_g995`) or 12 sectors of 5
 degrees rather than 8 of 7.5 (`memory_hall_s12`, as many rays), and the mix of every hard family
 with the clearance (`memory_hard_clear20`); among people, a 360 deg lidar instead of the camera
 (`lidar_crowd_fast`, with the clearance: `_clear20`) and a fifth of the walkers giving way in
@@ -142,6 +143,10 @@ VARIANTS = {name: (*flags, MARGIN, "0", "0") for name, flags in VARIANTS.items()
 VARIANTS["memory_hall_margin5"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.05", "0.05")
 VARIANTS["memory_hall_margin10"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.1", "0.1")
 VARIANTS["memory_hall_margin7"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.075", "0.075")
+# ... the gpu preset since (`memory_hall_margin7`) with a collision costing 30 and a discount of 0.995.
+VARIANTS["memory_hall_margin7_c30_g995"] = (
+    VARIANTS["memory_hall_margin7"] + COLLISION_30 + GAMMA_995
+)
 VARIANTS["cpu_preset_margin7"] = (*VARIANTS["cpu_preset"][:-3], MARGIN, "0.075", "0.075")
 VARIANTS["cpu_preset_memory_margin7"] = (
     "--task.memory-bins",
