@@ -3,6 +3,7 @@
     python benchmarks/crowdnav.py --checkpoint runs/goal-gpu --episodes 50 \\
         --json benchmarks/results/crowdnav_goal.json
     python benchmarks/crowdnav.py --policy forward --episodes 10   # a baseline: straight ahead
+    python benchmarks/crowdnav.py --policy stand --episodes 10     # one that never drives
 
 Evaluates as `python -m jaxnav.evaluate --checkpoint RUN --layouts
 scenes/crowdnav/circle_crossing_K.json --steps 250` does, for K = reactive and nonreactive (the
@@ -114,7 +115,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     which = parser.add_mutually_exclusive_group(required=True)
     which.add_argument("--checkpoint", help="a goal run folder or a checkpoint in it")
-    which.add_argument("--policy", choices=("forward", "random"), help="a baseline instead")
+    which.add_argument(
+        "--policy", choices=("forward", "random", "stand"), help="a baseline instead"
+    )
     parser.add_argument("--episodes", type=int, default=50, help="episodes per room (10 rooms)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=str(DEFAULT_JSON), help="write the results here")

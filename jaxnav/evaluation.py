@@ -647,7 +647,7 @@ def strip_private(results: dict) -> dict:
 
 
 def baseline(name: str, env: str = "avoid") -> Policy:
-    """Baseline `name` (forward, random) acting in task `env` with its default actions."""
+    """Baseline `name` (forward, random, stand) acting in task `env` with its default actions."""
     spec = task_entry(env).config_cls().action_spec
     return dataclasses.replace(BASELINES[name](spec), env=env)
 

@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxnav.core.types import ActionSpec, ContinuousActions
 from jaxnav.tasks.avoid import AvoidConfig
@@ -54,4 +55,17 @@ def random_policy(actions: ActionSpec = PAPER_ACTIONS) -> Policy:
     return Policy("random", lambda obs, key: jax.random.randint(key, obs.shape[:-1], 0, actions.n))
 
 
-BASELINES = {"forward": forward_policy, "random": random_policy}
+def stand_policy(actions: ActionSpec = PAPER_ACTIONS) -> Policy:
+    """Never drives: the (0, 0) command, or the discrete action with the least forward speed and
+    then the least turn (stop where the actions have it, else turning in place). It causes no
+    collision: what is left is what moving people and obstacles do to a robot that does not move."""
+    if isinstance(actions, ContinuousActions):
+        zero = jnp.zeros(actions.size, jnp.float32)
+        shape = lambda obs: (*obs.shape[:-1], actions.size)  # noqa: E731
+        return Policy("stand", lambda obs, key: jnp.broadcast_to(zero, shape(obs)))
+    table = np.abs(actions.table())  # [n, 2] |forward|, |turn|
+    still = int(np.lexsort((table[:, 1], table[:, 0]))[0])
+    return Policy("stand", lambda obs, key: jnp.full(obs.shape[:-1], still, jnp.int32))
+
+
+BASELINES = {"forward": forward_policy, "random": random_policy, "stand": stand_policy}

@@ -22,6 +22,7 @@ import jaxnav.cli.evaluate as evaluate_module
 from jaxnav.cli.evaluate import main
 from jaxnav.core import goals
 from jaxnav.core.scene import SCENES_DIR
+from jaxnav.core.types import ContinuousActions
 from jaxnav.evaluation import (
     MAX_FILE_STEM,
     METRIC_KEYS,
@@ -38,9 +39,10 @@ from jaxnav.evaluation import (
     suite_meta,
 )
 from jaxnav.io.layouts import Grid
-from jaxnav.policy import Policy, forward_policy, random_policy
+from jaxnav.policy import Policy, forward_policy, random_policy, stand_policy
 from jaxnav.tasks.avoid import AvoidEnv
 from jaxnav.tasks.base import EvalMetric
+from jaxnav.tasks.goal import GoalConfig
 from jaxnav.tasks.registry import TASKS
 from jaxnav.viz.plots import METRICS_HEADER, plot_reward_curve
 
@@ -104,6 +106,21 @@ def test_random_baseline_moves_less_per_step_than_forward(forward_results, rando
     # Over the same steps run, random turns two thirds of the time: it covers less ground per step.
     assert rnd["mean_speed"] < 0.7 * fwd["mean_speed"]
     assert rnd["mean_steps"] > fwd["mean_steps"]  # and it survives longer in this room
+
+
+@pytest.mark.parametrize("actions", ["discrete", "discrete_stop", "discrete_back", "continuous"])
+def test_stand_baseline_never_drives(actions):
+    """`stand` commands no forward speed whatever the actions: stop where there is one, else the
+    first turn in place (never backing away), and (0, 0) for continuous commands."""
+    spec = GoalConfig(actions=actions).action_spec
+    act = stand_policy(spec).act(jnp.zeros((4, 7)), jax.random.PRNGKey(0))
+    if isinstance(spec, ContinuousActions):
+        np.testing.assert_array_equal(act, np.zeros((4, 2)))
+        return
+    command = spec.table()[np.asarray(act)]  # [4, 2] forward m/s, yaw rad/s
+    assert act.shape == (4,) and (command[:, 0] == 0).all()
+    want = 0.0 if actions == "discrete_stop" else GoalConfig().turn_rate
+    np.testing.assert_allclose(command[:, 1], want)
 
 
 def _start_cli(*args, cwd) -> subprocess.Popen:
