@@ -35,6 +35,8 @@ KEYS = (
     "spl",
     "time_to_goal",
     "robot_collision_rate",
+    "collision_free_unhit_rate",
+    "success_unhit_rate",
 )
 
 

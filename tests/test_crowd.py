@@ -17,6 +17,7 @@ from jaxnav.core.geometry import signed_distance
 from jaxnav.core.randomize import make_bank
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.core.sensors import SensorConfig
+from jaxnav.evaluation import declared_values, pooled
 from jaxnav.io.layouts import (
     Cylinder,
     LayoutError,
@@ -26,6 +27,7 @@ from jaxnav.io.layouts import (
     load_layout,
     parse_layouts,
 )
+from jaxnav.tasks.base import WALKER_EVAL_METRICS, success_unhit
 
 DT = 0.1  # s, the control period
 ROBOT = 0.177  # m, the TurtleBot's radius
@@ -268,7 +270,10 @@ def test_env_declares_the_walker_metrics(crowd_run):
     walker env compiles and rolls out 40 steps of 64 episodes for these tests."""
     env, _, _ = crowd_run
     assert env.metric_names == ("collision", "walker_hit")
-    assert [m.name for m in env.eval_metrics][-1] == "robot_collision_rate"
+    assert [m.name for m in env.eval_metrics][-2:] == [
+        "robot_collision_rate",
+        "collision_free_unhit_rate",
+    ]
     assert env.walkers.slots == env.walkers.crowd_count[1] == 6
 
 
@@ -322,6 +327,31 @@ def test_collisions_are_attributed(crowd_run):
     assert not ended[yields].any()  # it gave way: no contact in 4 s
     assert (ended & (hit == 1) & (by_walker == 0))[drives].all()  # the robot's doing
     assert (walker_hit <= collision).all()
+
+
+def test_walker_metrics_count_what_the_robot_caused():
+    """Four episodes: a walker ran into the standing robot (0), the robot collided (2), two
+    reached the goal (1, 3). Robot-caused: 1 of 4; of the three nobody ran into, 2 collision-free
+    and 2 successes. Where a walker ran into it in every episode, the share reads 0."""
+    room = {
+        "collided": np.array([True, False, True, False]),
+        "metrics": {"walker_hit": np.array([1.0, 0, 0, 0]), "success": np.array([0, 1.0, 0, 1])},
+    }
+    declared = declared_values((*WALKER_EVAL_METRICS, success_unhit("success")), room)
+    got = {name: pooled(*both) for name, both in declared.items()}
+    assert got == pytest.approx(
+        {
+            "robot_collision_rate": 0.25,
+            "collision_free_unhit_rate": 2 / 3,
+            "success_unhit_rate": 2 / 3,
+        }
+    )
+    hit = {
+        "collided": np.ones(4, bool),
+        "metrics": {"walker_hit": np.ones(4), "success": np.zeros(4)},
+    }
+    values, over = declared_values(WALKER_EVAL_METRICS, hit)["collision_free_unhit_rate"]
+    assert not over.any() and pooled(values, over) == 0.0  # none to judge: every one collided
 
 
 def test_pictures_draw_the_walkers_and_replays_give_way():

@@ -120,20 +120,42 @@ class EvalMetric:
     whose metrics have none is titled with its collision-free rate and coverage."""
 
 
+def _run_into(room: dict) -> np.ndarray:
+    """[N] bool: a non-reactive walker ran into the robot while it stood (the task metric
+    `walker_hit`, `crowd.hit_by_walker`), which ended the episode."""
+    return np.asarray(room["metrics"]["walker_hit"]) > 0
+
+
 def _caused(room: dict) -> np.ndarray:
     """[N] 1.0 where the episode collided and not by a walker running into the standing robot."""
-    walker = np.asarray(room["metrics"]["walker_hit"]) > 0
-    return (np.asarray(room["collided"], bool) & ~walker).astype(np.float64)
+    return (np.asarray(room["collided"], bool) & ~_run_into(room)).astype(np.float64)
 
 
 WALKER_EVAL_METRICS = (
     EvalMetric(
         "robot_collision_rate", value=_caused, column="caused %", width=8, scale=100.0, digits=1
     ),
+    EvalMetric(
+        "collision_free_unhit_rate",
+        value=lambda room: 1.0 - np.asarray(room["collided"], np.float64),
+        over=lambda room: ~_run_into(room),
+    ),
 )
-"""Evaluation's metric where people walk: the share of episodes that ended in a collision the
+"""Evaluation's metrics where people walk: the share of episodes that ended in a collision the
 robot caused (`collision_free_rate` counts every collision; the task metric `walker_hit` the
-episodes in which a non-reactive walker ran into the robot while it stood, `crowd.hit_by_walker`)."""
+episodes in which a non-reactive walker ran into the robot while it stood, `crowd.hit_by_walker`),
+and the collision-free share of the episodes no walker ran into the robot in (where there are
+none, the largest value: 0, every one of them having collided)."""
+
+
+def success_unhit(success_metric: str) -> EvalMetric:
+    """Where people walk and episodes have goals: the share of the episodes no walker ran into
+    the robot in that reached the goal (task metric `success_metric` > 0)."""
+    return EvalMetric(
+        "success_unhit_rate",
+        value=lambda room: (np.asarray(room["metrics"][success_metric]) > 0).astype(np.float64),
+        over=lambda room: ~_run_into(room),
+    )
 
 
 @struct.dataclass
@@ -186,6 +208,8 @@ class NavTask:
         if self.walking:
             self.metric_names = (*self.metric_names, "walker_hit")
             self.eval_metrics = (*self.eval_metrics, *WALKER_EVAL_METRICS)
+            if self.success_metric is not None:
+                self.eval_metrics = (*self.eval_metrics, success_unhit(self.success_metric))
 
     @property
     def control_period(self) -> float:
