@@ -17,8 +17,13 @@ contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-re
 every row, `PPOConfig.reset_in_place` off, as by default), `contacts` (MJX's contact pass alone)
 and `in_place` (the auto-reset writing the finished rows only).
 
+`analytic` is a bound for `rows1`: its rays on its rooms' shapes without MJX or what the robot's
+drive and camera add (`analytic_step`), the same batch of rooms and spawns.
+
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size.
+
+    python benchmarks/env_rollout.py --num-envs 65536 --steps 50 --repeats 2 --variants rows1,analytic
 """
 
 from __future__ import annotations
@@ -32,9 +37,10 @@ import jax.numpy as jnp
 from report import run_info, write_json
 
 import jaxnav
+from jaxnav.core.geometry import signed_distance
 from jaxnav.core.randomize import FIDELITY, TRAINING
 from jaxnav.core.scene import SceneConfig
-from jaxnav.core.sensors import SensorConfig
+from jaxnav.core.sensors import SensorConfig, ray_depths
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.wrappers import AutoReset
 
@@ -107,8 +113,64 @@ def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -
         )
         return state, total
 
-    tick = time.perf_counter()
     state = jax.block_until_ready(reset(jax.random.split(jax.random.PRNGKey(0), num_envs)))
+    return _timed(rollout, state, num_envs, steps, repeats, variant)
+
+
+def analytic_step(env, state, action):
+    """The one-row step without MJX, the bound of `analytic`: the command integrated as a
+    unicycle over the control period (no smoother, latency, gains or traction), the same rays on
+    the same shapes (`sensors.ray_depths`: noiseless, no dropout), the sectors' minimum, the
+    bumper's signed distance, Table I; an episode that ends starts again at its spawn in its
+    room (no new draw). `state` = (qpos [3], steps [], obs [S], params); one robot."""
+    qpos, steps, obs, params = state
+    cfg, task = env.sensor, env.task
+    v, w = jnp.asarray(env.action_spec.table())[action]
+    yaw = qpos[2] + w * env.control_period
+    step = v * env.control_period * jnp.stack([jnp.cos(yaw), jnp.sin(yaw)])
+    qpos = jnp.concatenate([qpos[:2] + step, yaw[None]])
+    depth = ray_depths(params, qpos, cfg, env.robot).reshape(cfg.num_sectors, -1).min(-1)
+    sectors = jnp.clip(depth, cfg.range_min, cfg.range_max)  # [S]
+    z = tuple(jnp.float32(v) for v in env.scene.bumper_z)
+    hit = signed_distance(params, qpos[:2], z) < env.scene.bumper_radius
+    closest = jnp.min(obs)
+    near, forward = closest < task.near_threshold, action == 0
+    reward = jnp.where(
+        near,
+        jnp.where(forward, task.near_forward, task.near_turn),
+        jnp.where(forward, task.far_forward, task.far_turn),
+    )
+    reward = jnp.where(hit, task.collision_reward, reward - task.distance_penalty / closest)
+    done = hit | (steps + 1 >= task.max_steps)
+    qpos = jnp.where(done, params.spawn, qpos)
+    return (qpos, jnp.where(done, 0, steps + 1), sectors, params), reward
+
+
+def measure_analytic(num_envs: int, steps: int, repeats: int) -> dict:
+    """`analytic`: `analytic_step` in the rooms and spawns of the `rows1` env's resets."""
+    env = jaxnav.make_env("avoid", **VARIANTS["rows1"])
+    first = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), num_envs))
+    params = first.info["params"]
+    state = (first.data.qpos[:, :3], jnp.zeros(num_envs, jnp.int32), first.obs, params)
+    step = jax.vmap(lambda s, a: analytic_step(env, s, a))
+
+    @jax.jit
+    def rollout(state, key):
+        def body(carry, k):
+            state, total = carry
+            action = jax.random.randint(k, (num_envs,), 0, env.action_spec.n)
+            state, reward = step(state, action)
+            return (state, total + reward.sum()), None
+
+        return jax.lax.scan(body, (state, jnp.float32(0)), jax.random.split(key, steps))[0]
+
+    return _timed(rollout, state, num_envs, steps, repeats, "analytic")
+
+
+def _timed(rollout, state, num_envs, steps, repeats, variant) -> dict:
+    """Compiles and runs `rollout` (state, key) -> (state, total) once, then times `repeats`
+    runs: the best one's env-steps/s."""
+    tick = time.perf_counter()
     state, _ = jax.block_until_ready(rollout(state, jax.random.PRNGKey(1)))
     compile_s = time.perf_counter() - tick
     best = float("inf")
@@ -133,12 +195,19 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", help="write the results here")
     parser.add_argument(
-        "--variants", default="default", help=f"comma-separated: {', '.join(VARIANTS)}"
+        "--variants",
+        default="default",
+        help=f"comma-separated: {', '.join(VARIANTS)}, analytic",
     )
     args = parser.parse_args()
     sizes = [int(n) for n in args.num_envs.split(",")]
     variants = args.variants.split(",")
-    rows = [measure(n, args.steps, args.repeats, v) for v in variants for n in sizes]
+    run = lambda n, v: (  # noqa: E731
+        measure_analytic(n, args.steps, args.repeats)
+        if v == "analytic"
+        else measure(n, args.steps, args.repeats, v)
+    )
+    rows = [run(n, v) for v in variants for n in sizes]
     result = {
         **run_info("device"),
         "cpus": jax.local_device_count(),
