@@ -409,3 +409,42 @@ def test_train_layouts_of_several_files_are_named_by_file(tmp_path):
     (tmp_path / "near.json").write_text(json.dumps(near))
     with pytest.raises(LayoutError, match="success radius"):
         build_config(layout_files=[str(tmp_path / "near.json")], env="goal")
+
+
+class _Asked:
+    """A meta path finder that notes every top-level module the import system asks it for."""
+
+    def __init__(self):
+        self.names = []
+
+    def find_spec(self, name, path=None, target=None):
+        self.names.append(name)
+        return None  # let the other finders answer
+
+
+def test_tensorboard_writer_is_made_without_importing_torch(tmp_path, monkeypatch):
+    """tensorboardX imports torch wherever it is installed (seconds on a GPU host); the run's
+    writer imports it without: the import system is never asked for torch, and afterwards torch
+    imports as before. Without the guard the same import asks for it."""
+    from jaxnav.io import runlog
+
+    def fresh_import(guarded: bool) -> list[str]:
+        for name in [m for m in sys.modules if m.split(".")[0] == "tensorboardX"]:
+            monkeypatch.delitem(sys.modules, name)
+        asked = _Asked()
+        monkeypatch.setattr(sys, "meta_path", [asked, *sys.meta_path])
+        if guarded:
+            writer = runlog._tensorboard(tmp_path / "tb")
+            writer.add_scalar("train/x", 1.0, 0)
+            writer.close()
+        else:
+            import tensorboardX  # noqa: F401
+        monkeypatch.setattr(sys, "meta_path", [f for f in sys.meta_path if f is not asked])
+        return asked.names
+
+    if "torch" in sys.modules:
+        pytest.skip("torch is loaded in this process: the writer leaves it as it is")
+    assert "torch" not in fresh_import(guarded=True)
+    assert "torch" not in sys.modules  # nothing left behind: `import torch` works as before
+    assert list((tmp_path / "tb").iterdir())  # the event file
+    assert "torch" in fresh_import(guarded=False)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -136,8 +137,18 @@ class MetricsLog:
 
 
 def _tensorboard(logdir: Path):
+    """A TensorBoard writer for `logdir`, or None without tensorboardX (its logs are optional; the
+    CSV always exists). tensorboardX imports torch where it is installed, only to accept torch
+    tensors, which jaxnav never logs; on a GPU host that import took seconds of a warm start
+    (docs/results.md, "Start-up"), so unless torch is already loaded it is imported without it."""
+    blocked = "torch" not in sys.modules
+    if blocked:
+        sys.modules["torch"] = None  # `import torch` raises ImportError: tensorboardX goes without
     try:
         from tensorboardX import SummaryWriter
-    except ImportError:  # TensorBoard logs are optional; the CSV always exists
+    except ImportError:
         return None
+    finally:
+        if blocked:
+            del sys.modules["torch"]
     return SummaryWriter(str(logdir))
