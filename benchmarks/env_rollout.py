@@ -131,8 +131,8 @@ def analytic_step(env, state, action):
     qpos = jnp.concatenate([qpos[:2] + step, yaw[None]])
     depth = ray_depths(params, qpos, cfg, env.robot).reshape(cfg.num_sectors, -1).min(-1)
     sectors = jnp.clip(depth, cfg.range_min, cfg.range_max)  # [S]
-    z = tuple(jnp.float32(v) for v in env.scene.bumper_z)
-    hit = signed_distance(params, qpos[:2], z) < env.scene.bumper_radius
+    span = tuple(jnp.float32(h) for h in env.scene.bumper_z)
+    hit = signed_distance(params, qpos[:2], span) < env.scene.bumper_radius
     closest = jnp.min(obs)
     near, forward = closest < task.near_threshold, action == 0
     reward = jnp.where(
@@ -202,12 +202,13 @@ def main() -> None:
     args = parser.parse_args()
     sizes = [int(n) for n in args.num_envs.split(",")]
     variants = args.variants.split(",")
-    run = lambda n, v: (  # noqa: E731
+    rows = [
         measure_analytic(n, args.steps, args.repeats)
         if v == "analytic"
         else measure(n, args.steps, args.repeats, v)
-    )
-    rows = [run(n, v) for v in variants for n in sizes]
+        for v in variants
+        for n in sizes
+    ]
     result = {
         **run_info("device"),
         "cpus": jax.local_device_count(),
