@@ -16,8 +16,9 @@ compiled (`.compile`) on its own, with the size of its HLO text; then `python -m
 twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
 chunk: the seconds to its "compiled and ran the first chunk" line, to the start of that chunk's run
 (its "compiled in", the chunk compiled and init run: when training starts) and the whole
-command's wall time, cold and with the cache warm, and JAX's compile events of each run per program (tracing,
-lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints the table last; writes the JSON.
+command's wall time, cold and with the cache warm, and JAX's compile events of each run per
+program (tracing, lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints
+the table last; writes the JSON.
 
 `--checkout DIR`: the command-line runs only (those above, or those of `--xla-flags` and
 `--train-flags`), of the jaxnav in DIR (a checkout of an earlier commit, e.g. `git worktree add

@@ -125,7 +125,8 @@ def analytic_step(env, state, action):
     room (no new draw). `state` = (qpos [3], steps [], obs [S], params); one robot."""
     qpos, steps, obs, params = state
     cfg, task = env.sensor, env.task
-    v, w = jnp.asarray(env.action_spec.table())[action]
+    command = env.command(action)  # [2] forward m/s, yaw rad/s
+    v, w = command
     yaw = qpos[2] + w * env.control_period
     step = v * env.control_period * jnp.stack([jnp.cos(yaw), jnp.sin(yaw)])
     qpos = jnp.concatenate([qpos[:2] + step, yaw[None]])
@@ -133,14 +134,7 @@ def analytic_step(env, state, action):
     sectors = jnp.clip(depth, cfg.range_min, cfg.range_max)  # [S]
     span = tuple(jnp.float32(h) for h in env.scene.bumper_z)
     hit = signed_distance(params, qpos[:2], span) < env.scene.bumper_radius
-    closest = jnp.min(obs)
-    near, forward = closest < task.near_threshold, action == 0
-    reward = jnp.where(
-        near,
-        jnp.where(forward, task.near_forward, task.near_turn),
-        jnp.where(forward, task.far_forward, task.far_turn),
-    )
-    reward = jnp.where(hit, task.collision_reward, reward - task.distance_penalty / closest)
+    reward = env._reward(obs, action, command, hit)  # Table I, as the env's step gives it
     done = hit | (steps + 1 >= task.max_steps)
     qpos = jnp.where(done, params.spawn, qpos)
     return (qpos, jnp.where(done, 0, steps + 1), sectors, params), reward
@@ -151,7 +145,8 @@ def measure_analytic(num_envs: int, steps: int, repeats: int) -> dict:
     env = jaxnav.make_env("avoid", **VARIANTS["rows1"])
     first = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), num_envs))
     params = first.info["params"]
-    state = (first.data.qpos[:, :3], jnp.zeros(num_envs, jnp.int32), first.obs, params)
+    sectors = first.obs[:, : env.sensor.num_sectors]  # the newest frame
+    state = (first.data.qpos[:, :3], jnp.zeros(num_envs, jnp.int32), sectors, params)
     step = jax.vmap(lambda s, a: analytic_step(env, s, a))
 
     @jax.jit

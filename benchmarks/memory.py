@@ -14,8 +14,9 @@ training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turni
 `_back_crowd9`, a fifth of them giving way: `_back_nr`), the lidar backing away
 (`lidar_crowd_fast_back`, twice the training: `_long`) and walkers aimed across the robot's way
 in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing away too:
-`_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`; all, with a collision costing 30 rather than 10:
-`_aimed_all_c30`, a discount of 0.995: `_g995`, both: `_c30_g995`); and with
+`_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`; all, with a
+collision costing 30 rather than 10: `_aimed_all_c30`, a discount of 0.995: `_g995`, both:
+`_c30_g995`); and with
 `--preset cpu` (the README's goal run, whose training wall time is its row's `train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
 collision margin (`cpu_preset_margin7`), with the memory too (`cpu_preset_memory_margin7`; with
@@ -143,7 +144,8 @@ VARIANTS = {name: (*flags, MARGIN, "0", "0") for name, flags in VARIANTS.items()
 VARIANTS["memory_hall_margin5"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.05", "0.05")
 VARIANTS["memory_hall_margin10"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.1", "0.1")
 VARIANTS["memory_hall_margin7"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.075", "0.075")
-# ... the gpu preset since (`memory_hall_margin7`) with a collision costing 30 and a discount of 0.995.
+# ... the gpu preset since (`memory_hall_margin7`) with a collision costing 30 and a discount
+# of 0.995.
 VARIANTS["memory_hall_margin7_c30_g995"] = (
     VARIANTS["memory_hall_margin7"] + COLLISION_30 + GAMMA_995
 )
