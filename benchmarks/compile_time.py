@@ -34,7 +34,9 @@ options, `jaxnav.core.xla`), `python -m jaxnav.train --no-compile-cache` for `--
 seconds to its first chunk's end and the training pace after it (env steps per second, from the
 run's metrics.csv), so that a faster compile is seen not to cost speed. `--train-flags A,B,...`:
 the same, with each entry as more flags of the command line instead (e.g. `--threefry-kernel
-false`).
+false`). `--total-steps N` instead of `--chunks`: a budget of N env steps, e.g. the preset's own,
+whose last chunk is a part of one (`--train-flags "" --total-steps 100000000`: the gpu preset's
+whole run; its pace then covers every chunk after the first).
 """
 
 from __future__ import annotations
@@ -286,11 +288,17 @@ runpy.run_module("jaxnav.train", run_name="__main__", alter_sys=True)
 
 
 def flag_runs(
-    env: str, preset: str, flags: list[str], chunks: int, train: bool = False, checkout=None
+    env: str,
+    preset: str,
+    flags: list[str],
+    chunks: int,
+    train: bool = False,
+    checkout=None,
+    total_steps: int | None = None,
 ) -> dict:
-    """{flags: {first_chunk_s, steps_per_s after it, wall_s}} of `chunks`-chunk runs, each with
-    one entry of `flags` as its XLA_FLAGS, or (`train`) as more flags of its command line; of the
-    jaxnav in `checkout` if given."""
+    """{flags: {first_chunk_s, steps_per_s after it, wall_s}} of `chunks`-chunk runs (or runs of
+    `total_steps` env steps), each with one entry of `flags` as its XLA_FLAGS, or (`train`) as
+    more flags of its command line; of the jaxnav in `checkout` if given."""
     from jaxnav.training import build_config
 
     cfg = build_config(preset, env=env).ppo
@@ -301,7 +309,8 @@ def flag_runs(
         cmd = [sys.executable, "-m", "jaxnav.train", "--env", env, "--preset", preset]
         cmd += flag.split() if train else []
         cmd += ["--out", str(run), "--no-progress", "--no-compile-cache"]
-        cmd += ["--total-steps", str(chunks * cfg.updates_per_chunk * cfg.batch_size)]
+        budget = total_steps or chunks * cfg.updates_per_chunk * cfg.batch_size
+        cmd += ["--total-steps", str(budget)]
         tick = time.perf_counter()
         proc = subprocess.run(
             cmd,
@@ -374,6 +383,7 @@ def main() -> None:
     p.add_argument("--xla-flags", default=None, help="comma list of XLA_FLAGS (module doc)")
     p.add_argument("--train-flags", default=None, help="comma list of training flags (doc)")
     p.add_argument("--chunks", type=int, default=3, help="with --xla-flags: chunks per run")
+    p.add_argument("--total-steps", type=int, help="with --xla/train-flags: budget, not chunks")
     p.add_argument("--checkout", type=Path, help="command-line runs of the jaxnav there only")
     p.add_argument("--xla-log", action="store_true", help="XLA's own timers of the chunk (GPU)")
     args = p.parse_args()
@@ -405,11 +415,14 @@ def main() -> None:
         if len(set(flags)) < len(flags):  # results are keyed by the flags: a repeat would overwrite
             p.error("--xla-flags/--train-flags: each entry once; run the command again to repeat")
         rows = {
-            env: flag_runs(env, args.preset, flags, args.chunks, train, args.checkout)
+            env: flag_runs(
+                env, args.preset, flags, args.chunks, train, args.checkout, args.total_steps
+            )
             for env in args.envs.split(",")
         }
         info = run_info("command", "device", "jax", "mujoco", "date")
-        info |= {"preset": args.preset, "chunks": args.chunks, "checkout": str(args.checkout or "")}
+        info |= {"preset": args.preset, "chunks": args.chunks, "total_steps": args.total_steps}
+        info |= {"checkout": str(args.checkout or "")}
         write_json(args.json, {**info, "rows": rows})
         what = "training flags" if train else "XLA_FLAGS"
         print(

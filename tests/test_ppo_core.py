@@ -373,28 +373,67 @@ class _LineEnv:
         return self._state(x, steps, state.info["key"], -jnp.abs(x), done)
 
 
+class _CountedLineEnv(_LineEnv):
+    """`_LineEnv` whose step tells the host each time it runs."""
+
+    def __init__(self, calls: list):
+        super().__init__()
+        self.calls = calls
+
+    def step(self, state, action):
+        jax.debug.callback(lambda: self.calls.append(1))
+        return super().step(state, action)
+
+
 @pytest.mark.slow
 def test_update_is_its_rollout_then_its_learner():
     """`Trainer.parts`, the pieces benchmarks/compile_time.py compiles on their own, compose to
-    the update `run_chunk` runs, bit for bit. Slow: the parts, the update and a chunk each
-    compile."""
+    the update `run_chunk` runs, bit for bit; a chunk runs only the updates the budget has left
+    (4 updates in chunks of 3: the second chunk runs one, a third none, and the env steps only
+    for those). Slow: the parts, the update and a chunk each compile."""
     from jaxnav.ppo.config import PPOConfig
     from jaxnav.ppo.train import make_train
 
-    cfg = PPOConfig(num_envs=8, rollout_length=4, minibatch_size=16, updates_per_chunk=1)
-    trainer = make_train(cfg, _LineEnv())
+    calls = []
+    cfg = PPOConfig(
+        num_envs=8, rollout_length=4, minibatch_size=16, updates_per_chunk=3, total_steps=128
+    )
+    trainer = make_train(cfg, _CountedLineEnv(calls))
     ts = trainer.init(jax.random.PRNGKey(0))
     rollout, learn, update = (jax.jit(trainer.parts[k]) for k in ("rollout", "learn", "update"))
     split_ts, split_metrics = learn(ts, *rollout(ts))
     whole_ts, whole_metrics = update(ts)
-    chunk_ts, chunk_metrics = trainer.run_chunk(jax.tree_util.tree_map(jnp.copy, ts))
-    for other in (whole_ts, chunk_ts):
-        leaves = zip(*map(jax.tree_util.tree_leaves, (split_ts, other)), strict=True)
+    jax.effects_barrier()
+    calls.clear()
+    expected = [whole_ts]
+    for _ in range(cfg.num_updates - 1):
+        expected.append(update(expected[-1])[0])
+    jax.effects_barrier()
+    steps_per_update = len(calls) // (cfg.num_updates - 1)
+    assert steps_per_update >= cfg.rollout_length
+    calls.clear()
+
+    chunk_ts, chunks = jax.tree_util.tree_map(jnp.copy, ts), []
+    for _ in range(3):
+        chunk_ts, metrics = trainer.run_chunk(chunk_ts)
+        chunks.append((jax.tree_util.tree_map(jnp.copy, chunk_ts), metrics))
+    jax.effects_barrier()
+    assert len(calls) == cfg.num_updates * steps_per_update  # none for the skipped updates
+    assert [np.asarray(m["live"]).tolist() for _, m in chunks] == [
+        [True] * 3,
+        [True, False, False],
+        [False] * 3,
+    ]
+    # [want, got]: the parts against the update; each chunk's end against updates in turn
+    pairs = [(split_ts, whole_ts), (expected[2], chunks[0][0])]
+    pairs += [(expected[3], chunks[1][0]), (expected[3], chunks[2][0])]
+    for want, got in pairs:
+        leaves = zip(*map(jax.tree_util.tree_leaves, (want, got)), strict=True)
         for a, b in leaves:
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     for k, v in split_metrics.items():
         np.testing.assert_array_equal(np.asarray(v), np.asarray(whole_metrics[k]))
-        np.testing.assert_array_equal(np.asarray(v), np.asarray(chunk_metrics[k][0]))
+        np.testing.assert_array_equal(np.asarray(v), np.asarray(chunks[0][1][k][0]))
 
 
 @pytest.mark.parametrize(

@@ -305,15 +305,22 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     def _update(ts: TrainState) -> tuple[TrainState, dict]:
         return _learn(ts, *_rollout(ts))
 
-    def _update_or_skip(ts: TrainState, _):
-        # Chunks have a fixed length so they compile once; updates past the budget are no-ops.
-        live = ts.update < cfg.num_updates
-        new, metrics = _update(ts)
-        ts = jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b), new, ts)
-        return ts, {**metrics, "live": live}
-
     def run_chunk(ts: TrainState):
-        return jax.lax.scan(_update_or_skip, ts, None, cfg.updates_per_chunk)
+        # Chunks have one shape so they compile once; a loop of as many updates as the budget
+        # has left runs them, so updates past it cost nothing. Their metrics rows stay zero.
+        n = cfg.updates_per_chunk
+        live = jnp.clip(cfg.num_updates - ts.update, 0, n)  # [] updates this chunk runs
+        rows = jax.eval_shape(_update, ts)[1]
+        rows = jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), rows)
+
+        def body(carry):
+            i, ts, rows = carry
+            ts, metrics = _update(ts)
+            rows = jax.tree_util.tree_map(lambda r, m: r.at[i].set(m), rows, metrics)
+            return i + 1, ts, rows
+
+        _, ts, rows = jax.lax.while_loop(lambda c: c[0] < live, body, (0, ts, rows))
+        return ts, {**rows, "live": jnp.arange(n) < live}  # rows [updates_per_chunk]
 
     def train(key: jax.Array):
         return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
