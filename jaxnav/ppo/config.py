@@ -91,7 +91,8 @@ class PPOConfig:
     block's transitions, so a device never needs another's robots. Results depend on `groups`, not
     on the device count: two devices give what one gives with groups 2."""
     updates_per_chunk: int = 10
-    """Updates per jitted call; progress, metrics and checkpoints happen between chunks."""
+    """Updates per jitted call; progress, metrics and checkpoints happen between chunks. A chunk
+    runs only the updates `total_steps` has left."""
     checkpoint_every: int = 50
     """Write a checkpoint every this many updates (and at the end)."""
 
