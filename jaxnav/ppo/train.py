@@ -305,17 +305,19 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     def _update(ts: TrainState) -> tuple[TrainState, dict]:
         return _learn(ts, *_rollout(ts))
 
+    update = jax.jit(_update)  # traced once per chunk's trace, inlined by XLA
+
     def run_chunk(ts: TrainState):
         # Chunks have one shape so they compile once; a loop of as many updates as the budget
         # has left runs them, so updates past it cost nothing. Their metrics rows stay zero.
         n = cfg.updates_per_chunk
         live = jnp.clip(cfg.num_updates - ts.update, 0, n)  # [] updates this chunk runs
-        rows = jax.eval_shape(_update, ts)[1]
+        rows = jax.eval_shape(update, ts)[1]  # traces the update; the loop's body reuses it
         rows = jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), rows)
 
         def body(carry):
             i, ts, rows = carry
-            ts, metrics = _update(ts)
+            ts, metrics = update(ts)
             rows = jax.tree_util.tree_map(lambda r, m: r.at[i].set(m), rows, metrics)
             return i + 1, ts, rows
 
