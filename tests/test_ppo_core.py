@@ -1,5 +1,6 @@
 """Tests of the PPO core: GAE, the PPO loss terms, the actor-critic network and RunningStats."""
 
+import functools
 import math
 
 import jax
@@ -486,6 +487,16 @@ def test_fused_gradient_matches_jax_grad(case):
         np.testing.assert_allclose(g, w, atol=1e-5 * float(jnp.abs(w).max()) + 1e-9)
     for name, w in want_m.items():
         np.testing.assert_allclose(got_m[name], w, rtol=2e-5, atol=1e-6)
+    # Split over two devices (here two members of a vmap, whose named axis the sums run over):
+    # each device's rows alone, the same gradient and metrics.
+    split = functools.partial(grad.func, **grad.keywords, axis=("envs", 2))
+    halves = jax.tree_util.tree_map(lambda x: x.reshape(2, rows // 2, *x.shape[1:]), batch)
+    got2, got2_m = jax.jit(jax.vmap(split, (None, 0), axis_name="envs"))(params, halves)
+    for g, w in zip(jax.tree_util.tree_leaves(got2), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_allclose(g[0], g[1])  # both devices hold the whole gradient
+        np.testing.assert_allclose(g[0], w, atol=1e-5 * float(jnp.abs(w).max()) + 1e-9)
+    for name, w in want_m.items():
+        np.testing.assert_allclose(got2_m[name][0], w, rtol=2e-5, atol=1e-6)
     # Where it does not apply, the trainer keeps jax.grad: not a GPU, or a layer over MAX_WIDTH.
     assert fused.make(cfg, net, dist, jax.devices(), (8, 8 + c)) is None
     assert fused.make(cfg, net, dist, jax.devices(), (200, 200), interpret=True) is None

@@ -81,10 +81,10 @@ class PPOConfig:
     (`jaxnav.core.draws`), inlined is faster for both tasks: the kernel's calls cannot fuse with
     the step around them (docs/results.md, "Random numbers in blocks")."""
     fused_learner: bool = True
-    """On one GPU, compute each minibatch's gradient as one kernel (`jaxnav.ppo.fused`: the same
+    """On GPUs, compute each minibatch's gradient as one kernel (`jaxnav.ppo.fused`: the same
     loss, the gradient to the GPU's TF32 rounding) where it applies: a categorical actor whose
-    inputs and layers are at most 64 wide, minibatches of at least 16,384 and a multiple of 64;
-    False: XLA's kernels of `jax.grad`."""
+    inputs and layers are at most 64 wide, each GPU's rows of a minibatch at least 16,384 and a
+    multiple of 64; False: XLA's kernels of `jax.grad`."""
     groups: int = 0
     """Independent blocks the robots are split into (0: one per device). Each block draws its own
     new episodes (`jaxnav.wrappers.AutoReset`) and each minibatch takes the same share of every

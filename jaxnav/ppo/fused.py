@@ -1,4 +1,4 @@
-"""The PPO loss's gradient on one GPU, as one Pallas (Triton) kernel.
+"""The PPO loss's gradient on GPUs, as one Pallas (Triton) kernel.
 
 XLA computes a minibatch's gradient of the actor-critic as dozens of kernels, each a pass over
 [M, width] activations in memory: the forward layers, the loss, and the backward layers of two
@@ -13,7 +13,9 @@ Pallas' interpreter (`tests/test_ppo_core.py`), TF32's on the GPU, where XLA's p
 in TF32 too, in another order (`benchmarks/learner.py`). Every
 matrix side is padded to a power of two of at least 16 (Triton's smallest product) with zeros,
 which add nothing. `make` returns None where it does not apply, and the trainer keeps
-`jax.grad(ppo_loss)`.
+`jax.grad(ppo_loss)`. On several GPUs each runs the kernel on its own robots' rows of a minibatch
+(`jax.shard_map`): the advantage's mean and spread, the gradient and the loss's sums are then
+summed over the GPUs (`lax.psum`), as XLA's partitioned `jax.grad` sums its gradient.
 """
 
 from __future__ import annotations
@@ -22,7 +24,9 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
+from jax.sharding import Mesh, PartitionSpec
 
 from jaxnav.core.xla import pow2
 from jaxnav.ppo.distributions import Categorical
@@ -36,7 +40,7 @@ from jaxnav.ppo.networks import LEAKY_SLOPE
 ROWS = 64
 WARPS = 4
 MAX_WIDTH = 64  # the widest layer (input, hidden or output, padded) a program holds
-MIN_ROWS = 16384  # the smallest minibatch given to the kernel (the smallest measured)
+MIN_ROWS = 16384  # the fewest rows of a minibatch one GPU gives the kernel (the fewest measured)
 SUMS = ("surrogate", "value_err", "entropy", "approx_kl", "clipped")  # per-program sums
 
 
@@ -200,23 +204,27 @@ def _tree(actor, critic) -> dict:
 
 def make(cfg, network, dist, devices, inputs: tuple[int, int], interpret: bool = False):
     """`grad(params, batch) -> (grads, metrics)` as `jax.grad(ppo_loss, has_aux=True)` gives them,
-    for `cfg`'s minibatches of `network`'s outputs read by `dist`, on `devices`, the actor and
-    critic reading `inputs` (D, D + C) values; None where the kernel does not apply: off
-    (`cfg.fused_learner`), not one GPU (unless `interpret`), not a categorical actor, a layer
-    wider than `MAX_WIDTH`, or minibatches smaller than `MIN_ROWS` or not whole programs."""
-    gpu = len(devices) == 1 and devices[0].platform == "gpu"
+    for `cfg`'s minibatches of `network`'s outputs read by `dist`, on `devices` (each holding
+    its robots' rows of every minibatch, as `train.shard_envs` places them), the actor and critic
+    reading `inputs` (D, D + C) values; None where the kernel does not apply: off
+    (`cfg.fused_learner`), not GPUs (unless `interpret`), not a categorical actor, a layer wider
+    than `MAX_WIDTH`, or a device's rows of a minibatch fewer than `MIN_ROWS` or not whole
+    programs."""
+    gpu = all(d.platform == "gpu" for d in devices)
     categorical = isinstance(dist, Categorical)
     widths = [*inputs, *cfg.hidden, dist.out_size if categorical else MAX_WIDTH + 1]
+    rows = cfg.minibatch_size // len(devices)  # each device's
     if not (
         cfg.fused_learner
         and (gpu or interpret)
         and categorical
         and max(_pad(w) for w in widths) <= MAX_WIDTH
-        and cfg.minibatch_size % ROWS == 0
-        and (cfg.minibatch_size >= MIN_ROWS or interpret)
+        and cfg.minibatch_size % len(devices) == 0
+        and rows % ROWS == 0
+        and (rows >= MIN_ROWS or interpret)
     ):
         return None
-    return functools.partial(
+    grad = functools.partial(
         _grad,
         loss=dict(eps=cfg.clip_eps, vf_coef=cfg.vf_coef, ent_coef=cfg.ent_coef),
         clip_value=cfg.clip_value,
@@ -224,22 +232,35 @@ def make(cfg, network, dist, devices, inputs: tuple[int, int], interpret: bool =
         actions=dist.out_size,
         interpret=interpret,
     )
+    if len(devices) == 1:
+        return grad
+    mesh = Mesh(np.array(devices), ("envs",))
+    local = functools.partial(grad, axis=("envs", len(devices)))
+    specs = dict(in_specs=(PartitionSpec(), PartitionSpec("envs")), out_specs=PartitionSpec())
+    return jax.shard_map(local, mesh=mesh, check_vma=False, **specs)
 
 
-def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret):
+def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret, axis=None):
     """The gradient and metrics of one minibatch (`make`); `tanh`: the critic's value scale, 0
-    for a linear critic."""
+    for a linear critic. `axis` (name, size): `batch` is this device's rows of a minibatch split
+    over the mesh axis `name` of `size` devices; everything is then over all their rows."""
     from jax.experimental import pallas as pl  # here: only a GPU's learner needs it
     from jax.experimental.pallas import triton as pltriton
 
     obs, extra = batch.obs
     xc = obs if extra is None else jnp.concatenate([obs, extra], -1)  # [M, D + C]
-    rows = obs.shape[0]
+    here = obs.shape[0]  # this device's rows
+    rows = here if axis is None else here * axis[1]  # the minibatch's
+    total = (lambda x: x) if axis is None else functools.partial(lax.psum, axis_name=axis[0])
     da, dc = _pad(obs.shape[1]), _pad(xc.shape[1])
     actor, critic = _layers(params, "actor"), _layers(params, "critic")
     pa, pc = _padded(actor, da, _pad(actions)), _padded(critic, dc, 16)
     adv = batch.advantage
-    adv = (adv - jnp.mean(adv)) / (jnp.std(adv) + 1e-8)  # as ppo_loss: per minibatch
+    if axis is None:
+        adv = (adv - jnp.mean(adv)) / (jnp.std(adv) + 1e-8)  # as ppo_loss: per minibatch
+    else:  # the same statistics over every device's rows
+        mean = total(adv.sum()) / rows
+        adv = (adv - mean) / (jnp.sqrt(total(jnp.square(adv - mean).sum()) / rows) + 1e-8)
     data = [
         jnp.pad(obs, ((0, 0), (0, da - obs.shape[1]))),
         jnp.pad(xc, ((0, 0), (0, dc - xc.shape[1]))),
@@ -250,7 +271,7 @@ def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret):
         batch.target,
     ]
     weights = [a for layer in pa + pc for a in layer]
-    programs = rows // ROWS
+    programs = here // ROWS
 
     def rows_of(x):  # a program's rows of a [M] or [M, D] array
         shape = (ROWS,) + x.shape[1:]
@@ -285,12 +306,12 @@ def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret):
     )(*data, *weights)
     n = 2 * len(pa)
     grads = _tree(_unpadded(shares[:n], actor), _unpadded(shares[n:], critic))
-    return grads, _metrics(sums, rows, loss)
+    return total(grads), _metrics(total(sums.sum(0)), rows, loss)
 
 
 def _metrics(sums, rows: int, loss: dict) -> dict:
-    """`ppo_loss`'s metrics from the programs' sums [P, 8] (`SUMS` order) of `rows` transitions."""
-    s = dict(zip(SUMS, sums.sum(0)[: len(SUMS)] / rows, strict=True))
+    """`ppo_loss`'s metrics from the sums [8] (`SUMS` order) over `rows` transitions."""
+    s = dict(zip(SUMS, sums[: len(SUMS)] / rows, strict=True))
     policy_loss, value_loss = -s["surrogate"], 0.5 * s["value_err"]
     return {
         "total": policy_loss + loss["vf_coef"] * value_loss - loss["ent_coef"] * s["entropy"],
