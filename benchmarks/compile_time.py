@@ -11,8 +11,10 @@ with jaxnav's compiler options and the preset's shapes (`PIECES`), `--repeats` t
 programs (medians): trace+lower and XLA compile seconds, and the size of its HLO (ops of the
 lowered StableHLO, characters of the optimised HLO).
 
-Per task: in this process, `trainer.run_chunk` lowered (tracing: `jax.stages` `.lower`) and
-compiled (`.compile`) on its own, with the size of its HLO text; then `python -m jaxnav.train` run
+Per task: in this process, the chunk's programs (`Trainer.programs` but init's: the chunk, or the
+draws and the update of a task that draws its new episodes ahead) each lowered (tracing:
+`jax.stages` `.lower`) and compiled (`.compile`) on its own, with the size of its HLO text, and
+their sums; then `python -m jaxnav.train` run
 twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
 chunk: the seconds to its "compiled and ran the first chunk" line, to the start of that chunk's run
 (its "compiled in", the chunk compiled and init run: when training starts) and the whole
@@ -25,7 +27,7 @@ the table last; writes the JSON.
 DIR COMMIT`, run from a folder outside this one), for a before and after pair measured back to
 back.
 
-`--xla-log` (a GPU): `trainer.run_chunk` lowered and compiled as above, in a subprocess with
+`--xla-log` (a GPU): the chunk's programs lowered and compiled as above, in a subprocess with
 XLA's compile log on: XLA's own seconds in the chunk's HLO passes, in the autotuning of its matrix
 products (one of those passes), in code generation and in its IR emission (`xla_log`).
 
@@ -67,22 +69,25 @@ def split(env: str, preset: str) -> dict:
     config = build_config(preset, env=env, overrides={"ppo": {"updates_per_chunk": 1}})
     tick = time.perf_counter()
     trainer = make_train(config.ppo, make_run_env(config))
-    ts = trainer.init(jax.random.PRNGKey(0))
-    jax.block_until_ready(ts)
+    key = jax.random.PRNGKey(0)
+    jax.block_until_ready(trainer.init(key))
     build = time.perf_counter() - tick
-    tick = time.perf_counter()
-    lowered = trainer.run_chunk.lower(ts)
-    lower = time.perf_counter() - tick
-    tick = time.perf_counter()
-    lowered.compile()
-    compiled = time.perf_counter() - tick
-    hlo = len(lowered.as_text())
-    return {
-        "build_init_s": round(build, 1),
-        "lower_s": round(lower, 1),
-        "compile_s": round(compiled, 1),
-        "hlo_chars": hlo,
-    }
+    out = {"build_init_s": round(build, 1), "programs": {}}
+    for name, program in trainer.programs.items():  # the chunk's (init's compiled above)
+        if name in ("init", "start"):
+            continue
+        tick = time.perf_counter()
+        lowered = program.lower(*trainer.arguments(name, trainer.programs, key))
+        lower = time.perf_counter() - tick
+        tick = time.perf_counter()
+        lowered.compile()
+        compiled = time.perf_counter() - tick
+        hlo = len(lowered.as_text())
+        out["programs"][name] = {"lower_s": round(lower, 1), "compile_s": round(compiled, 1)}
+        out["programs"][name]["hlo_chars"] = hlo
+    for field in ("lower_s", "compile_s", "hlo_chars"):  # summed over them
+        out[field] = round(sum(p[field] for p in out["programs"].values()), 1)
+    return out
 
 
 PIECES = {
@@ -335,11 +340,13 @@ def flag_runs(
     return out
 
 
-# XLA's own timers for the chunk's module (`jit_run_chunk`), from its log on a GPU: regex -> key.
+# XLA's own timers for the chunk's modules (`jit_run_chunk`; or `jit__draws` and `jit__update`),
+# from its log on a GPU: regex -> key, summed over them.
+CHUNK_MODULES = r"jit_(?:run_chunk|_draws|_update)"
 XLA_TIMERS = {
-    "hlo_passes_s": r"RunHloPasses for jit_run_chunk time: ([\d.]+) (ms|s|min)",
-    "backend_s": r"GpuCompiler::RunBackend for jit_run_chunk time: ([\d.]+) (ms|s|min)",
-    "ir_emission_s": r"IR emission for jit_run_chunk time: ([\d.]+) (ms|s|min)",
+    "hlo_passes_s": rf"RunHloPasses for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",
+    "backend_s": rf"GpuCompiler::RunBackend for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",
+    "ir_emission_s": rf"IR emission for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",
 }
 UNITS = {"ms": 1e-3, "s": 1.0, "min": 60.0}
 
@@ -359,8 +366,8 @@ def xla_log(env: str, preset: str) -> dict:
     found = re.search(r"^SPLIT (.*)$", proc.stdout, re.M)
     out = {**(json.loads(found.group(1)) if found else {}), "rc": proc.returncode}
     for key, pattern in XLA_TIMERS.items():
-        if hit := re.search(pattern, proc.stderr):
-            out[key] = round(float(hit.group(1)) * UNITS[hit.group(2)], 2)
+        if hits := re.findall(pattern, proc.stderr):
+            out[key] = round(sum(float(v) * UNITS[unit] for v, unit in hits), 2)
     tuned = [float(x) for x in re.findall(r"\] config-assigner, \d+, ([\d.]+)", proc.stderr, re.I)]
     out["autotune_s"] = round(max(tuned) / 1000, 2) if tuned else None
     return out

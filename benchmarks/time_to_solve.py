@@ -32,7 +32,7 @@ from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
 from jaxnav.tasks.goal import spl_from
-from jaxnav.training import build_config, make_run_env
+from jaxnav.training import build_config, compile_ahead, make_run_env
 
 BAR = {"overall_free": 0.95, "family_free": 0.90, "overall_speed": 0.2, "family_speed": 0.1}
 
@@ -134,15 +134,20 @@ def judge(collided: np.ndarray, speed: np.ndarray, family: np.ndarray) -> dict:
 
 
 def train_to_bar(trainer, config, judge_state, max_seconds: float, full=False, every: int = 1):
-    """Trains in chunks of `updates_per_chunk` updates, calling `judge_state(ts, metrics, record) ->
+    """Trains in chunks of `updates_per_chunk` updates (its programs compiled at once first, and
+    init run: the compile's seconds), calling `judge_state(ts, metrics, record) ->
     (entry, met)` after every `every` chunks and after the last, until the bar is met (or, `full`,
     the budget is spent) or `max_seconds` of training. `record` holds update, env_steps and
     train_s; `metrics` are the last chunk's. Returns (compile s, history: the entries, the first
     entry that met the bar or None)."""
-    ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(config.seed)))
-    tick = time.perf_counter()
-    run_chunk = trainer.run_chunk.lower(ts).compile()  # compile apart from the timed training
+    key = jax.random.PRNGKey(config.seed)
+    tick = time.perf_counter()  # the programs compiled at once, as a run's: apart from training
+    trainer, _ = compile_ahead(trainer, key)
+    ts = jax.block_until_ready(trainer.init(key))
+    for program in trainer.programs.values():
+        program.wait()
     compile_s = time.perf_counter() - tick
+    run_chunk = trainer.run_chunk
     train_s, history, solved, chunk = 0.0, [], None, 0
     while int(ts.update) < config.ppo.num_updates and train_s < max_seconds:
         tick = time.perf_counter()

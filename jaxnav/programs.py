@@ -1,9 +1,10 @@
-"""A training run's two programs (`init` and the chunk), traced once and kept on disk.
+"""A training run's programs (`Trainer.programs`: init and the chunk, or the draws, start and
+update of a run that draws its new episodes ahead), traced once and kept on disk.
 
 Before XLA compiles anything, a start traces the task's reset and step (under `vmap`, in a scan)
 and lowers them to StableHLO: several seconds of Python on every start (7-9 s for the goal task's
 chunk), which JAX's persistent compilation cache cannot keep, since it keeps XLA's side only. So a
-run on one device exports its two programs with `jax.export` (StableHLO and the pytree structure of
+run on one device exports its programs with `jax.export` (StableHLO and the pytree structure of
 their arguments and results) into the `programs/` folder of the compilation cache, under a key of
 everything the trace depends on (`run_key`). A repeated run reads them back and hands them to
 `jax.jit`, whose program (a call of the stored one) the first run compiled too, so XLA's side is a
@@ -54,10 +55,12 @@ LIBRARIES = (
 )
 """The packages whose code a trace runs or lowers (their versions are in the key)."""
 
-TRACED = {"init": "init", "chunk": "run_chunk"}  # Trainer.parts' programs: their trace's name
+# Trainer.programs' names: their trace's name (the default: the same).
+TRACED = {"chunk": "run_chunk"}
+DONATED = ("chunk", "update")  # the programs that take the train state, whose buffers they reuse
 
 MAX_BYTES = 256 * 2**20
-"""The store's size at most: a goal run's two programs take about 0.7 MB (cpu preset), so this
+"""The store's size at most: a goal run's programs take about 0.7 MB (cpu preset), so this
 keeps the last few hundred configs and code versions."""
 
 _folder: Path | None = None
@@ -126,7 +129,8 @@ def _digest_tree(digest, root: Path) -> None:
 class Stored:
     """A program exported with `jax.export`: called, lowered and compiled like the jitted function
     it was exported from, on the same pytrees. Its jitted wrapper is named `stored_<name>`; `run`
-    is the key (`run_key`) of the run it is stored for."""
+    is the key (`run_key`) of the run it is stored for; with `donate` its first argument's
+    buffers are handed to it."""
 
     def __init__(self, name: str, run: str, exported, in_tree, out_tree, donate: bool):
         self.name, self.run, self.exported = name, run, exported
@@ -136,7 +140,8 @@ class Stored:
             return exported.call(*leaves)
 
         call.__name__ = call.__qualname__ = f"stored_{name}"
-        donated = tuple(range(len(exported.in_avals))) if donate else ()
+        first = in_tree.children()[0].num_leaves if donate else 0  # the first argument's
+        donated = tuple(range(first))
         options = compiler_options(jax.devices()[0].platform)
         self._jitted = jax.jit(call, donate_argnums=donated, compiler_options=options)
 
@@ -197,7 +202,7 @@ def _load(name: str, run: str, entry) -> Stored:
     """The `Stored` program of a store entry (bytes, in_tree, out_tree)."""
     blob, in_tree, out_tree = entry
     exported = export.deserialize(bytearray(blob))
-    return Stored(name, run, exported, in_tree, out_tree, donate=name == "chunk")
+    return Stored(name, run, exported, in_tree, out_tree, donate=name in DONATED)
 
 
 def _read(path: Path, name: str, run: str, args) -> Stored | None:
@@ -229,17 +234,18 @@ def _keep(path: Path, entry: tuple) -> None:
 
 
 def program(trainer, run: str, name: str, args) -> Stored | None:
-    """The trainer's program `name` ("init" or "chunk") for the run of key `run`, on `args`
-    (arrays or ShapeDtypeStructs): read from the store, or exported now and kept there. None
-    where the store is off or for a program that cannot be exported."""
-    if _folder is None:
+    """The trainer's program `name` (of `Trainer.programs`, exported from `Trainer.parts`) for
+    the run of key `run` (`run_of`), on `args` (arrays or ShapeDtypeStructs): read from the
+    store, or exported now and kept there. None where the store is off or for a program that
+    cannot be exported."""
+    if _folder is None or run is None:
         return None
     path = _folder / f"{run}-{name}.program"
     stored = _read(path, name, run, args)
     if stored is not None:
         return stored
     try:
-        entry = _export(TRACED[name], trainer.parts[name], args)
+        entry = _export(TRACED.get(name, name), trainer.parts[name], args)
     except Exception as err:  # noqa: BLE001 (not exportable: jit traces it as before)
         line = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
         print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)
@@ -268,19 +274,9 @@ def _prune(store: Path, spare: Path) -> None:
                 total -= size
 
 
-def with_init(trainer, config, env, key):
-    """`trainer` (of `env`, built from `config`) with its init stored for the run (`program`), or
-    as it is where the store is off, with several devices, or for a trainer without the
-    unjitted programs (`Trainer.parts`)."""
-    if _folder is None or jax.device_count() > 1 or not trainer.parts:
-        return trainer
-    run = run_key(config, getattr(getattr(env, "scene", None), "mj_model", None))
-    init = program(trainer, run, "init", (jax.ShapeDtypeStruct(key.shape, key.dtype),))
-    return trainer if init is None else trainer._replace(init=init)
-
-
-def with_chunk(trainer, run: str, shapes):
-    """`trainer` with its chunk stored for the run of key `run` (that of its stored init,
-    `with_init`), on init's result `shapes`; or as it is."""
-    chunk = program(trainer, run, "chunk", (shapes,))
-    return trainer if chunk is None else trainer._replace(run_chunk=chunk)
+def run_of(config, env) -> str | None:
+    """The key (`run_key`) under which `config`'s run on `env` keeps its programs; None where the
+    store is off or with several devices."""
+    if _folder is None or jax.device_count() > 1:
+        return None
+    return run_key(config, getattr(getattr(env, "scene", None), "mj_model", None))

@@ -85,16 +85,15 @@ def _meminfo_available() -> int | None:
     return None
 
 
-def memory_check(config: RunConfig, env, trainer) -> None:
+def memory_check(config: RunConfig, env, shapes) -> None:
     """Refuses a --num-envs whose robots cannot fit in memory, before anything is written.
 
-    Bytes per robot come from the shapes of a fresh TrainState (`jax.eval_shape`: nothing is
+    Bytes per robot come from the `shapes` of a fresh TrainState (`jax.eval_shape`: nothing is
     allocated) and of the rollout buffers, plus the network's own (`--hidden`); compared with
     MemAvailable on the CPU (all devices share it) or the first accelerator's `bytes_limit`. Where
     neither is known, nothing is checked.
     """
     cfg, devices = config.ppo, jax.local_devices()
-    shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
     state = _bytes(shapes.env_state) / cfg.num_envs
     # The network on every device: weights, optimizer state, and the gradient and update of a step.
     model = _bytes(shapes.params) * 3 + _bytes(shapes.opt_state)
@@ -249,15 +248,15 @@ def run(
         if fresh and distributed.is_main():
             check_new_out(out)
         env, trainer = interruptible(_build, config)
-        key = jax.random.PRNGKey(config.seed)
-        trainer = interruptible(programs.with_init, trainer, config, env, key)
-        memory_check(config, env, trainer)
+        key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
+        trainer, shapes = interruptible(find_programs, trainer, config, env, key)
+        memory_check(config, env, shapes)
         folder.create()
         created = True
         distributed.ready()
         if stop is not None:
             stop.at_once(_start_note(folder), folder.remove)
-        trainer, compiling = compile_chunk_ahead(trainer, key)
+        trainer, compiling = compile_ahead(trainer, key, since)
         ts = interruptible(trainer.init, key, waiting=compiling)
         args = (trainer, ts, [], 0.0, progress, stop, env.metric_names, compiling)
         return _loop(config, out, *args)
@@ -341,9 +340,9 @@ def resume(
         if stop is not None:
             note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
             stop.at_once(note, lock.release if main else None)
-        key = jax.random.PRNGKey(config.seed)
-        trainer = interruptible(programs.with_init, trainer, config, env, key)
-        trainer, compiling = compile_chunk_ahead(trainer, key)
+        key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
+        trainer, _ = interruptible(find_programs, trainer, config, env, key)
+        trainer, compiling = compile_ahead(trainer, key, since)
         template = interruptible(trainer.init, key, waiting=compiling)
         ts = checkpoint.restore_train_state(ckpt, template)
         rows = runlog.read_rows(out / "metrics.csv", upto=meta["update"]) if main else []
@@ -382,11 +381,12 @@ COMPILING = "jaxnav: compiling the training step (the first chunk)..."
 
 
 class _Compiling:
-    """The first chunk's compile as the user sees it: the `Waiting` line, shown from its start
-    and counting from then; an `interruptible` wait's `waiting=` (init's, the first chunk's)."""
+    """The first chunk's compile as the user sees it: the `Waiting` line, shown from now and
+    counting from `since` (`time.perf_counter()`; default now: the programs' tracing, if
+    before); an `interruptible` wait's `waiting=` (init's, the first chunk's)."""
 
-    def __init__(self):
-        self.start = time.perf_counter()
+    def __init__(self, since: float | None = None):
+        self.start = time.perf_counter() if since is None else since
         self.line = Waiting(COMPILING)
 
     def __call__(self, _waited: float) -> None:
@@ -397,21 +397,21 @@ class _Compiling:
 
 
 class _CompiledAhead:
-    """`run_chunk` (a jitted function, or a stored program) lowered and compiled by XLA in a
-    thread of its own from the abstract `shapes` of its argument, from now on. A call waits for
-    that compile, then runs the compiled program: the one the jitted function would compile on
-    its first call, called on every chunk, so nothing compiles twice."""
+    """A program (jitted, or stored) lowered and compiled by XLA in a thread of its own from the
+    abstract `args` it will be called with, from now on. A call waits for that compile, then runs
+    the compiled program: the one the program would compile on its first call, so nothing
+    compiles twice."""
 
-    def __init__(self, run_chunk, shapes):
+    def __init__(self, program, args):
         self._compiled, self._error = None, None
         self._thread = threading.Thread(
-            target=self._compile, args=(run_chunk, shapes), name="compile-chunk", daemon=True
+            target=self._compile, args=(program, args), name="compile-ahead", daemon=True
         )
         self._thread.start()
 
-    def _compile(self, run_chunk, shapes) -> None:
+    def _compile(self, program, args) -> None:
         try:
-            self._compiled = run_chunk.lower(shapes).compile()
+            self._compiled = program.lower(*args).compile()
         except BaseException as err:  # noqa: BLE001 (raised by the call that waits for it)
             self._error = err
 
@@ -421,34 +421,47 @@ class _CompiledAhead:
         if self._error is not None:
             raise self._error
 
-    def __call__(self, ts):
+    def __call__(self, *args):
         self.wait()
-        return self._compiled(ts)
+        return self._compiled(*args)
 
 
-def compile_chunk_ahead(trainer, key):
-    """(trainer, compile line or None): with one device, a trainer whose chunk XLA starts
-    compiling now, beside `init` (XLA's compile lets go of the GIL, so the two programs compile
-    at the same time), and the compile line, shown from now on.
+def find_programs(trainer, config, env, key):
+    """(trainer, the abstract TrainState of its init from `key`): each of the trainer's programs
+    (`Trainer.programs`) read from the program store or traced (and kept there:
+    `programs.program`) in turn, on the abstract arguments the run will call it with (the
+    outputs of those before it: `Trainer.arguments`)."""
+    run = programs.run_of(config, env) if trainer.programs else None
+    found = {}
+    for name, jitted in (trainer.programs or {}).items():
+        args = trainer.arguments(name, found, key)
+        found[name] = programs.program(trainer, run, name, args) or jitted
+    if found:
+        trainer = trainer.with_programs(**found)
+    state = trainer.arguments("state", found, key) if found else jax.eval_shape(trainer.init, key)
+    return trainer, state
 
-    The chunk's input is init's output, so it is compiled from init's abstract output
-    (`jax.eval_shape`): the same program on the same inputs as the sequential path. With several
-    devices the chunk's input shardings are those XLA chooses for init's output, known only once
-    init is compiled: there, and for a `run_chunk` that is not jitted, the trainer is as it was
-    and the chunk compiles on its first call, after init.
 
-    An init from the program store (`programs.with_init`) starts compiling here too, and the
-    chunk is the one stored for the same run, traced meanwhile if the store has none yet.
+def compile_ahead(trainer, key, since: float | None = None):
+    """(trainer, compile line or None): with one device, a trainer each of whose programs XLA
+    starts compiling now, in a thread of its own (XLA's compile lets go of the GIL, so they
+    compile at the same time), and the compile line, shown from now on, its seconds counted
+    from `since` (the start of `find_programs`, which traces them; default now). Each is compiled from
+    the abstract arguments of the run from `key` (`Trainer.arguments`): the same program on the
+    same inputs as when compiled at its first call.
+
+    With several devices the chunk's input shardings are those XLA chooses for init's output,
+    known only once init is compiled: there (and for a trainer without programs) the trainer is
+    as it was and each program compiles at its first call.
     """
-    if jax.device_count() > 1 or not hasattr(trainer.run_chunk, "lower"):
+    if jax.device_count() > 1 or not trainer.programs:
         return trainer, None
-    compiling = _Compiling()
-    shapes = jax.eval_shape(trainer.init, key)
-    init = trainer.init
-    if isinstance(init, programs.Stored):  # init compiles while the chunk is read or traced
-        trainer = trainer._replace(init=_CompiledAhead(init, key))
-        trainer = interruptible(programs.with_chunk, trainer, init.run, shapes, waiting=compiling)
-    return trainer._replace(run_chunk=_CompiledAhead(trainer.run_chunk, shapes)), compiling
+    compiling = _Compiling(since)
+    compiled = {
+        name: _CompiledAhead(program, trainer.arguments(name, trainer.programs, key))
+        for name, program in trainer.programs.items()
+    }
+    return trainer.with_programs(**compiled), compiling
 
 
 # ---------------------------------------------------------------- the loop
@@ -541,11 +554,12 @@ def _save(out: Path, ts, config: RunConfig, meta: dict, main: bool) -> Path:
 def _first_chunk(trainer, ts, stop: Interrupts, kept, compiling: _Compiling | None = None):
     """The first chunk of a session (XLA compiles it, or finishes compiling it: `compiling`),
     interruptible at once; then signals wait for the end of a chunk."""
-    compiling = compiling or _Compiling()
-    ready = ""  # when the chunk was compiled ahead: the seconds to the start of its run
-    if isinstance(trainer.run_chunk, _CompiledAhead):
-        interruptible(trainer.run_chunk.wait, waiting=compiling)
+    ready = ""  # when the programs were compiled ahead: the seconds to the start of the run
+    if compiling is not None:
+        for program in trainer.programs.values():
+            interruptible(program.wait, waiting=compiling)
         ready = f" (compiled in {compiling.seconds():.1f} s)"
+    compiling = compiling or _Compiling()
     out = interruptible(lambda: jax.block_until_ready(trainer.run_chunk(ts)), waiting=compiling)
     stop.defer(kept)  # before the line: a signal after it waits for the chunk and checkpoint
     compiling.line.end()

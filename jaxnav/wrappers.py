@@ -93,8 +93,7 @@ class AutoReset(Wrapper):
 
     def reset(self, keys: jax.Array) -> EnvState:
         keys, k_reset = _split(keys)
-        state = jax.vmap(self.env.reset)(k_reset)
-        return state.replace(info={**state.info, RESET_KEY: keys})
+        return with_reset_keys(jax.vmap(self.env.reset)(k_reset), keys)
 
     def draws_per_block(self, total: int) -> int:
         """P/G: the new episodes each block draws per step, for `total` envs."""
@@ -107,11 +106,16 @@ class AutoReset(Wrapper):
     def draw(self, state: EnvState, steps: int) -> tuple[EnvState, EnvState]:
         """(state with its keys advanced, the new episodes of the next `steps` steps: leaves
         [steps, G, P/G, ...]), for `step(..., fresh=draws[t])`."""
-        keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
+        keys, fresh = self.draw_keys(state.info[RESET_KEY], steps)
+        return with_reset_keys(state, keys), fresh
+
+    def draw_keys(self, keys: jax.Array, steps: int) -> tuple[jax.Array, EnvState]:
+        """`draw` from the envs' reset keys [N, 2] (`state.info[RESET_KEY]`): (those keys
+        advanced, the new episodes)."""
+        keys, k_reset = _split(keys)  # [N, 2] each
         first = self._pool_keys(k_reset)  # [G, P/G, 2]
         per_step = jax.vmap(lambda t: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, t)))(first))
-        fresh = self._resets(per_step(jnp.arange(steps)), block_axis=1)
-        return state.replace(info={**state.info, RESET_KEY: keys}), fresh
+        return keys, self._resets(per_step(jnp.arange(steps)), block_axis=1)
 
     def _resets(self, keys: jax.Array, block_axis: int) -> EnvState:
         """The env's resets of `keys` ([G, P/G, 2], or [steps, G, P/G, 2]: G at `block_axis`),
@@ -153,6 +157,11 @@ class AutoReset(Wrapper):
         if EPISODE in nxt.info:
             info = {**info, EPISODE: nxt.info[EPISODE]}
         return nxt.replace(data=data, obs=obs, info={**info, RESET_KEY: keys})
+
+
+def with_reset_keys(state: EnvState, keys: jax.Array) -> EnvState:
+    """`state` whose envs draw their next episodes from `keys` [N, 2]."""
+    return state.replace(info={**state.info, RESET_KEY: keys})
 
 
 def _blocks(tree, g: int):

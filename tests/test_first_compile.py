@@ -1,6 +1,6 @@
-"""A run's first chunk compiles beside `init` (`training.compile_chunk_ahead`), and a repeated run
-reads both from the program store (`jaxnav.programs`): the same run, bit for bit, as compiling one
-after the other, and nothing is compiled twice."""
+"""A run's programs compile at once (`training.compile_ahead`), and a repeated run reads them
+from the program store (`jaxnav.programs`): the same run, bit for bit, as compiling one after the
+other, and nothing is compiled twice."""
 
 import re
 
@@ -18,22 +18,22 @@ from jaxnav.ppo import train as ppo_train
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # an XLA compile or a cache load
 TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"  # a trace, named by its function
-CHUNK_AHEAD = train_module.compile_chunk_ahead
+AHEAD = train_module.compile_ahead
 
 
-def tiny_config():
-    flags = train_cli.parse_args(TINY_FLAGS)  # 6 updates in chunks of 2
+def tiny_config(*flags):
+    flags = train_cli.parse_args([*TINY_FLAGS, *flags])  # 6 updates in chunks of 2
     return train_module.build_config("cpu", 0, None, train_cli.overrides_from_args(flags))
 
 
-def trained(out, monkeypatch, ahead: bool, store=None) -> tuple[dict, list[dict], dict]:
+def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, list[dict], dict]:
     """(final train state, metrics rows without timings, {event: [program names]} of the
-    traces and compiles) of a tiny run, its chunk compiled beside init (`ahead`) or after it,
-    its programs kept in the program store folder `store` (None: the store off)."""
+    traces and compiles) of a tiny run with `flags`, its programs compiled at once (`ahead`) or
+    each at its first call, kept in the program store folder `store` (None: the store off)."""
     used = []
 
-    def chunk_ahead(trainer, key):
-        trainer, compiling = CHUNK_AHEAD(trainer, key) if ahead else (trainer, None)
+    def compile_ahead(trainer, key, since=None):
+        trainer, compiling = AHEAD(trainer, key, since) if ahead else (trainer, None)
         used.append(compiling is not None)
         return trainer, compiling
 
@@ -43,11 +43,15 @@ def trained(out, monkeypatch, ahead: bool, store=None) -> tuple[dict, list[dict]
         if event in events:
             events[event].append(kwargs.get("fun_name", ""))
 
-    monkeypatch.setattr(train_module, "compile_chunk_ahead", chunk_ahead)
+    monkeypatch.setattr(train_module, "compile_ahead", compile_ahead)
+    # As outside the tests, whose XLA_FLAGS set LLVM's level: the programs take jaxnav's options.
+    options = lambda platform: {xla.OPTION: xla.CPU_OPT_LEVEL}  # noqa: E731
+    monkeypatch.setattr(ppo_train, "compiler_options", options)
+    monkeypatch.setattr(programs, "compiler_options", options)
     programs.use(store)
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
-        final = train_module.run(tiny_config(), out, progress=False)
+        final = train_module.run(tiny_config(*flags), out, progress=False)
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
         programs.use(None)
@@ -72,41 +76,47 @@ def same_run(got, want) -> None:
 
 
 @pytest.mark.slow
-def test_chunk_compiled_beside_init_trains_the_same_and_compiles_once(
-    tmp_path, monkeypatch, capsys
+@pytest.mark.parametrize(
+    "flags, names",
+    [
+        ((), {"init": "init", "chunk": "run_chunk"}),
+        (("--reset-ahead", "true"), {"draws": "_draws", "start": "start", "update": "_update"}),
+    ],
+)
+def test_programs_compiled_at_once_train_the_same_and_compile_once(
+    tmp_path, monkeypatch, capsys, flags, names
 ):
-    """Slow: tiny training runs in this process, tracing and compiling the trainer. Beside init,
-    from the program store (traced and kept by the first run, read back by the second: no trace
-    of the task's programs), the run is the one compiled after init, bit for bit. Compiled
-    ahead, the compile line also says when the chunk's run began."""
-    want = trained(tmp_path / "after", monkeypatch, ahead=False)
+    """Slow: tiny training runs in this process, tracing and compiling the trainer. Compiled at
+    once, from the program store (traced and kept by the first run, read back by the second: no
+    trace of the task's programs), the run is the one whose programs compiled at their first
+    calls, bit for bit. Compiled ahead, the compile line also says when the chunk's run began.
+    The programs (`names`: program -> its function's name) are init and the chunk, or, with new
+    episodes drawn ahead, the draws, start and update."""
+    want = trained(tmp_path / "after", monkeypatch, ahead=False, flags=flags)
     line = re.search(r"first chunk in ([\d.]+) s(.*)", capsys.readouterr().out)
     assert line and line.group(2) == "", line  # compiled at its first call: no split to show
-    got = trained(tmp_path / "beside", monkeypatch, ahead=True)
+    got = trained(tmp_path / "beside", monkeypatch, ahead=True, flags=flags)
     line = re.search(
         r"first chunk in ([\d.]+) s \(compiled in ([\d.]+) s\)$", capsys.readouterr().out, re.M
     )
     assert line and 0 < float(line.group(2)) <= float(line.group(1)), line
     same_run(got, want)
-    # One compile each of init and of the chunk, whose three calls run the compiled program.
-    assert sum("(run_chunk)" in name for name in got[2][COMPILE_EVENT]) == 1, got[2]
-    assert sum("(init)" in name for name in got[2][COMPILE_EVENT]) == 1, got[2]
+    # One compile of each program, whose calls run the compiled program.
+    for traced in names.values():
+        assert sum(f"({traced})" in name for name in got[2][COMPILE_EVENT]) == 1, got[2]
     assert checkpoint.resolve(tmp_path / "beside").name == "update_000006"
 
     store = tmp_path / "programs"
-    for name in ("traced", "read back"):
-        got = trained(tmp_path / name, monkeypatch, ahead=True, store=store)
+    for run in ("traced", "read back"):
+        got = trained(tmp_path / run, monkeypatch, ahead=True, store=store, flags=flags)
         same_run(got, want)
         compiled, traced = got[2][COMPILE_EVENT], got[2][TRACE_EVENT]
-        assert sum("(stored_chunk)" in n for n in compiled) == 1, compiled
-        assert sum("(stored_init)" in n for n in compiled) == 1, compiled
-        assert (traced.count("run_chunk"), traced.count("init")) == (
-            (1, 1) if name == "traced" else (0, 0)
-        ), traced
-    assert sorted(p.name.split("-")[1] for p in store.iterdir()) == [
-        "chunk.program",
-        "init.program",
-    ]
+        for name in names:  # exported under their trace's name
+            assert sum(f"(stored_{name})" in n for n in compiled) == 1, compiled
+            trace = programs.TRACED.get(name, name)
+            assert traced.count(trace) == (1 if run == "traced" else 0), traced
+    programs_kept = sorted(p.name.split("-")[1] for p in store.iterdir())
+    assert programs_kept == sorted(f"{name}.program" for name in names)
 
 
 def test_cpu_programs_compile_at_jaxnav_level(monkeypatch):

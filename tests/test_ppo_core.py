@@ -387,17 +387,24 @@ class _CountedLineEnv(_LineEnv):
 
 
 @pytest.mark.slow
-def test_update_is_its_rollout_then_its_learner():
+@pytest.mark.parametrize("ahead", [False, True])
+def test_update_is_its_rollout_then_its_learner(ahead):
     """`Trainer.parts`, the pieces benchmarks/compile_time.py compiles on their own, compose to
     the update `run_chunk` runs, bit for bit; a chunk runs only the updates the budget has left
     (4 updates in chunks of 3: the second chunk runs one, a third none, and the env steps only
-    for those). Slow: the parts, the update and a chunk each compile."""
+    for those). With new episodes drawn ahead (`ahead`), a chunk is a loop of the draws' program
+    and the update's, and the same. Slow: the parts, the update and a chunk each compile."""
     from jaxnav.ppo.config import PPOConfig
     from jaxnav.ppo.train import make_train
 
     calls = []
     cfg = PPOConfig(
-        num_envs=8, rollout_length=4, minibatch_size=16, updates_per_chunk=3, total_steps=128
+        num_envs=8,
+        rollout_length=4,
+        minibatch_size=16,
+        updates_per_chunk=3,
+        total_steps=128,
+        reset_ahead=ahead,
     )
     trainer = make_train(cfg, _CountedLineEnv(calls))
     ts = trainer.init(jax.random.PRNGKey(0))
@@ -456,7 +463,7 @@ def test_fused_gradient_matches_jax_grad(case):
 
     case = dict(case)
     c = case.pop("critic", 0)
-    rows = 8 * fused.ROWS
+    rows = 2 * fused.ROWS
     cfg = preset("cpu", num_envs=rows // 32, minibatch_size=rows, **case)
     spec = DiscreteActions(("f", "l", "r"), ((0.25, 0.0), (0.0, 1.0), (0.0, -1.0)))
     dist = make_distribution(spec)

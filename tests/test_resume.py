@@ -115,14 +115,19 @@ def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch
     def poisoned(cfg, env):
         trainer = real(cfg, env)
 
-        def run_chunk(ts):
-            ts, metrics = trainer.run_chunk(ts)
-            if int(ts.update) > 2:  # the second chunk diverges
-                params = jax.tree_util.tree_map(lambda x: x * np.nan, ts.params)
-                ts = ts.replace(params=params)
-            return ts, metrics
+        def compose(programs):  # whichever programs the run compiles, a poisoned chunk
+            init, chunk = trainer.compose(programs)
 
-        return trainer._replace(run_chunk=run_chunk)
+            def run_chunk(ts):
+                ts, metrics = chunk(ts)
+                if int(ts.update) > 2:  # the second chunk diverges
+                    params = jax.tree_util.tree_map(lambda x: x * np.nan, ts.params)
+                    ts = ts.replace(params=params)
+                return ts, metrics
+
+            return init, run_chunk
+
+        return trainer._replace(compose=compose).with_programs()
 
     monkeypatch.setattr(train_module, "make_train", poisoned)
     with pytest.raises(FloatingPointError, match="NaN/Inf in the weights") as err:

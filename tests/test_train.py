@@ -247,10 +247,18 @@ def test_commands_keep_compiled_programs_in_the_user_cache(tmp_path, monkeypatch
         jax.config.update("jax_compilation_cache_dir", before)
 
 
+def stored_init(trainer, config, key):
+    """The trainer's init from the program store (`programs.program`), or None."""
+    from jaxnav import programs
+
+    run = programs.run_of(config, None)
+    return programs.program(trainer, run, "init", (jax.ShapeDtypeStruct(key.shape, key.dtype),))
+
+
 def test_the_program_store_keeps_reads_back_and_traces_a_damaged_file_again(tmp_path, capsys):
-    """`programs.with_init` exports the trainer's init into the store, reads it back without
-    tracing, traces a damaged file again (saying so), and leaves the trainer as it is when the
-    store is off; the stored program computes what the function does."""
+    """`programs.program` exports the trainer's init into the store, reads it back without
+    tracing, traces a damaged file again (saying so), and gives none when the store is off; the
+    stored program computes what the function does."""
     from jaxnav import programs
     from jaxnav.ppo.train import Trainer
     from jaxnav.training import build_config
@@ -264,19 +272,19 @@ def test_the_program_store_keeps_reads_back_and_traces_a_damaged_file_again(tmp_
     trainer = Trainer(None, jax.jit(init), None, None, {"init": init})
     config, key = build_config("cpu"), jax.random.PRNGKey(3)
     programs.use(tmp_path)
-    kept = programs.with_init(trainer, config, None, key)
-    assert isinstance(kept.init, programs.Stored) and len(traced) == 1
-    got = kept.init(key)
+    kept = stored_init(trainer, config, key)
+    assert isinstance(kept, programs.Stored) and len(traced) == 1
+    got = kept(key)
     np.testing.assert_array_equal(got["twice"], key * 2)
     assert int(got["sum"]) == int(key.sum())
     (path,) = tmp_path.iterdir()
-    read = programs.with_init(trainer, config, None, key)
-    assert len(traced) == 1 and read.init(key)["twice"].tolist() == (key * 2).tolist()
+    read = stored_init(trainer, config, key)
+    assert len(traced) == 1 and read(key)["twice"].tolist() == (key * 2).tolist()
     path.write_bytes(b"damaged")
-    assert isinstance(programs.with_init(trainer, config, None, key).init, programs.Stored)
+    assert isinstance(stored_init(trainer, config, key), programs.Stored)
     assert len(traced) == 2 and f"{path}: not readable" in capsys.readouterr().err
     programs.use(None)
-    assert programs.with_init(trainer, config, None, key) is trainer
+    assert stored_init(trainer, config, key) is None
 
 
 def test_the_program_store_keeps_within_its_size_removing_the_least_used_first(
@@ -301,18 +309,18 @@ def test_the_program_store_keeps_within_its_size_removing_the_least_used_first(
     programs.use(tmp_path)
     paths = []
     for age, config in enumerate(configs[:2]):  # two programs, the first used longest ago
-        programs.with_init(trainer, config, None, key)
+        stored_init(trainer, config, key)
         (new,) = set(tmp_path.iterdir()) - set(paths)
         os.utime(new, (1000.0 + age, 1000.0 + age))
         paths.append(new)
     size = paths[0].stat().st_size
     monkeypatch.setattr(programs, "MAX_BYTES", 2 * size + size // 2)  # room for two
-    programs.with_init(trainer, configs[0], None, key)  # read back: now the newest
+    stored_init(trainer, configs[0], key)  # read back: now the newest
     assert paths[0].stat().st_mtime > 1001.0
-    programs.with_init(trainer, configs[2], None, key)  # a third: the least used goes
+    stored_init(trainer, configs[2], key)  # a third: the least used goes
     assert paths[0].exists() and not paths[1].exists() and len(list(tmp_path.iterdir())) == 2
     monkeypatch.setattr(programs, "MAX_BYTES", 1)  # below one program: the one just kept stays
-    programs.with_init(trainer, configs[1], None, key)
+    stored_init(trainer, configs[1], key)
     assert len(list(tmp_path.iterdir())) == 1
     programs.use(None)
 

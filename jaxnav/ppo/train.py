@@ -1,8 +1,10 @@
 """PPO as jitted chunks: `make_train(cfg, env)` -> `Trainer(init, run_chunk, train)`.
 
 One update = `_rollout` (scan over the horizon, all robots vmapped) -> GAE -> `_update_epoch` x E,
-each a scan of `_update_minibatch`. `run_chunk` scans `updates_per_chunk` updates so the host can log,
-draw and checkpoint between chunks; `train` runs everything in one jitted call.
+each a scan of `_update_minibatch`. `run_chunk` runs `updates_per_chunk` updates so the host can
+log, draw and checkpoint between chunks: one program of a loop over them, or, for a task that draws
+its new episodes ahead (`reset_ahead`), a loop of two programs (each rollout's draws, then its
+update). `train` runs everything in one jitted call.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
 from jaxnav.ppo.networks import ActorCritic, RunningStats, init_stats, normalize, update_stats
-from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
+from jaxnav.wrappers import EPISODE, RESET_KEY, AutoReset, EpisodeStats, with_reset_keys
 
 
 @struct.dataclass
@@ -57,10 +59,25 @@ class Trainer(NamedTuple):
     run_chunk: callable  # TrainState -> (TrainState, metrics [updates_per_chunk])
     train: callable  # key -> (TrainState, metrics [num_updates // updates_per_chunk * chunk])
     # The pieces of one update, not jitted (benchmarks/compile_time.py times each): "rollout":
-    # ts -> (env_state, key, traj); "learn": (ts, env_state, key, traj) -> (ts, metrics); "update":
-    # ts -> (ts, metrics), the two in turn; and "init", "chunk": `init` and `run_chunk` unjitted
-    # (what `jaxnav.programs` exports).
+    # (ts, drawn) -> (env_state, key, traj); "learn": (ts, env_state, key, traj) -> (ts,
+    # metrics); "update": (ts, drawn) -> (ts, metrics), the two in turn; and each of `programs`
+    # unjitted, by its name (what `jaxnav.programs` exports).
     parts: dict | None = None
+    # The jitted programs `init` and `run_chunk` call, in the order their arguments follow from
+    # each other: "init" and "chunk", or, for new episodes drawn ahead, "draws", "start" and
+    # "update" (`make_train`). `with_programs` swaps them (for stored or compiled ones).
+    programs: dict | None = None
+    # (programs) -> (init, run_chunk) calling those programs.
+    compose: callable = None
+    # (name, programs, key) -> the abstract arguments program `name` takes in a run from `key`,
+    # from the programs before it (`jax.eval_shape` of each); "state": init's abstract TrainState.
+    arguments: callable = None
+
+    def with_programs(self, **programs) -> Trainer:
+        """This trainer with `programs` in place of the ones of the same names."""
+        programs = {**self.programs, **programs}
+        init, run_chunk = self.compose(programs)
+        return self._replace(init=init, run_chunk=run_chunk, programs=programs)
 
 
 def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
@@ -187,7 +204,9 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
 
     def init(key: jax.Array) -> TrainState:
         k_net, k_env, key = jax.random.split(key, 3)
-        env_state = reset(jax.random.split(k_env, cfg.num_envs))
+        return _train_state(k_net, key, reset(jax.random.split(k_env, cfg.num_envs)))
+
+    def _train_state(k_net, key, env_state) -> TrainState:
         extra = critic_in(env_state)
         params = network.init(k_net, env_state.obs[:1], None if extra is None else extra[:1])
         return TrainState(
@@ -199,7 +218,14 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             update=jnp.int32(0),
         )
 
-    def _rollout(ts: TrainState):
+    def _draws(keys: jax.Array):  # [N, 2] -> ([N, 2], leaves [T, G, P/G, ...]): a rollout's
+        keys, fresh = env.draw_keys(keys, cfg.rollout_length)  # new episodes, drawn ahead
+        return shard(keys), shard_draws(fresh)
+
+    def _rollout(ts: TrainState, drawn=None):
+        """`drawn`: `_draws` of the robots' reset keys, with `cfg.reset_ahead` (None: drawn here);
+        without it, each step draws its own."""
+
         def _env_step(carry, fresh):
             env_state, key = carry
             key, k_act = jax.random.split(key)
@@ -226,8 +252,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         # Named in the program (profiles; tests check that no rollout op waits on another device).
         with jax.named_scope("rollout"):
             if cfg.reset_ahead:
-                env_state, fresh = env.draw(env_state, cfg.rollout_length)
-                fresh = shard_draws(fresh)
+                keys, fresh = _draws(env_state.info[RESET_KEY]) if drawn is None else drawn
+                env_state = with_reset_keys(env_state, keys)
             (env_state, key), traj = jax.lax.scan(
                 _env_step, (env_state, ts.key), fresh, cfg.rollout_length
             )
@@ -302,8 +328,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         }
         return ts, metrics
 
-    def _update(ts: TrainState) -> tuple[TrainState, dict]:
-        return _learn(ts, *_rollout(ts))
+    def _update(ts: TrainState, drawn=None) -> tuple[TrainState, dict]:
+        return _learn(ts, *_rollout(ts, drawn))
 
     update = jax.jit(_update)  # traced once per chunk's trace, inlined by XLA
 
@@ -327,17 +353,109 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     def train(key: jax.Array):
         return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
 
-    parts = {
-        "rollout": _rollout,
-        "learn": _learn,
-        "update": _update,
-        "init": init,
-        "chunk": run_chunk,
-    }
+    # New episodes drawn ahead (`cfg.reset_ahead`, the goal task's): a chunk is a loop of
+    # programs, each rollout's draws one and its update another, so XLA compiles the two (and
+    # `start`) at once rather than one program of both; and init's robots are draws of that
+    # program too, so the task's reset compiles once.
+    per_draw = cfg.rollout_length * env.draws_per_block(cfg.num_envs)  # a block's episodes
+    calls = -(-cfg.num_envs // g // per_draw)  # calls of `draws` for init's robots
+
+    def first_keys(key: jax.Array):
+        k_net, k_env, key = jax.random.split(key, 3)
+        return k_net, key, shard(jax.random.split(k_env, cfg.num_envs))  # [N, 2] reset keys
+
+    def start(k_net, key, keys, batches) -> TrainState:
+        """init's TrainState from the robots' reset keys [N, 2] and `calls` batches of `_draws`
+        (leaves [T, G, P/G, ...]): block b's robots are its first N/G of those episodes."""
+
+        def robots(*xs):  # -> [N, ...]
+            xs = [x.swapaxes(0, 1).reshape(g, per_draw, *x.shape[3:]) for x in xs]  # [G, T * P/G]
+            x = jnp.concatenate(xs, 1)[:, : cfg.num_envs // g]
+            return x.reshape(cfg.num_envs, *x.shape[2:])
+
+        env_state = jax.tree_util.tree_map(robots, *batches)
+        return _train_state(k_net, key, shard(with_reset_keys(env_state, keys)))
+
     platform = devices_used[0].platform
     options = compiler_options(platform)
     # On one device only: XLA cannot split the kernel's call over the devices the robots are
     # sharded over, and several GPUs are not measured with it.
     threefry_kernel(cfg.threefry_kernel and len(devices_used) == 1, platform)
     jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
-    return Trainer(network, jit(init), jit(run_chunk, donate_argnums=0), jit(train), parts)
+    keys_of = jax.jit(first_keys)  # a few ops: XLA's own options
+
+    n = cfg.updates_per_chunk
+
+    def compose(programs: dict):
+        if not cfg.reset_ahead:
+            return programs["init"], programs["chunk"]
+        draws, begin, step = programs["draws"], programs["start"], programs["update"]
+
+        def init_drawn(key: jax.Array) -> TrainState:
+            k_net, key, keys = keys_of(key)
+            batches = []
+            for _ in range(calls):
+                keys, fresh = draws(keys)
+                batches.append(fresh)
+            return begin(k_net, key, keys, tuple(batches))
+
+        def chunk(ts: TrainState):
+            # As many updates as the budget has left; their metrics rows stay zero.
+            live = int(np.clip(cfg.num_updates - int(ts.update), 0, n))
+            rows = []
+            for _ in range(live):
+                ts, metrics = step(ts, draws(ts.env_state.info[RESET_KEY]))
+                rows.append(metrics)
+            if rows:
+                return ts, chunk_rows(tuple(rows))
+            drawn = jax.eval_shape(_draws, ts.env_state.info[RESET_KEY])  # none: zero rows
+            rows = jax.eval_shape(_update, ts, drawn)[1]
+            rows = jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), rows)
+            return ts, {**rows, "live": jnp.zeros(n, bool)}
+
+        return init_drawn, chunk
+
+    @jax.jit
+    def chunk_rows(rows: tuple) -> dict:
+        """The metrics of a chunk's updates `rows` (at least one) as `run_chunk`'s rows
+        [updates_per_chunk], zeros past them."""
+
+        def stack(*x):
+            return jnp.concatenate([jnp.stack(x), jnp.zeros((n - len(x), *x[0].shape), x[0].dtype)])
+
+        return {**jax.tree_util.tree_map(stack, *rows), "live": jnp.arange(n) < len(rows)}
+
+    def arguments(name: str, programs: dict, key: jax.Array):
+        # "state": init's TrainState, what the chunk's programs take.
+        if name in ("init", "draws"):
+            return (key,) if name == "init" else (jax.eval_shape(keys_of, key)[2],)
+        if name == "state" and not cfg.reset_ahead:
+            return jax.eval_shape(programs["init"], key)
+        if name == "chunk":
+            return (arguments("state", programs, key),)
+        k_net, key, keys = jax.eval_shape(keys_of, key)
+        keys, fresh = jax.eval_shape(programs["draws"], keys)
+        if name == "start":
+            return k_net, key, keys, (fresh,) * calls
+        ts = jax.eval_shape(programs["start"], k_net, key, keys, (fresh,) * calls)
+        return ts if name == "state" else (ts, (keys, fresh))
+
+    parts = {
+        "rollout": _rollout,
+        "learn": _learn,
+        "update": _update,
+        "init": init,
+        "chunk": run_chunk,
+        "draws": _draws,
+        "start": start,
+    }
+    if cfg.reset_ahead:
+        programs = {
+            "draws": jit(_draws),
+            "start": jit(start),
+            "update": jit(_update, donate_argnums=0),
+        }
+    else:
+        programs = {"init": jit(init), "chunk": jit(run_chunk, donate_argnums=0)}
+    trainer = Trainer(network, None, None, jit(train), parts, {}, compose, arguments)
+    return trainer.with_programs(**programs)
