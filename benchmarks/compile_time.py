@@ -11,10 +11,10 @@ with jaxnav's compiler options and the preset's shapes (`PIECES`), `--repeats` t
 programs (medians): trace+lower and XLA compile seconds, and the size of its HLO (ops of the
 lowered StableHLO, characters of the optimised HLO).
 
-Per task: in this process, the chunk's programs (`Trainer.programs` but init's: the chunk, or the
-draws and the update of a task that draws its new episodes ahead) each lowered (tracing:
-`jax.stages` `.lower`) and compiled (`.compile`) on its own, with the size of its HLO text, and
-their sums; then `python -m jaxnav.train` run
+Per task: in this process, each of a run's programs (`Trainer.programs`: init and the chunk, or
+the draws, start and update of a task that draws its new episodes ahead) lowered (tracing:
+`jax.stages` `.lower`) and compiled (`.compile`) on its own, in turn, with the size of its HLO
+text, and the sums over the chunk's (the chunk, or the draws and the update); then `python -m jaxnav.train` run
 twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
 chunk: the seconds to its "compiled and ran the first chunk" line, to the start of that chunk's run
 (its "compiled in", the chunk compiled and init run: when training starts) and the whole
@@ -70,23 +70,19 @@ def split(env: str, preset: str) -> dict:
     tick = time.perf_counter()
     trainer = make_train(config.ppo, make_run_env(config))
     key = jax.random.PRNGKey(0)
-    jax.block_until_ready(trainer.init(key))
-    build = time.perf_counter() - tick
-    out = {"build_init_s": round(build, 1), "programs": {}}
-    for name, program in trainer.programs.items():  # the chunk's (init's compiled above)
-        if name in ("init", "start"):
-            continue
+    out = {"build_s": round(time.perf_counter() - tick, 1), "programs": {}}
+    for name, program in trainer.programs.items():  # each from its abstract arguments, in turn
         tick = time.perf_counter()
         lowered = program.lower(*trainer.arguments(name, trainer.programs, key))
         lower = time.perf_counter() - tick
         tick = time.perf_counter()
         lowered.compile()
         compiled = time.perf_counter() - tick
-        hlo = len(lowered.as_text())
         out["programs"][name] = {"lower_s": round(lower, 1), "compile_s": round(compiled, 1)}
-        out["programs"][name]["hlo_chars"] = hlo
-    for field in ("lower_s", "compile_s", "hlo_chars"):  # summed over them
-        out[field] = round(sum(p[field] for p in out["programs"].values()), 1)
+        out["programs"][name]["hlo_chars"] = len(lowered.as_text())
+    chunk = [p for name, p in out["programs"].items() if name not in ("init", "start")]
+    for field in ("lower_s", "compile_s", "hlo_chars"):  # summed over the chunk's programs
+        out[field] = round(sum(p[field] for p in chunk), 1)
     return out
 
 

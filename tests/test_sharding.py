@@ -30,8 +30,9 @@ def train_on(devices: int, out: Path) -> dict:
 def test_two_devices_match_one(tmp_path):
     """Training sharded over two devices gives the one-device result, and no op of its rollout
     waits for the other device (no collective in the compiled rollout: a branch on all robots,
-    as the in-place auto-reset has, would put one in every env step). Slow: two training
-    processes (a device count is fixed per process)."""
+    as the in-place auto-reset has, would put one in every env step); a run's own programs
+    (init and the chunk's draws and update) as well. Slow: two training processes (a device
+    count is fixed per process)."""
     one = train_on(1, tmp_path / "one.npz")
     two = train_on(2, tmp_path / "two.npz")
     assert int(one["devices"]) == 1 and int(two["devices"]) == 2
@@ -41,6 +42,13 @@ def test_two_devices_match_one(tmp_path):
     weights = [k for k in one if k.startswith("arr_")]
     assert weights
     for k in weights:
+        np.testing.assert_allclose(one[k], two[k], atol=1e-5, rtol=1e-4)
+    # A run's own programs (init, then a chunk of the draws' and the update's programs) too.
+    assert int(one["chunk_updates"]) == int(two["chunk_updates"]) == 3
+    assert int(two["chunk_shards"]) == 2
+    chunk = [k for k in one if k.startswith("chunk_") and k[6:].isdigit()]
+    assert len(chunk) == len(weights)
+    for k in chunk:
         np.testing.assert_allclose(one[k], two[k], atol=1e-5, rtol=1e-4)
 
 

@@ -22,10 +22,10 @@ GOAL = {
         "randomize": {"families": "all"},
     },
     "preset_defaults": {
-        # The memory and a 7.5 cm collision margin, as the gpu preset: BARN 82.3-85.0 % in three
-        # seeds against 72.3-77.2 % without, the suite 89.4-92.8 % against 90.9-91.6 %. The
+        # The memory and a 7.5 cm collision margin, as the gpu preset: BARN 82.3-86.0 % in three
+        # seeds against 72.3-77.2 % without, the suite 89.4-91.2 % against 90.9-91.6 %. The
         # memory costs the 2-core CPU more a step, so 23 M steps rather than 28 M take
-        # as long (432-463 s against 431-436 s the same day; benchmarks/memory.py).
+        # as long (413-463 s against 431-436 s the same day; benchmarks/memory.py).
         "cpu": {
             "ppo": {
                 "num_envs": 512,

@@ -38,9 +38,16 @@ waits = [
     for line in rollout
     if any(f" {op}(" in line or f" {op}-start(" in line for op in collectives)
 ]
+# The same updates as a run trains them: init and chunks of the trainer's programs (the draws,
+# start and update, with the new episodes drawn ahead).
+run_ts, _ = trainer.run_chunk(trainer.init(jax.random.PRNGKey(0)))
+chunk_leaves = jax.tree_util.tree_leaves(jax.device_get(run_ts.params))
 np.savez(
     sys.argv[1],
     *leaves,
+    **{f"chunk_{i}": x for i, x in enumerate(chunk_leaves)},
+    chunk_updates=int(run_ts.update),
+    chunk_shards=len(run_ts.env_state.obs.sharding.device_set),
     devices=len(jax.devices()),
     shards=len(ts.env_state.obs.sharding.device_set),
     rollout_ops=len(rollout),
