@@ -94,7 +94,7 @@ PIECES = {
     "init": "Trainer.init: reset of every robot, network and optimiser",
     "rollout": "the rollout scan (policy, auto-reset step)",
     "learn": "GAE, epochs x minibatch scan of loss, grad and optax",
-    "chunk": "Trainer.run_chunk, one update (what a run compiles)",
+    "chunk": "the chunk as one program, one update (what an avoid run compiles; a goal run compiles its draws and update apart)",
 }
 
 
@@ -112,7 +112,7 @@ def piece_programs(env_name: str, preset: str) -> dict:
     parts, shape = trainer.parts, jax.eval_shape
     key = shape(jax.random.PRNGKey, 0)  # raw key data: (2,) for threefry
     keys = jax.ShapeDtypeStruct((cfg.num_envs, *key.shape), key.dtype)
-    ts = shape(trainer.init, key)
+    ts = trainer.arguments("state", trainer.programs, key)  # init's TrainState
     rolled = shape(parts["rollout"], ts)  # (env_state, key, traj)
     action = jax.tree_util.tree_map(
         lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), rolled[2].action
