@@ -218,8 +218,10 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             update=jnp.int32(0),
         )
 
-    def _draws(keys: jax.Array):  # [N, 2] -> ([N, 2], leaves [T, G, P/G, ...]): a rollout's
-        keys, fresh = env.draw_keys(keys, cfg.rollout_length)  # new episodes, drawn ahead
+    def _draws(keys: jax.Array):
+        """A rollout's new episodes, drawn ahead from the robots' reset keys [N, 2]: (the keys
+        advanced [N, 2], the episodes: leaves [T, G, P/G, ...])."""
+        keys, fresh = env.draw_keys(keys, cfg.rollout_length)
         return shard(keys), shard_draws(fresh)
 
     def _rollout(ts: TrainState, drawn=None):
@@ -332,14 +334,16 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         return _learn(ts, *_rollout(ts, drawn))
 
     update = jax.jit(_update)  # traced once per chunk's trace, inlined by XLA
+    n = cfg.updates_per_chunk
+
+    def zero_rows(metrics) -> dict:  # [updates_per_chunk] zeros shaped like one update's
+        return jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), metrics)
 
     def run_chunk(ts: TrainState):
         # Chunks have one shape so they compile once; a loop of as many updates as the budget
         # has left runs them, so updates past it cost nothing. Their metrics rows stay zero.
-        n = cfg.updates_per_chunk
         live = jnp.clip(cfg.num_updates - ts.update, 0, n)  # [] updates this chunk runs
-        rows = jax.eval_shape(update, ts)[1]  # traces the update; the loop's body reuses it
-        rows = jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), rows)
+        rows = zero_rows(jax.eval_shape(update, ts)[1])  # the loop's body reuses this trace
 
         def body(carry):
             i, ts, rows = carry
@@ -384,8 +388,6 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
     keys_of = jax.jit(first_keys)  # a few ops: XLA's own options
 
-    n = cfg.updates_per_chunk
-
     def compose(programs: dict):
         if not cfg.reset_ahead:
             return programs["init"], programs["chunk"]
@@ -409,8 +411,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             if rows:
                 return ts, chunk_rows(tuple(rows))
             drawn = jax.eval_shape(_draws, ts.env_state.info[RESET_KEY])  # none: zero rows
-            rows = jax.eval_shape(_update, ts, drawn)[1]
-            rows = jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), rows)
+            rows = zero_rows(jax.eval_shape(_update, ts, drawn)[1])
             return ts, {**rows, "live": jnp.zeros(n, bool)}
 
         return init_drawn, chunk
