@@ -142,9 +142,9 @@ def train_to_bar(trainer, config, judge_state, max_seconds: float, full=False, e
     entry that met the bar or None)."""
     key = jax.random.PRNGKey(config.seed)
     tick = time.perf_counter()  # the programs compiled at once, as a run's: apart from training
-    trainer, _ = compile_ahead(trainer, key)
+    trainer, compiling = compile_ahead(trainer, key)  # None: several devices, each at first call
     ts = jax.block_until_ready(trainer.init(key))
-    for program in trainer.programs.values():
+    for program in trainer.programs.values() if compiling else ():
         program.wait()
     compile_s = time.perf_counter() - tick
     run_chunk = trainer.run_chunk
