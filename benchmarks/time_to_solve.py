@@ -32,7 +32,7 @@ from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.networks import normalize
 from jaxnav.ppo.train import make_train
 from jaxnav.tasks.goal import spl_from
-from jaxnav.training import build_config, compile_ahead, make_run_env
+from jaxnav.training import build_config, find_programs, make_run_env
 
 BAR = {"overall_free": 0.95, "family_free": 0.90, "overall_speed": 0.2, "family_speed": 0.1}
 
@@ -133,18 +133,18 @@ def judge(collided: np.ndarray, speed: np.ndarray, family: np.ndarray) -> dict:
     return out
 
 
-def train_to_bar(trainer, config, judge_state, max_seconds: float, full=False, every: int = 1):
-    """Trains in chunks of `updates_per_chunk` updates (its programs compiled at once first, and
-    init run: the compile's seconds), calling `judge_state(ts, metrics, record) ->
+def train_to_bar(trainer, config, env, judge_state, max_seconds: float, full=False, every: int = 1):
+    """Trains in chunks of `updates_per_chunk` updates of `trainer` (on `config`'s `env`; its
+    programs traced and compiled at once first, as a run's, and init run: the compile's seconds), calling `judge_state(ts, metrics, record) ->
     (entry, met)` after every `every` chunks and after the last, until the bar is met (or, `full`,
     the budget is spent) or `max_seconds` of training. `record` holds update, env_steps and
     train_s; `metrics` are the last chunk's. Returns (compile s, history: the entries, the first
     entry that met the bar or None)."""
     key = jax.random.PRNGKey(config.seed)
     tick = time.perf_counter()  # the programs compiled at once, as a run's: apart from training
-    trainer, compiling = compile_ahead(trainer, key)  # None: several devices, each at first call
+    trainer, _, ahead = find_programs(trainer, config, env, key)  # several devices: at first call
     ts = jax.block_until_ready(trainer.init(key))
-    for program in trainer.programs.values() if compiling else ():
+    for program in trainer.programs.values() if ahead else ():
         program.wait()
     compile_s = time.perf_counter() - tick
     run_chunk = trainer.run_chunk
@@ -210,13 +210,14 @@ def main() -> None:
     sets = parse_sets(args.set)
     sets.setdefault("ppo", {})["updates_per_chunk"] = args.eval_every
     config = build_config(args.preset, args.seed, None, sets, args.env)
-    trainer = make_train(config.ppo, make_run_env(config))
+    env = make_run_env(config)
+    trainer = make_train(config.ppo, env)
     evaluate, family = make_evaluator(
         greedy_policy(trainer, config), config, args.episodes, args.steps
     )
     judge_state = suite_judge(evaluate, family)
     compile_s, history, solved = train_to_bar(
-        trainer, config, judge_state, args.max_seconds, args.full
+        trainer, config, env, judge_state, args.max_seconds, args.full
     )
     out = {
         **run_info("device", "python", "date"),

@@ -93,11 +93,12 @@ def main() -> None:
     sets.setdefault("task", {})["actions"] = args.actions
     config = build_config(args.preset, args.seed, None, sets, "goal")
     cfg = config.ppo
-    trainer = make_train(cfg, make_run_env(config))
+    env = make_run_env(config)
+    trainer = make_train(cfg, env)
     policy = greedy_policy(trainer, config, args.sample)
     judge_state = goal_judge(*make_evaluator(policy, config, args.episodes, args.steps))
     compile_s, history, solved = train_to_bar(
-        trainer, config, judge_state, args.max_seconds, full=args.full, every=args.eval_every
+        trainer, config, env, judge_state, args.max_seconds, full=args.full, every=args.eval_every
     )
     result = {
         **run_info("device"),

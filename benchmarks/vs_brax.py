@@ -87,10 +87,11 @@ def brax_kwargs(ppo) -> dict:
 
 def run_jaxnav(config, episodes: int, steps: int) -> dict:
     """jaxnav's PPO over the whole budget, judged after every chunk."""
-    trainer = make_train(config.ppo, make_run_env(config))
+    env = make_run_env(config)
+    trainer = make_train(config.ppo, env)
     evaluate, family = make_evaluator(greedy_policy(trainer, config), config, episodes, steps)
     judge_state = suite_judge(evaluate, family)
-    compile_s, history, _ = train_to_bar(trainer, config, judge_state, float("inf"), full=True)
+    compile_s, history, _ = train_to_bar(trainer, config, env, judge_state, float("inf"), full=True)
     rate = history[-1]["env_steps"] / history[-1]["train_s"]
     return {"compile_s": compile_s, "env_steps_per_s": rate, "history": history}
 

@@ -249,14 +249,14 @@ def run(
             check_new_out(out)
         env, trainer = interruptible(_build, config)
         key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
-        trainer, shapes = interruptible(find_programs, trainer, config, env, key)
+        trainer, shapes, ahead = interruptible(find_programs, trainer, config, env, key)
         memory_check(config, env, shapes)
         folder.create()
         created = True
         distributed.ready()
         if stop is not None:
             stop.at_once(_start_note(folder), folder.remove)
-        trainer, compiling = compile_ahead(trainer, key, since)
+        compiling = _Compiling(since) if ahead else None
         ts = interruptible(trainer.init, key, waiting=compiling)
         args = (trainer, ts, [], 0.0, progress, stop, env.metric_names, compiling)
         return _loop(config, out, *args)
@@ -341,8 +341,8 @@ def resume(
             note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
             stop.at_once(note, lock.release if main else None)
         key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
-        trainer, _ = interruptible(find_programs, trainer, config, env, key)
-        trainer, compiling = compile_ahead(trainer, key, since)
+        trainer, _, ahead = interruptible(find_programs, trainer, config, env, key)
+        compiling = _Compiling(since) if ahead else None
         template = interruptible(trainer.init, key, waiting=compiling)
         ts = checkpoint.restore_train_state(ckpt, template)
         rows = runlog.read_rows(out / "metrics.csv", upto=meta["update"]) if main else []
@@ -426,42 +426,31 @@ class _CompiledAhead:
         return self._compiled(*args)
 
 
-def find_programs(trainer, config, env, key):
-    """(trainer, the abstract TrainState of its init from `key`): each of the trainer's programs
-    (`Trainer.programs`) read from the program store or traced (and kept there:
-    `programs.program`) in turn, on the abstract arguments the run will call it with (the
-    outputs of those before it: `Trainer.arguments`)."""
+def find_programs(trainer, config, env, key, ahead: bool = True):
+    """(trainer, the abstract TrainState of its init from `key`, whether its programs compile
+    ahead): each of the trainer's programs (`Trainer.programs`) read from the program store or
+    traced (and kept there: `programs.program`) in turn, on the abstract arguments the run will
+    call it with (the outputs of those before it: `Trainer.arguments`).
+
+    With `ahead` and one device, each program starts compiling in a thread of its own as soon as
+    it is found (`_CompiledAhead`: XLA's compile lets go of the GIL, so the next one is traced
+    meanwhile and they compile at once), and the trainer calls the compiled programs: the same
+    program on the same inputs as when compiled at its first call. With several devices the
+    chunk's input shardings are those XLA chooses for init's output, known only once init is
+    compiled: there (and for a trainer without programs) each compiles at its first call.
+    """
     run = programs.run_of(config, env) if trainer.programs else None
-    found = {}
+    ahead = ahead and jax.device_count() == 1 and bool(trainer.programs)
+    found, compiled = {}, {}
     for name, jitted in (trainer.programs or {}).items():
         args = trainer.arguments(name, found, key)
         found[name] = programs.program(trainer, run, name, args) or jitted
-    if found:
-        trainer = trainer.with_programs(**found)
+        if ahead:
+            compiled[name] = _CompiledAhead(found[name], args)
     state = trainer.arguments("state", found, key) if found else jax.eval_shape(trainer.init, key)
-    return trainer, state
-
-
-def compile_ahead(trainer, key, since: float | None = None):
-    """(trainer, compile line or None): with one device, a trainer each of whose programs XLA
-    starts compiling now, in a thread of its own (XLA's compile lets go of the GIL, so they
-    compile at the same time), and the compile line, shown from now on, its seconds counted
-    from `since` (the start of `find_programs`, which traces them; default now). Each is compiled from
-    the abstract arguments of the run from `key` (`Trainer.arguments`): the same program on the
-    same inputs as when compiled at its first call.
-
-    With several devices the chunk's input shardings are those XLA chooses for init's output,
-    known only once init is compiled: there (and for a trainer without programs) the trainer is
-    as it was and each program compiles at its first call.
-    """
-    if jax.device_count() > 1 or not trainer.programs:
-        return trainer, None
-    compiling = _Compiling(since)
-    compiled = {
-        name: _CompiledAhead(program, trainer.arguments(name, trainer.programs, key))
-        for name, program in trainer.programs.items()
-    }
-    return trainer.with_programs(**compiled), compiling
+    if found:
+        trainer = trainer.with_programs(**(compiled or found))
+    return trainer, state, ahead
 
 
 # ---------------------------------------------------------------- the loop

@@ -1,6 +1,6 @@
-"""A run's programs compile at once (`training.compile_ahead`), and a repeated run reads them
-from the program store (`jaxnav.programs`): the same run, bit for bit, as compiling one after the
-other, and nothing is compiled twice."""
+"""A run's programs compile at once, each as soon as it is traced (`training.find_programs`), and
+a repeated run reads them from the program store (`jaxnav.programs`): the same run, bit for bit,
+as compiling one after the other, and nothing is compiled twice."""
 
 import re
 
@@ -18,7 +18,7 @@ from jaxnav.ppo import train as ppo_train
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # an XLA compile or a cache load
 TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"  # a trace, named by its function
-AHEAD = train_module.compile_ahead
+FIND = train_module.find_programs
 
 
 def tiny_config(*flags):
@@ -32,10 +32,10 @@ def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, 
     each at its first call, kept in the program store folder `store` (None: the store off)."""
     used = []
 
-    def compile_ahead(trainer, key, since=None):
-        trainer, compiling = AHEAD(trainer, key, since) if ahead else (trainer, None)
-        used.append(compiling is not None)
-        return trainer, compiling
+    def find_programs(trainer, config, env, key):
+        found = FIND(trainer, config, env, key, ahead=ahead)
+        used.append(found[2])
+        return found
 
     events = {COMPILE_EVENT: [], TRACE_EVENT: []}
 
@@ -43,7 +43,7 @@ def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, 
         if event in events:
             events[event].append(kwargs.get("fun_name", ""))
 
-    monkeypatch.setattr(train_module, "compile_ahead", compile_ahead)
+    monkeypatch.setattr(train_module, "find_programs", find_programs)
     # As outside the tests, whose XLA_FLAGS set LLVM's level: the programs take jaxnav's options.
     options = lambda platform: {xla.OPTION: xla.CPU_OPT_LEVEL}  # noqa: E731
     monkeypatch.setattr(ppo_train, "compiler_options", options)
@@ -117,6 +117,45 @@ def test_programs_compiled_at_once_train_the_same_and_compile_once(
             assert traced.count(trace) == (1 if run == "traced" else 0), traced
     programs_kept = sorted(p.name.split("-")[1] for p in store.iterdir())
     assert programs_kept == sorted(f"{name}.program" for name in names)
+
+
+def test_each_program_compiles_while_the_next_is_traced(monkeypatch):
+    """`find_programs` starts a program's compile as soon as it has its abstract arguments, before
+    it traces the programs after it (which take its outputs), and the trainer it returns calls
+    the compiled programs; with `ahead=False` nothing compiles before the first call."""
+    import jax.numpy as jnp
+
+    log = []
+
+    class Compiled(train_module._CompiledAhead):
+        def __init__(self, program, args):
+            log.append(("compile", program.__name__))
+            super().__init__(program, args)
+
+    def arguments(name, found, key):
+        log.append(("trace", name))
+        if name == "double":
+            return (key,)
+        half = jax.eval_shape(found["double"], key)
+        return (half,) if name == "add" else jax.eval_shape(found["add"], half)
+
+    double, add = jax.jit(lambda k: 2 * k), jax.jit(lambda x: x + 1)
+    double.__name__, add.__name__ = "double", "add"
+    compose = lambda p: (lambda k: p["add"](p["double"](k)), None)  # noqa: E731
+    trainer = ppo_train.Trainer(None, None, None, None, {}, {}, compose, arguments)
+    trainer = trainer.with_programs(double=double, add=add)
+    monkeypatch.setattr(train_module, "_CompiledAhead", Compiled)
+    key = jnp.arange(3.0)
+    got, state, ahead = train_module.find_programs(trainer, None, None, key)
+    assert ahead and log[:4] == [("trace", "double"), ("compile", "double"), ("trace", "add")] + [
+        ("compile", "add")
+    ]
+    assert all(isinstance(p, Compiled) for p in got.programs.values())
+    np.testing.assert_array_equal(got.init(key), 2 * key + 1)
+    assert state.shape == (3,)
+    log.clear()
+    got, _, ahead = train_module.find_programs(trainer, None, None, key, ahead=False)
+    assert not ahead and ("compile", "double") not in log and got.programs["add"] is add
 
 
 def test_cpu_programs_compile_at_jaxnav_level(monkeypatch):
