@@ -11,10 +11,10 @@ with jaxnav's compiler options and the preset's shapes (`PIECES`), `--repeats` t
 programs (medians): trace+lower and XLA compile seconds, and the size of its HLO (ops of the
 lowered StableHLO, characters of the optimised HLO).
 
-Per task: in this process, each of a run's programs (`Trainer.programs`: init and the chunk, or
-the draws, start and update of a task that draws its new episodes ahead) lowered (tracing:
-`jax.stages` `.lower`) and compiled (`.compile`) on its own, in turn, with the size of its HLO
-text, and the sums over the chunk's (the chunk, or the draws and the update); then `python -m jaxnav.train` run
+Per task: in this process, each of a run's programs (`Trainer.programs`: init, the rollout and the
+learner, or the draws, start, rollout and learner of a task that draws its new episodes ahead)
+lowered (tracing: `jax.stages` `.lower`) and compiled (`.compile`) on its own, in turn, with the
+size of its HLO text, and the sums over the chunk's (all but init and start); then `python -m jaxnav.train` run
 twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
 chunk: the seconds to its "compiled and ran the first chunk" line, to the start of that chunk's run
 (its "compiled in", the chunk compiled and init run: when training starts) and the whole
@@ -94,7 +94,7 @@ PIECES = {
     "init": "Trainer.init: reset of every robot, network and optimiser",
     "rollout": "the rollout scan (policy, auto-reset step)",
     "learn": "GAE, epochs x minibatch scan of loss, grad and optax",
-    "chunk": "the chunk as one program, one update (what an avoid run compiles; a goal run compiles its draws and update apart)",
+    "update": "one update as one program, the rollout and the learner (a run compiles them apart)",
 }
 
 
@@ -113,9 +113,9 @@ def piece_programs(env_name: str, preset: str) -> dict:
     key = shape(jax.random.PRNGKey, 0)  # raw key data: (2,) for threefry
     keys = jax.ShapeDtypeStruct((cfg.num_envs, *key.shape), key.dtype)
     ts = trainer.arguments("state", trainer.programs, key)  # init's TrainState
-    rolled = shape(parts["rollout"], ts)  # (env_state, key, traj)
+    rolled = shape(parts["rollout"], ts)  # (ts, traj)
     action = jax.tree_util.tree_map(
-        lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), rolled[2].action
+        lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), rolled[1].action
     )
     wrapped = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place)
     state = shape(jax.vmap(env.reset), keys)
@@ -135,8 +135,8 @@ def piece_programs(env_name: str, preset: str) -> dict:
         programs["autoreset_step"] = (wrapped.step, (ts.env_state, action))
     programs["init"] = (parts["init"], (key,))
     programs["rollout"] = (parts["rollout"], (ts,))
-    programs["learn"] = (parts["learn"], (ts, *rolled))
-    programs["chunk"] = (parts["chunk"], (ts,))
+    programs["learn"] = (parts["learn"], rolled)
+    programs["update"] = (parts["update"], trainer.arguments("rollout", trainer.programs, key))
     return programs
 
 
@@ -338,7 +338,7 @@ def flag_runs(
 
 # XLA's own timers for the chunk's modules (`jit_run_chunk`; or `jit__draws` and `jit__update`),
 # from its log on a GPU: regex -> key, summed over them.
-CHUNK_MODULES = r"jit_(?:run_chunk|_draws|_update)"
+CHUNK_MODULES = r"jit_(?:_draws|_rollout|_learn)"
 XLA_TIMERS = {
     "hlo_passes_s": rf"RunHloPasses for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",
     "backend_s": rf"GpuCompiler::RunBackend for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",

@@ -1,9 +1,10 @@
-"""A training run's programs (`Trainer.programs`: init and the chunk, or the draws, start and
-update of a run that draws its new episodes ahead), traced once and kept on disk.
+"""A training run's programs (`Trainer.programs`: init, the rollout and the learner, or the draws,
+start, rollout and learner of a run that draws its new episodes ahead), traced once and kept on
+disk.
 
 Before XLA compiles anything, a start traces the task's reset and step (under `vmap`, in a scan)
 and lowers them to StableHLO: several seconds of Python on every start (7-9 s for the goal task's
-chunk), which JAX's persistent compilation cache cannot keep, since it keeps XLA's side only. So a
+programs), which JAX's persistent compilation cache cannot keep, since it keeps XLA's side only. So a
 run on one device exports its programs with `jax.export` (StableHLO and the pytree structure of
 their arguments and results) into the `programs/` folder of the compilation cache, under a key of
 everything the trace depends on (`run_key`). A repeated run reads them back and hands them to
@@ -55,9 +56,7 @@ LIBRARIES = (
 )
 """The packages whose code a trace runs or lowers (their versions are in the key)."""
 
-# Trainer.programs' names: their trace's name (the default: the same).
-TRACED = {"chunk": "run_chunk"}
-DONATED = ("chunk", "update")  # the programs that take the train state, whose buffers they reuse
+DONATED = {"rollout": (0,), "learn": (0,)}  # program: the arguments whose buffers it reuses
 
 MAX_BYTES = 256 * 2**20
 """The store's size at most: a goal run's programs take about 0.7 MB (cpu preset), so this
@@ -129,10 +128,10 @@ def _digest_tree(digest, root: Path) -> None:
 class Stored:
     """A program exported with `jax.export`: called, lowered and compiled like the jitted function
     it was exported from, on the same pytrees. Its jitted wrapper is named `stored_<name>`; `run`
-    is the key (`run_key`) of the run it is stored for; with `donate` its first argument's
-    buffers are handed to it."""
+    is the key (`run_key`) of the run it is stored for; the buffers of its arguments `donate`
+    (their indices) are handed to it."""
 
-    def __init__(self, name: str, run: str, exported, in_tree, out_tree, donate: bool):
+    def __init__(self, name: str, run: str, exported, in_tree, out_tree, donate: tuple = ()):
         self.name, self.run, self.exported = name, run, exported
         self.in_tree, self.out_tree = in_tree, out_tree
 
@@ -140,8 +139,8 @@ class Stored:
             return exported.call(*leaves)
 
         call.__name__ = call.__qualname__ = f"stored_{name}"
-        first = in_tree.children()[0].num_leaves if donate else 0  # the first argument's
-        donated = tuple(range(first))
+        ends = np.cumsum([0] + [arg.num_leaves for arg in in_tree.children()])  # per argument
+        donated = tuple(i for a in donate for i in range(ends[a], ends[a + 1]))
         options = compiler_options(jax.devices()[0].platform)
         self._jitted = jax.jit(call, donate_argnums=donated, compiler_options=options)
 
@@ -202,7 +201,7 @@ def _load(name: str, run: str, entry) -> Stored:
     """The `Stored` program of a store entry (bytes, in_tree, out_tree)."""
     blob, in_tree, out_tree = entry
     exported = export.deserialize(bytearray(blob))
-    return Stored(name, run, exported, in_tree, out_tree, donate=name in DONATED)
+    return Stored(name, run, exported, in_tree, out_tree, donate=DONATED.get(name, ()))
 
 
 def _read(path: Path, name: str, run: str, args) -> Stored | None:
@@ -245,7 +244,7 @@ def program(trainer, run: str, name: str, args) -> Stored | None:
     if stored is not None:
         return stored
     try:
-        entry = _export(TRACED.get(name, name), trainer.parts[name], args)
+        entry = _export(name, trainer.parts[name], args)
     except Exception as err:  # noqa: BLE001 (not exportable: jit traces it as before)
         line = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
         print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)

@@ -79,8 +79,11 @@ def same_run(got, want) -> None:
 @pytest.mark.parametrize(
     "flags, names",
     [
-        ((), {"init": "init", "chunk": "run_chunk"}),
-        (("--reset-ahead", "true"), {"draws": "_draws", "start": "start", "update": "_update"}),
+        ((), {"init": "init", "rollout": "_rollout", "learn": "_learn"}),
+        (
+            ("--reset-ahead", "true"),
+            {"draws": "_draws", "start": "start", "rollout": "_rollout", "learn": "_learn"},
+        ),
     ],
 )
 def test_programs_compiled_at_once_train_the_same_and_compile_once(
@@ -90,8 +93,8 @@ def test_programs_compiled_at_once_train_the_same_and_compile_once(
     once, from the program store (traced and kept by the first run, read back by the second: no
     trace of the task's programs), the run is the one whose programs compiled at their first
     calls, bit for bit. Compiled ahead, the compile line also says when the chunk's run began.
-    The programs (`names`: program -> its function's name) are init and the chunk, or, with new
-    episodes drawn ahead, the draws, start and update."""
+    The programs (`names`: program -> its function's name) are init, the rollout and the
+    learner, or, with new episodes drawn ahead, the draws, start, rollout and learner."""
     want = trained(tmp_path / "after", monkeypatch, ahead=False, flags=flags)
     line = re.search(r"first chunk in ([\d.]+) s(.*)", capsys.readouterr().out)
     assert line and line.group(2) == "", line  # compiled at its first call: no split to show
@@ -113,8 +116,7 @@ def test_programs_compiled_at_once_train_the_same_and_compile_once(
         compiled, traced = got[2][COMPILE_EVENT], got[2][TRACE_EVENT]
         for name in names:  # exported under their trace's name
             assert sum(f"(stored_{name})" in n for n in compiled) == 1, compiled
-            trace = programs.TRACED.get(name, name)
-            assert traced.count(trace) == (1 if run == "traced" else 0), traced
+            assert traced.count(name) == (1 if run == "traced" else 0), traced
     programs_kept = sorted(p.name.split("-")[1] for p in store.iterdir())
     assert programs_kept == sorted(f"{name}.program" for name in names)
 

@@ -409,7 +409,7 @@ def test_update_is_its_rollout_then_its_learner(ahead):
     trainer = make_train(cfg, _CountedLineEnv(calls))
     ts = trainer.init(jax.random.PRNGKey(0))
     rollout, learn, update = (jax.jit(trainer.parts[k]) for k in ("rollout", "learn", "update"))
-    split_ts, split_metrics = learn(ts, *rollout(ts))
+    split_ts, split_metrics = learn(*rollout(ts))
     whole_ts, whole_metrics = update(ts)
     jax.effects_barrier()
     calls.clear()

@@ -1,10 +1,11 @@
-"""PPO as jitted chunks: `make_train(cfg, env)` -> `Trainer(init, run_chunk, train)`.
+"""PPO as jitted programs: `make_train(cfg, env)` -> `Trainer(init, run_chunk, train)`.
 
 One update = `_rollout` (scan over the horizon, all robots vmapped) -> GAE -> `_update_epoch` x E,
 each a scan of `_update_minibatch`. `run_chunk` runs `updates_per_chunk` updates so the host can
-log, draw and checkpoint between chunks: one program of a loop over them, or, for a task that draws
-its new episodes ahead (`reset_ahead`), a loop of two programs (each rollout's draws, then its
-update). `train` runs everything in one jitted call.
+log, draw and checkpoint between chunks: a loop in Python over them, each two programs (the
+rollout, then the learner), or three for a task that draws its new episodes ahead (`reset_ahead`:
+each rollout's draws first), which XLA compiles at once. `train` runs everything in one jitted
+call.
 """
 
 from __future__ import annotations
@@ -59,13 +60,14 @@ class Trainer(NamedTuple):
     run_chunk: callable  # TrainState -> (TrainState, metrics [updates_per_chunk])
     train: callable  # key -> (TrainState, metrics [num_updates // updates_per_chunk * chunk])
     # The pieces of one update, not jitted (benchmarks/compile_time.py times each): "rollout":
-    # (ts, drawn) -> (env_state, key, traj); "learn": (ts, env_state, key, traj) -> (ts,
-    # metrics); "update": (ts, drawn) -> (ts, metrics), the two in turn; and each of `programs`
-    # unjitted, by its name (what `jaxnav.programs` exports).
+    # (ts, drawn) -> (ts with its robots moved on, traj); "learn": (ts, traj) -> (ts, metrics);
+    # "update": (ts, drawn) -> (ts, metrics), the two in turn; and each of `programs` unjitted,
+    # by its name (what `jaxnav.programs` exports).
     parts: dict | None = None
     # The jitted programs `init` and `run_chunk` call, in the order their arguments follow from
-    # each other: "init" and "chunk", or, for new episodes drawn ahead, "draws", "start" and
-    # "update" (`make_train`). `with_programs` swaps them (for stored or compiled ones).
+    # each other: "init", "rollout" and "learn", or, for new episodes drawn ahead, "draws",
+    # "start", "rollout" and "learn" (`make_train`). `with_programs` swaps them (for stored or
+    # compiled ones).
     programs: dict | None = None
     # (programs) -> (init, run_chunk) calling those programs.
     compose: callable = None
@@ -224,9 +226,10 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         keys, fresh = env.draw_keys(keys, cfg.rollout_length)
         return shard(keys), shard_draws(fresh)
 
-    def _rollout(ts: TrainState, drawn=None):
-        """`drawn`: `_draws` of the robots' reset keys, with `cfg.reset_ahead` (None: drawn here);
-        without it, each step draws its own."""
+    def _rollout(ts: TrainState, drawn=None) -> tuple[TrainState, Transition]:
+        """(ts with its robots and key moved on, the transitions). `drawn`: `_draws` of the
+        robots' reset keys, with `cfg.reset_ahead` (None: drawn here); without it, each step
+        draws its own."""
 
         def _env_step(carry, fresh):
             env_state, key = carry
@@ -259,7 +262,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             (env_state, key), traj = jax.lax.scan(
                 _env_step, (env_state, ts.key), fresh, cfg.rollout_length
             )
-        return env_state, key, traj
+        return ts.replace(env_state=env_state, key=key), traj
 
     grad = fused_grad or loss_grad(cfg, network, dist)  # (grads, metrics) of a minibatch
 
@@ -284,7 +287,9 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         )
         return (params, opt_state, batch, key), metrics
 
-    def _learn(ts: TrainState, env_state, key, traj: Transition) -> tuple[TrainState, dict]:
+    def _learn(ts: TrainState, traj: Transition) -> tuple[TrainState, dict]:
+        """The learner on a rollout's transitions, `ts` its robots' state after them."""
+        env_state, key = ts.env_state, ts.key
         last_obs = norm(ts.obs_stats, env_state.obs)
         last_value = network.apply(ts.params, last_obs, critic_in(env_state))[1]  # [N]
         adv, targets = compute_gae(
@@ -331,36 +336,22 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         return ts, metrics
 
     def _update(ts: TrainState, drawn=None) -> tuple[TrainState, dict]:
-        return _learn(ts, *_rollout(ts, drawn))
+        return _learn(*_rollout(ts, drawn))
 
-    update = jax.jit(_update)  # traced once per chunk's trace, inlined by XLA
     n = cfg.updates_per_chunk
 
     def zero_rows(metrics) -> dict:  # [updates_per_chunk] zeros shaped like one update's
         return jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), metrics)
 
-    def run_chunk(ts: TrainState):
-        # Chunks have one shape so they compile once; a loop of as many updates as the budget
-        # has left runs them, so updates past it cost nothing. Their metrics rows stay zero.
-        live = jnp.clip(cfg.num_updates - ts.update, 0, n)  # [] updates this chunk runs
-        rows = zero_rows(jax.eval_shape(update, ts)[1])  # the loop's body reuses this trace
-
-        def body(carry):
-            i, ts, rows = carry
-            ts, metrics = update(ts)
-            rows = jax.tree_util.tree_map(lambda r, m: r.at[i].set(m), rows, metrics)
-            return i + 1, ts, rows
-
-        _, ts, rows = jax.lax.while_loop(lambda c: c[0] < live, body, (0, ts, rows))
-        return ts, {**rows, "live": jnp.arange(n) < live}  # rows [updates_per_chunk]
-
     def train(key: jax.Array):
         return jax.lax.scan(lambda ts, x: _update(ts), init(key), None, cfg.num_updates)
 
-    # New episodes drawn ahead (`cfg.reset_ahead`, the goal task's): a chunk is a loop of
-    # programs, each rollout's draws one and its update another, so XLA compiles the two (and
-    # `start`) at once rather than one program of both; and init's robots are draws of that
-    # program too, so the task's reset compiles once.
+    # The programs a run compiles, each on its own and at once (`training.find_programs`): an
+    # update is a rollout's program and then the learner's (and with new episodes drawn ahead,
+    # `cfg.reset_ahead`, the rollout's draws first), and a chunk a loop of updates in Python, so
+    # that XLA compiles the rollout and the learner (and the task's reset) at the same time rather
+    # than one program of all; init's robots are draws of that program too, so the reset compiles
+    # once.
     per_draw = cfg.rollout_length * env.draws_per_block(cfg.num_envs)  # a block's episodes
     calls = -(-cfg.num_envs // g // per_draw)  # calls of `draws` for init's robots
 
@@ -389,9 +380,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     keys_of = jax.jit(first_keys)  # a few ops: XLA's own options
 
     def compose(programs: dict):
-        if not cfg.reset_ahead:
-            return programs["init"], programs["chunk"]
-        draws, begin, step = programs["draws"], programs["start"], programs["update"]
+        rollout, learn, draws = programs["rollout"], programs["learn"], programs.get("draws")
 
         def init_drawn(key: jax.Array) -> TrainState:
             k_net, key, keys = keys_of(key)
@@ -399,26 +388,31 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             for _ in range(calls):
                 keys, fresh = draws(keys)
                 batches.append(fresh)
-            return begin(k_net, key, keys, tuple(batches))
+            return programs["start"](k_net, key, keys, tuple(batches))
+
+        def update(ts: TrainState):
+            drawn = () if draws is None else (draws(ts.env_state.info[RESET_KEY]),)
+            return learn(*rollout(ts, *drawn))
 
         def chunk(ts: TrainState):
             # As many updates as the budget has left; their metrics rows stay zero.
             live = int(np.clip(cfg.num_updates - int(ts.update), 0, n))
             rows = []
             for _ in range(live):
-                ts, metrics = step(ts, draws(ts.env_state.info[RESET_KEY]))
+                ts, metrics = update(ts)
                 rows.append(metrics)
             if rows:
                 return ts, chunk_rows(tuple(rows))
-            drawn = jax.eval_shape(_draws, ts.env_state.info[RESET_KEY])  # none: zero rows
-            rows = zero_rows(jax.eval_shape(_update, ts, drawn)[1])
+            keys = ts.env_state.info.get(RESET_KEY)  # none: zero rows
+            drawn = () if draws is None else (jax.eval_shape(_draws, keys),)
+            rows = zero_rows(jax.eval_shape(_update, ts, *drawn)[1])
             return ts, {**rows, "live": jnp.zeros(n, bool)}
 
-        return init_drawn, chunk
+        return (init_drawn if draws is not None else programs["init"]), chunk
 
     @jax.jit
     def chunk_rows(rows: tuple) -> dict:
-        """The metrics of a chunk's updates `rows` (at least one) as `run_chunk`'s rows
+        """The metrics of a chunk's updates `rows` (at least one) as the chunk's rows
         [updates_per_chunk], zeros past them."""
 
         def stack(*x):
@@ -427,36 +421,35 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         return {**jax.tree_util.tree_map(stack, *rows), "live": jnp.arange(n) < len(rows)}
 
     def arguments(name: str, programs: dict, key: jax.Array):
-        # "state": init's TrainState, what the chunk's programs take.
+        # "state": init's TrainState, what the update's programs take.
         if name in ("init", "draws"):
             return (key,) if name == "init" else (jax.eval_shape(keys_of, key)[2],)
-        if name == "state" and not cfg.reset_ahead:
-            return jax.eval_shape(programs["init"], key)
-        if name == "chunk":
-            return (arguments("state", programs, key),)
-        k_net, key, keys = jax.eval_shape(keys_of, key)
-        keys, fresh = jax.eval_shape(programs["draws"], keys)
-        if name == "start":
-            return k_net, key, keys, (fresh,) * calls
-        ts = jax.eval_shape(programs["start"], k_net, key, keys, (fresh,) * calls)
-        return ts if name == "state" else (ts, (keys, fresh))
+        drawn = ()
+        if cfg.reset_ahead:
+            k_net, key, keys = jax.eval_shape(keys_of, key)
+            drawn = (jax.eval_shape(programs["draws"], keys),)
+            if name == "start":
+                return k_net, key, drawn[0][0], (drawn[0][1],) * calls
+            ts = jax.eval_shape(programs["start"], k_net, key, drawn[0][0], (drawn[0][1],) * calls)
+        else:
+            ts = jax.eval_shape(programs["init"], key)
+        if name == "state":
+            return ts
+        if name == "rollout":
+            return (ts, *drawn)
+        return jax.eval_shape(programs["rollout"], ts, *drawn)  # "learn"
 
     parts = {
         "rollout": _rollout,
         "learn": _learn,
         "update": _update,
         "init": init,
-        "chunk": run_chunk,
         "draws": _draws,
         "start": start,
     }
-    if cfg.reset_ahead:
-        programs = {
-            "draws": jit(_draws),
-            "start": jit(start),
-            "update": jit(_update, donate_argnums=0),
-        }
-    else:
-        programs = {"init": jit(init), "chunk": jit(run_chunk, donate_argnums=0)}
+    first = {"draws": jit(_draws), "start": jit(start)} if cfg.reset_ahead else {"init": jit(init)}
+    # Both take the train state and reuse its buffers: the robots' and the learner's.
+    steps = {"rollout": jit(_rollout, donate_argnums=0), "learn": jit(_learn, donate_argnums=0)}
+    programs = {**first, **steps}
     trainer = Trainer(network, None, None, jit(train), parts, {}, compose, arguments)
     return trainer.with_programs(**programs)
