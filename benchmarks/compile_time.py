@@ -14,8 +14,8 @@ lowered StableHLO, characters of the optimised HLO).
 Per task: in this process, each of a run's programs (`Trainer.programs`: init, the rollout and the
 learner, or the draws, start, rollout and learner of a task that draws its new episodes ahead)
 lowered (tracing: `jax.stages` `.lower`) and compiled (`.compile`) on its own, in turn, with the
-size of its HLO text, and the sums over the chunk's (all but init and start); then `python -m jaxnav.train` run
-twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
+size of its HLO text, and the sums over the chunk's (all but init and start); then `python -m
+jaxnav.train` run twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
 chunk: the seconds to its "compiled and ran the first chunk" line, to the start of that chunk's run
 (its "compiled in", the chunk compiled and init run: when training starts) and the whole
 command's wall time, cold and with the cache warm, and JAX's compile events of each run per
@@ -336,7 +336,7 @@ def flag_runs(
     return out
 
 
-# XLA's own timers for the chunk's modules (`jit_run_chunk`; or `jit__draws` and `jit__update`),
+# XLA's own timers for the chunk's modules (`jit__rollout`, `jit__learn` and `jit__draws`),
 # from its log on a GPU: regex -> key, summed over them.
 CHUNK_MODULES = r"jit_(?:_draws|_rollout|_learn)"
 XLA_TIMERS = {

@@ -135,9 +135,10 @@ def judge(collided: np.ndarray, speed: np.ndarray, family: np.ndarray) -> dict:
 
 def train_to_bar(trainer, config, env, judge_state, max_seconds: float, full=False, every: int = 1):
     """Trains in chunks of `updates_per_chunk` updates of `trainer` (on `config`'s `env`; its
-    programs traced and compiled at once first, as a run's, and init run: the compile's seconds), calling `judge_state(ts, metrics, record) ->
-    (entry, met)` after every `every` chunks and after the last, until the bar is met (or, `full`,
-    the budget is spent) or `max_seconds` of training. `record` holds update, env_steps and
+    programs traced and compiled at once first, as a run's, and init run: the compile's seconds),
+    calling `judge_state(ts, metrics, record) -> (entry, met)` after every `every` chunks and
+    after the last, until the bar is met (or, `full`, the budget is spent) or `max_seconds` of
+    training. `record` holds update, env_steps and
     train_s; `metrics` are the last chunk's. Returns (compile s, history: the entries, the first
     entry that met the bar or None)."""
     key = jax.random.PRNGKey(config.seed)

@@ -3,9 +3,9 @@ start, rollout and learner of a run that draws its new episodes ahead), traced o
 disk.
 
 Before XLA compiles anything, a start traces the task's reset and step (under `vmap`, in a scan)
-and lowers them to StableHLO: several seconds of Python on every start (7-9 s for the goal task's
-programs), which JAX's persistent compilation cache cannot keep, since it keeps XLA's side only. So a
-run on one device exports its programs with `jax.export` (StableHLO and the pytree structure of
+and lowers them to StableHLO: several seconds of Python on every start (7-9 s for the goal
+task's), which JAX's persistent compilation cache cannot keep, since it keeps XLA's side only. So
+a run on one device exports its programs with `jax.export` (StableHLO and the pytree structure of
 their arguments and results) into the `programs/` folder of the compilation cache, under a key of
 everything the trace depends on (`run_key`). A repeated run reads them back and hands them to
 `jax.jit`, whose program (a call of the stored one) the first run compiled too, so XLA's side is a
