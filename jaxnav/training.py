@@ -249,8 +249,9 @@ def run(
             check_new_out(out)
         env, trainer = interruptible(_build, config)
         key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
-        trainer, shapes, ahead = interruptible(find_programs, trainer, config, env, key)
-        memory_check(config, env, shapes)
+        check = lambda shapes: memory_check(config, env, shapes)  # noqa: E731
+        found = (trainer, config, env, key, True, check)
+        trainer, _, ahead = interruptible(find_programs, *found)
         folder.create()
         created = True
         distributed.ready()
@@ -426,31 +427,40 @@ class _CompiledAhead:
         return self._compiled(*args)
 
 
-def find_programs(trainer, config, env, key, ahead: bool = True):
+def find_programs(trainer, config, env, key, ahead: bool = True, check=None):
     """(trainer, the abstract TrainState of its init from `key`, whether its programs compile
     ahead): each of the trainer's programs (`Trainer.programs`) read from the program store or
     traced (and kept there: `programs.program`) in turn, on the abstract arguments the run will
-    call it with (the outputs of those before it: `Trainer.arguments`).
+    call it with (the outputs of those before it: `Trainer.arguments`). `check(state)` (e.g. the
+    memory check) runs as soon as that TrainState is known, before anything compiles.
 
     With `ahead` and one device, each program starts compiling in a thread of its own as soon as
-    it is found (`_CompiledAhead`: XLA's compile lets go of the GIL, so the next one is traced
-    meanwhile and they compile at once), and the trainer calls the compiled programs: the same
-    program on the same inputs as when compiled at its first call. With several devices the
-    chunk's input shardings are those XLA chooses for init's output, known only once init is
-    compiled: there (and for a trainer without programs) each compiles at its first call.
+    it is found and the check has passed (`_CompiledAhead`: XLA's compile lets go of the GIL, so
+    the next one is traced meanwhile and they compile at once), and the trainer calls the
+    compiled programs: the same program on the same inputs as when compiled at its first call.
+    With several devices the chunk's input shardings are those XLA chooses for init's output,
+    known only once init is compiled: there (and for a trainer without programs) each compiles at
+    its first call.
     """
-    run = programs.run_of(config, env) if trainer.programs else None
-    ahead = ahead and jax.device_count() == 1 and bool(trainer.programs)
-    found, compiled = {}, {}
-    for name, jitted in (trainer.programs or {}).items():
-        args = trainer.arguments(name, found, key)
-        found[name] = programs.program(trainer, run, name, args) or jitted
-        if ahead:
-            compiled[name] = _CompiledAhead(found[name], args)
-    state = trainer.arguments("state", found, key) if found else jax.eval_shape(trainer.init, key)
-    if found:
-        trainer = trainer.with_programs(**(compiled or found))
-    return trainer, state, ahead
+    if not trainer.programs:
+        state = jax.eval_shape(trainer.init, key)
+        if check is not None:
+            check(state)
+        return trainer, state, False
+    run = programs.run_of(config, env)
+    ahead = ahead and jax.device_count() == 1
+    found, waiting, compiled, state = {}, [], {}, None
+    for name, jitted in trainer.programs.items():
+        waiting.append((name, trainer.arguments(name, found, key)))
+        found[name] = programs.program(trainer, run, name, waiting[-1][1]) or jitted
+        if state is None and all(n in found for n in trainer.state_from):
+            state = trainer.arguments("state", found, key)
+            if check is not None:
+                check(state)
+        if ahead and state is not None:
+            compiled.update((n, _CompiledAhead(found[n], args)) for n, args in waiting)
+            waiting = []
+    return trainer.with_programs(**(compiled or found)), state, ahead
 
 
 # ---------------------------------------------------------------- the loop

@@ -32,8 +32,8 @@ def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, 
     each at its first call, kept in the program store folder `store` (None: the store off)."""
     used = []
 
-    def find_programs(trainer, config, env, key):
-        found = FIND(trainer, config, env, key, ahead=ahead)
+    def find_programs(trainer, config, env, key, _ahead=True, check=None):
+        found = FIND(trainer, config, env, key, ahead, check)
         used.append(found[2])
         return found
 
@@ -122,9 +122,11 @@ def test_programs_compiled_at_once_train_the_same_and_compile_once(
 
 
 def test_each_program_compiles_while_the_next_is_traced(monkeypatch):
-    """`find_programs` starts a program's compile as soon as it has its abstract arguments, before
-    it traces the programs after it (which take its outputs), and the trainer it returns calls
-    the compiled programs; with `ahead=False` nothing compiles before the first call."""
+    """`find_programs` starts a program's compile as soon as it has its abstract arguments and the
+    check of init's state (the memory check) has passed, before it traces the programs after it
+    (which take its outputs), and the trainer it returns calls the compiled programs. A check that
+    fails stops it before anything compiles; with `ahead=False` nothing compiles before the first
+    call."""
     import jax.numpy as jnp
 
     log = []
@@ -139,22 +141,38 @@ def test_each_program_compiles_while_the_next_is_traced(monkeypatch):
         if name == "double":
             return (key,)
         half = jax.eval_shape(found["double"], key)
-        return (half,) if name == "add" else jax.eval_shape(found["add"], half)
+        return half if name == "state" else (half,)  # "add"
+
+    def check(state):
+        log.append(("check", state.shape))
 
     double, add = jax.jit(lambda k: 2 * k), jax.jit(lambda x: x + 1)
     double.__name__, add.__name__ = "double", "add"
     compose = lambda p: (lambda k: p["add"](p["double"](k)), None)  # noqa: E731
-    trainer = ppo_train.Trainer(None, None, None, None, {}, {}, compose, arguments)
+    trainer = ppo_train.Trainer(None, None, None, None, {}, {}, compose, arguments, ("double",))
     trainer = trainer.with_programs(double=double, add=add)
     monkeypatch.setattr(train_module, "_CompiledAhead", Compiled)
     key = jnp.arange(3.0)
-    got, state, ahead = train_module.find_programs(trainer, None, None, key)
-    assert ahead and log[:4] == [("trace", "double"), ("compile", "double"), ("trace", "add")] + [
-        ("compile", "add")
+    got, state, ahead = train_module.find_programs(trainer, None, None, key, check=check)
+    assert ahead and log == [
+        ("trace", "double"),
+        ("trace", "state"),
+        ("check", (3,)),
+        ("compile", "double"),
+        ("trace", "add"),
+        ("compile", "add"),
     ]
     assert all(isinstance(p, Compiled) for p in got.programs.values())
     np.testing.assert_array_equal(got.init(key), 2 * key + 1)
     assert state.shape == (3,)
+
+    def refuse(state):
+        raise ValueError("--num-envs: too many")
+
+    log.clear()
+    with pytest.raises(ValueError, match="too many"):
+        train_module.find_programs(trainer, None, None, key, check=refuse)
+    assert not [entry for entry in log if entry[0] == "compile"]
     log.clear()
     got, _, ahead = train_module.find_programs(trainer, None, None, key, ahead=False)
     assert not ahead and ("compile", "double") not in log and got.programs["add"] is add

@@ -74,6 +74,8 @@ class Trainer(NamedTuple):
     # (name, programs, key) -> the abstract arguments program `name` takes in a run from `key`,
     # from the programs before it (`jax.eval_shape` of each); "state": init's abstract TrainState.
     arguments: callable = None
+    # The programs init's TrainState follows from: "init", or "draws" and "start".
+    state_from: tuple = ()
 
     def with_programs(self, **programs) -> Trainer:
         """This trainer with `programs` in place of the ones of the same names."""
@@ -451,5 +453,5 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     # Both take the train state and reuse its buffers: the robots' and the learner's.
     steps = {"rollout": jit(_rollout, donate_argnums=0), "learn": jit(_learn, donate_argnums=0)}
     programs = {**first, **steps}
-    trainer = Trainer(network, None, None, jit(train), parts, {}, compose, arguments)
+    trainer = Trainer(network, None, None, jit(train), parts, {}, compose, arguments, tuple(first))
     return trainer.with_programs(**programs)
