@@ -250,8 +250,9 @@ def run(
         env, trainer = interruptible(_build, config)
         key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
         check = lambda shapes: memory_check(config, env, shapes)  # noqa: E731
-        found = (trainer, config, env, key, True, check)
-        trainer, _, ahead = interruptible(find_programs, *found)
+        trainer, _, ahead = interruptible(
+            lambda: find_programs(trainer, config, env, key, check=check)
+        )
         folder.create()
         created = True
         distributed.ready()

@@ -32,8 +32,8 @@ def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, 
     each at its first call, kept in the program store folder `store` (None: the store off)."""
     used = []
 
-    def find_programs(trainer, config, env, key, _ahead=True, check=None):
-        found = FIND(trainer, config, env, key, ahead, check)
+    def find_programs(trainer, config, env, key, check=None):
+        found = FIND(trainer, config, env, key, ahead=ahead, check=check)
         used.append(found[2])
         return found
 

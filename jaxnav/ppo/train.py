@@ -206,9 +206,13 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     # The critic's own inputs [N, C] of a state, or None; the loss's inputs are (obs, those).
     critic_in = lambda state: state.info["critic"] if cfg.privileged_critic else None  # noqa: E731
 
-    def init(key: jax.Array) -> TrainState:
+    def first_keys(key: jax.Array):
         k_net, k_env, key = jax.random.split(key, 3)
-        return _train_state(k_net, key, reset(jax.random.split(k_env, cfg.num_envs)))
+        return k_net, key, shard(jax.random.split(k_env, cfg.num_envs))  # [N, 2] reset keys
+
+    def init(key: jax.Array) -> TrainState:
+        k_net, key, keys = first_keys(key)
+        return _train_state(k_net, key, reset(keys))
 
     def _train_state(k_net, key, env_state) -> TrainState:
         extra = critic_in(env_state)
@@ -357,10 +361,6 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     per_draw = cfg.rollout_length * env.draws_per_block(cfg.num_envs)  # a block's episodes
     calls = -(-cfg.num_envs // g // per_draw)  # calls of `draws` for init's robots
 
-    def first_keys(key: jax.Array):
-        k_net, k_env, key = jax.random.split(key, 3)
-        return k_net, key, shard(jax.random.split(k_env, cfg.num_envs))  # [N, 2] reset keys
-
     def start(k_net, key, keys, batches) -> TrainState:
         """init's TrainState from the robots' reset keys [N, 2] and `calls` batches of `_draws`
         (leaves [T, G, P/G, ...]): block b's robots are its first N/G of those episodes."""
@@ -429,10 +429,11 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         drawn = ()
         if cfg.reset_ahead:
             k_net, key, keys = jax.eval_shape(keys_of, key)
-            drawn = (jax.eval_shape(programs["draws"], keys),)
+            keys, fresh = jax.eval_shape(programs["draws"], keys)
+            begin = (k_net, key, keys, (fresh,) * calls)  # start's arguments
             if name == "start":
-                return k_net, key, drawn[0][0], (drawn[0][1],) * calls
-            ts = jax.eval_shape(programs["start"], k_net, key, drawn[0][0], (drawn[0][1],) * calls)
+                return begin
+            ts, drawn = jax.eval_shape(programs["start"], *begin), ((keys, fresh),)
         else:
             ts = jax.eval_shape(programs["init"], key)
         if name == "state":
