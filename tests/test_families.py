@@ -90,6 +90,19 @@ def test_families_mix_without_recompiling(rooms):
     assert out.box_pos.shape == (KEYS * len(NAMES), NB, 2)
 
 
+def test_pick_is_the_room_lax_switch_draws():
+    """`families.pick` keeps the room `lax.switch` would: the same bits for every key and family,
+    in a batch (as resets run) and for one robot alone."""
+    branches = [lambda k, f=f: f(k, NB, NC, RADIUS) for f in families.FAMILIES.values()]
+    keys = jax.random.split(jax.random.PRNGKey(5), 3 * len(NAMES))
+    index = jnp.arange(3 * len(NAMES)) % len(NAMES)
+    picked = jax.jit(jax.vmap(lambda i, k: families.pick(i, branches, k)))(index, keys)
+    switched = jax.jit(jax.vmap(lambda i, k: jax.lax.switch(i, branches, k)))(index, keys)
+    chex.assert_trees_all_equal(picked, switched)
+    one = jax.jit(lambda i, k: families.pick(i, branches, k))(index[4], keys[4])
+    chex.assert_trees_all_equal(one, jax.tree_util.tree_map(lambda x: x[4], switched))
+
+
 def test_coverage_of_a_straight_path_in_an_empty_room():
     """A 4 x 4 m room, a path along y = 0 from x = -1 to 1: the reachable area is the square of
     side 4 - 2 r; the covered part is the stadium of radius 1 around the path, clipped by it."""

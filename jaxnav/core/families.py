@@ -468,10 +468,18 @@ def grid_size(weights) -> int:
     return FIELD_CELLS if set(weights) & set(GRID_FAMILIES) else 0
 
 
+def pick(index: jax.Array, branches, key: jax.Array) -> SceneParams:
+    """The room of `branches[index](key)`, `index` a traced int32 in range: every branch computed
+    and the room of `index` kept, which is what `lax.switch` does under vmap (a batched index),
+    traced once under the batch rather than once alone and again to batch it."""
+    rooms = [branch(key) for branch in branches]
+    return jax.tree_util.tree_map(lambda *xs: jax.lax.select_n(index, *xs), *rooms)
+
+
 def sample_family(key, index, nb: int, nc: int, radius: float) -> SceneParams:
     """A room of family `index` (traced int32: families mix without recompiling)."""
     branches = [lambda k, f=f: f(k, nb, nc, radius) for f in FAMILIES.values()]
-    return jax.lax.switch(index, branches, key)
+    return pick(index, branches, key)
 
 
 def sample_weighted(
@@ -479,8 +487,8 @@ def sample_weighted(
 ) -> SceneParams:
     """A room of a family drawn with the weights of `cfg.families` ('random': `sample_room(cfg)`).
 
-    Only families of positive weight are traced; under vmap each of them is computed for every
-    env and one kept, so the cost grows with their number (see benchmarks/env_rollout.py). With
+    Only families of positive weight are traced; each of them is computed for every env and one
+    kept (`pick`), so the cost grows with their number (see benchmarks/env_rollout.py). With
     a grid family among them, or `grid` > 0, every room has an occupancy grid of
     max(`grid`, its `grid_size`) cells a side (empty where the family has none)."""
     weights = family_weights(cfg.families)
@@ -492,7 +500,7 @@ def sample_weighted(
     d = Draws(key)
     # Family: drawn with the given weights.
     index = d.choice(jnp.asarray(list(weights.values()), jnp.float32))
-    return jax.lax.switch(index, branches, d.key()) if len(branches) > 1 else branches[0](d)
+    return pick(index, branches, d.key()) if len(branches) > 1 else branches[0](d)
 
 
 def _grown(room: SceneParams, g: int) -> SceneParams:
