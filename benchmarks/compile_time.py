@@ -15,12 +15,12 @@ Per task: in this process, each of a run's programs (`Trainer.programs`: init, t
 learner, or the draws, start, rollout and learner of a task that draws its new episodes ahead)
 lowered (tracing: `jax.stages` `.lower`) and compiled (`.compile`) on its own, in turn, with the
 size of its HLO text, and the sums over the chunk's (all but init and start); then `python -m
-jaxnav.train` run twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a budget of one
-chunk: the seconds to its "compiled and ran the first chunk" line, to the start of that chunk's run
-(its "compiled in", the chunk compiled and init run: when training starts) and the whole
-command's wall time, cold and with the cache warm, and JAX's compile events of each run per
-program (tracing, lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints
-the table last; writes the JSON.
+jaxnav.train` run twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a
+budget of one chunk: the seconds to its "compiled and ran the first chunk" line, to the start of
+that chunk's run (its "compiled in", the chunk compiled and init run: when training starts) and the
+whole command's wall time, cold and with the cache warm, and JAX's compile events of each run per
+program (tracing, lowering, XLA compiles or cache loads, cache retrievals; `LISTENED`). Prints the
+table last; writes the JSON.
 
 `--checkout DIR`: the command-line runs only (those above, or those of `--xla-flags` and
 `--train-flags`), of the jaxnav in DIR (a checkout of an earlier commit, e.g. `git worktree add

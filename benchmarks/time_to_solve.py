@@ -138,9 +138,8 @@ def train_to_bar(trainer, config, env, judge_state, max_seconds: float, full=Fal
     programs traced and compiled at once first, as a run's, and init run: the compile's seconds),
     calling `judge_state(ts, metrics, record) -> (entry, met)` after every `every` chunks and
     after the last, until the bar is met (or, `full`, the budget is spent) or `max_seconds` of
-    training. `record` holds update, env_steps and
-    train_s; `metrics` are the last chunk's. Returns (compile s, history: the entries, the first
-    entry that met the bar or None)."""
+    training. `record` holds update, env_steps and train_s; `metrics` are the last chunk's.
+    Returns (compile s, history: the entries, the first entry that met the bar or None)."""
     key = jax.random.PRNGKey(config.seed)
     tick = time.perf_counter()  # the programs compiled at once, as a run's: apart from training
     trainer, _, ahead = find_programs(trainer, config, env, key)  # several devices: at first call
