@@ -3,6 +3,7 @@ goals at their speeds, the sampler's walkers start clear, collisions are attribu
 circle-crossing layouts cross, and nothing recompiles between episodes."""
 
 import dataclasses
+import functools
 import re
 
 import jax
@@ -48,17 +49,17 @@ def _params(layouts):
     return make_bank(layouts, 1, max(len(lay.cylinders) for lay in layouts)).rooms
 
 
-@jax.jit
-def _walk(params, robot):
-    """[T, K, C, 2] positions and velocities of the walkers of params [K] over 25 s next to a
-    robot standing at `robot` [2] (None: no robot)."""
+@functools.partial(jax.jit, static_argnames="steps")
+def _walk(params, robot, steps=250):
+    """[T, K, C, 2] positions and velocities of the walkers of params [K] over `steps` control
+    steps (250: 25 s) next to a robot standing at `robot` [2] (None: no robot)."""
 
     def body(p, _):
         stood = None if robot is None else (robot, jnp.zeros(2), ROBOT)
         p = jax.vmap(lambda q: motion.advance(q, DT, stood))(p)
         return p, (p.cyl_pos, p.motion.walkers.velocity)
 
-    return jax.lax.scan(body, params, None, 250)[1]
+    return jax.lax.scan(body, params, None, steps)[1]
 
 
 def test_reactive_walkers_give_way_and_non_reactive_ones_do_not():
@@ -126,6 +127,51 @@ def test_circle_crossing_layouts_load_and_the_people_cross():
     apart = np.asarray(pos)[:, :, :, None] - np.asarray(pos)[:, :, None]  # [T, K, 5, 5, 2]
     dist = np.linalg.norm(apart, axis=-1) + 10 * np.eye(5)
     assert dist.min() > 0.6 - 0.05  # they barely touch one another
+
+
+def _crossings(rooms: int, seed: int) -> list[RoomLayout]:
+    """`rooms` circle crossings of 4-8 reactive people (CrowdNav's, randomised, back and forth):
+    each between a point of a 3-4.5 m circle, 0.5 m of noise per axis, and the opposite point
+    at 0.5-1.4 m/s; ends 0.7 m apart from the others' (CrowdNav's rule)."""
+    rng = np.random.default_rng(seed)
+    layouts = []
+    for i in range(rooms):
+        ends, people, radius = [], [], rng.uniform(3.0, 4.5)
+        for _ in range(rng.integers(4, 9)):
+            while True:
+                a = rng.uniform(-np.pi, np.pi)
+                p = radius * np.array([np.cos(a), np.sin(a)]) + rng.uniform(-0.5, 0.5, 2)
+                if all(np.linalg.norm(p - e) > 0.7 and np.linalg.norm(p + e) > 0.7 for e in ends):
+                    break
+            ends += [p, -p]
+            speed = rng.uniform(0.5, 1.4)
+            people.append(_walker(tuple(p), tuple(-p), radius=0.3, speed=speed, repeat=True))
+        layouts.append(_room(*people, size=(12.0, 12.0), name=f"c{i}"))
+    return layouts
+
+
+def test_people_meeting_from_every_side_never_stand_for_good():
+    # Crowds meeting at a circle's centre, or face to face, can leave every candidate but
+    # standing closing on someone. Without the patience rule 40 of these people (22 of the 256
+    # rooms) stood 5 s or more in 60 s, one for 39 s; with it nobody stands for people more than
+    # PATIENCE, everyone reaches the far side, and no one steps into another.
+    layouts = _crossings(256, seed=0)
+    pos, vel = (np.asarray(x) for x in _walk(_params(layouts), None, steps=600))  # [T, K, C, 2]
+    n = max(len(lay.cylinders) for lay in layouts)
+    here = np.arange(n) < np.array([len(lay.cylinders) for lay in layouts])[:, None]  # [K, C]
+    goals = np.array([[c.motion.goal for c in lay.cylinders] + [(0, 0)] * (n - len(lay.cylinders))
+                      for lay in layouts])  # fmt: skip
+    there = (np.linalg.norm(pos - goals, axis=-1) < crowd.ARRIVE + 1e-3).any(0)  # [K, C]
+    assert there[here].all()
+    stands, longest = np.zeros(here.shape), np.zeros(here.shape)
+    for speed in np.linalg.norm(vel, axis=-1):  # [K, C] a step
+        stands = np.where((speed < 1e-4) & here, stands + 1, 0)
+        longest = np.maximum(longest, stands)
+    assert longest.max() * DT <= crowd.PATIENCE + 2 * DT
+    apart = np.linalg.norm(pos[:, :, :, None] - pos[:, :, None], axis=-1)  # [T, K, C, C]
+    both = here[:, :, None] & here[:, None] & ~np.eye(n, dtype=bool)
+    assert apart[:, both].min() > 0.6 - 1e-3
+    assert np.linalg.norm(vel, axis=-1).max() <= 1.4 + 1e-5
 
 
 def test_walker_motion_parsing_round_trip_and_errors():

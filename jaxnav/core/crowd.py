@@ -13,6 +13,14 @@ So a reactive walker slows, stops or sidesteps for the robot and for the others;
 one gives way to the other people only and walks through the robot's position
 (CrowdNav's "invisible robot", Chen et al. 2019).
 
+Where people meet from every side (a circle crossing's centre) or face to face, every candidate
+but standing can close on someone or turn back, and all of them could stand for good. So a
+walker that has stood for the other people (not for the robot) for PATIENCE s turns bold for
+BOLD s: it heeds the others only as far as not touching them, and stands no more where it can
+move, so it slips past them or steps aside and the meeting dissolves. (The robot is heeded as
+before.) And whatever the candidates' costs, a walker whose step would take it into another
+person, where that one stands or goes, stands instead (`_apart`).
+
 The state is traced data (`Walkers`, in `SceneParams.motion.walkers`; None where nobody walks),
 so new walkers never recompile. `add_walkers` draws the sampler's walkers at the reset
 (`WalkerConfig`), in cylinder slots of their own; a layout's walkers are its cylinders with a
@@ -38,6 +46,8 @@ AVOID_WEIGHT = 1.0  # m/s * s: the penalty of a collision 1 s ahead, against a c
 HORIZON = 3.0  # s; a collision further ahead costs nothing
 MIN_TIME = 0.05  # s; times to collision below this cost as much as this one
 SOCIAL_GAP = 0.1  # m a walker keeps between its edge and another person's or the robot's
+PATIENCE = 1.0  # s a walker stands for people, short of its goal, before it turns bold
+BOLD = 1.0  # s it then heeds the other people only as far as not touching them
 LOOKAHEAD = 0.5  # s ahead at which a candidate must keep STATIC_GAP from walls and still obstacles
 STATIC_GAP = 0.05  # m
 BLOCKED = 100.0  # penalty of a candidate that touches someone or heads into a wall or obstacle
@@ -156,6 +166,7 @@ class Walkers:
     speed: jax.Array  # [C] m/s, preferred speed; 0: the slot does not walk
     reactive: jax.Array  # [C] bool: it gives way to the robot
     velocity: jax.Array  # [C, 2] m/s over the last control step
+    waited: jax.Array  # [C] s it has stood for people short of its goal; >= PATIENCE: bold
 
 
 def idle(slots: int) -> Walkers:
@@ -167,6 +178,7 @@ def idle(slots: int) -> Walkers:
         speed=np.zeros(slots, f32),
         reactive=np.zeros(slots, bool),
         velocity=np.zeros((slots, 2), f32),
+        waited=np.zeros(slots, f32),
     )
 
 
@@ -192,12 +204,12 @@ def from_layouts(layouts, nc: int) -> Walkers | None:
 # One control step
 
 
-def _avoidance(px, py, wx, wy, reach, dt: float):
+def _avoidance(px, py, wx, wy, reach, dt: float, weight=AVOID_WEIGHT):
     """[...] the avoidance cost of discs at relative position (px, py) [...] (from the walker to
     the other) closing at relative velocity (wx, wy) [...] (the walker's minus the other's) whose
-    centres touch at `reach` [...]: the penalty of the time until they come within reach +
-    SOCIAL_GAP (RVO's), plus BLOCKED where they touch within `dt` s. Components, not [..., 2]
-    arrays: XLA on the CPU runs these [C, K, C] arrays about 4x faster so."""
+    centres touch at `reach` [...]: `weight` [...] times the penalty of the time until they come
+    within reach + SOCIAL_GAP (RVO's), plus BLOCKED where they touch within `dt` s. Components,
+    not [..., 2] arrays: XLA on the CPU runs these [C, K, C] arrays about 4x faster so."""
     a = wx * wx + wy * wy
     b = px * wx + py * wy  # > 0: closing
     near = px * px + py * py  # squared distance now
@@ -207,7 +219,7 @@ def _avoidance(px, py, wx, wy, reach, dt: float):
     t = jnp.where(
         c <= 0, jnp.where(b > 0, 0.0, jnp.inf), jnp.where((b > 0) & (disc > 0), t, jnp.inf)
     )
-    penalty = AVOID_WEIGHT * jnp.maximum(1.0 / jnp.maximum(t, MIN_TIME) - 1.0 / HORIZON, 0.0)
+    penalty = weight * jnp.maximum(1.0 / jnp.maximum(t, MIN_TIME) - 1.0 / HORIZON, 0.0)
     closest = jnp.clip(b / jnp.maximum(a, 1e-12), 0.0, dt)  # s into the step of the least gap
     touch = (b > 0) & (near - 2 * b * closest + a * closest**2 < reach**2)
     return penalty + BLOCKED * touch
@@ -246,41 +258,76 @@ def _still_ahead(still, pos, cx, cy):
     return d[0][:, None] + LOOKAHEAD * (cx * gx[:, None] + cy * gy[:, None]), d[0]
 
 
+def _people(w: Walkers, pos, radius, walking, cx, cy, dt: float):
+    """[C, K] the cost of each walker's candidates (cx, cy) [C, K] among the other people, each
+    taking half of the avoiding (reciprocal: the relative velocity of a candidate v is
+    2 v - v_i - v_j, last velocities); a bold walker (`Walkers.waited`) heeds touching only."""
+    vel = w.velocity  # [C, 2]
+    px, py = (pos[None, :, k] - pos[:, None, k] for k in (0, 1))  # [C, C] from i to j
+    wx, wy = (
+        (2 * c - vel[:, None, k])[:, :, None] - vel[None, None, :, k] for k, c in ((0, cx), (1, cy))
+    )  # [C, K, C]: walker i, candidate, j
+    reach = radius[:, None] + radius[None, :]  # [C, C]
+    weight = jnp.where(w.waited >= PATIENCE, 0.0, AVOID_WEIGHT)[:, None, None]  # [C, 1, 1]
+    people = _avoidance(px[:, None], py[:, None], wx, wy, reach[:, None], dt, weight)
+    others = walking[None, :] & ~jnp.eye(pos.shape[0], dtype=bool)  # [C, C]
+    return jnp.where(others[:, None], people, 0.0).max(-1)
+
+
+def _waited(w: Walkers, stood, dt: float):
+    """[C] `Walkers.waited` after a step in which the walkers `stood` [C] short of their goals
+    for the other people: it counts up while they stand, on through BOLD, then starts over."""
+    waited = jnp.where((w.waited >= PATIENCE) | stood, w.waited + dt, 0.0)
+    return jnp.where(waited >= PATIENCE + BOLD - 1e-6, 0.0, waited)
+
+
+def _apart(pos, new, radius, walking):
+    """[C] bool: the walkers whose step from `pos` to `new` [C, 2] comes within touch of another
+    walker's position before or after its own step ([C] `radius`; closer than they were, so
+    people who touch may still part). Those stand instead: whoever still moves keeps clear of
+    where each of the others stands or goes, so no one steps into another."""
+    reach = radius[:, None] + radius[None, :]  # [C, C]
+    now = jnp.linalg.norm(pos[:, None] - pos[None], axis=-1)  # [C, C]
+    near = jnp.zeros(pos.shape[0], bool)
+    for there in (pos, new):  # the others before their step, and after it
+        gap = jnp.linalg.norm(new[:, None] - there[None], axis=-1)  # [C, C]
+        near |= ((gap < reach) & (gap < now) & walking[None, :]).any(-1)
+    return near
+
+
 def walk(room, dt: float, robot=None):
     """`room` (SceneParams whose `motion.walkers` is set) after the walkers' step of `dt` s.
     `robot`: (xy [2], velocity [2], radius) of the robot the reactive walkers give way to
     (None: no robot)."""
     w = room.motion.walkers
-    pos, radius, vel = room.cyl_pos, room.cyl_radius, w.velocity  # [C, 2], [C], [C, 2]
+    pos, radius = room.cyl_pos, room.cyl_radius  # [C, 2], [C]
     walking = (w.speed > 0) & room.cyl_active
     goal, back, desired = _heading(w, pos, walking, dt)
-    cx, cy = _candidates(desired)  # [C, K]
+    cx, cy = _candidates(desired)  # [C, K], the last one standing
     cost = jnp.hypot(cx - desired[:, :1], cy - desired[:, 1:])  # [C, K]
-    # The other people, each taking half of the avoiding (reciprocal: the relative velocity of a
-    # candidate v is 2 v - v_i - v_j, last velocities): [C, K, C], walker i, candidate, j.
-    px, py = (pos[None, :, k] - pos[:, None, k] for k in (0, 1))  # [C, C] from i to j
-    wx, wy = (
-        (2 * c - vel[:, None, k])[:, :, None] - vel[None, None, :, k] for k, c in ((0, cx), (1, cy))
-    )
-    reach = radius[:, None] + radius[None, :]  # [C, C]
-    people = _avoidance(px[:, None], py[:, None], wx, wy, reach[:, None], dt)
-    others = walking[None, :] & ~jnp.eye(pos.shape[0], dtype=bool)  # [C, C]
-    cost += jnp.where(others[:, None], people, 0.0).max(-1)
+    cost += _people(w, pos, radius, walking, cx, cy, dt)
+    # Walls and still obstacles: no candidate that comes too near them, unless it moves away.
+    still = room.replace(cyl_active=room.cyl_active & ~walking)
+    ahead, now = _still_ahead(still, pos, cx, cy)  # [C, K], [C]
+    cost += jnp.where((ahead < (radius + STATIC_GAP)[:, None]) & (ahead < now[:, None]), BLOCKED, 0)
+    wants = jnp.linalg.norm(desired, axis=-1)  # [C] m/s
+    cost = cost.at[:, -1].add(jnp.where(w.waited >= PATIENCE, wants, 0.0))  # bold: not standing
+    stood = walking & (jnp.argmin(cost, -1) == cost.shape[1] - 1) & (wants > 0)  # for people
     if robot is not None:  # the reactive walkers give way to the robot too: [C, K]
         xy, velocity, r = robot
         rx, ry = (xy[k] - pos[:, k : k + 1] for k in (0, 1))  # [C, 1] from walker to robot
         them = _avoidance(rx, ry, cx - velocity[0], cy - velocity[1], radius[:, None] + r, dt)
         cost += jnp.where(w.reactive[:, None], them, 0.0)
-    # Walls and still obstacles: no candidate that comes too near them, unless it moves away.
-    still = room.replace(cyl_active=room.cyl_active & ~walking)
-    ahead, now = _still_ahead(still, pos, cx, cy)  # [C, K], [C]
-    cost += jnp.where((ahead < (radius + STATIC_GAP)[:, None]) & (ahead < now[:, None]), BLOCKED, 0)
     best = jnp.argmin(cost, -1)  # [C]
     pick = lambda x: jnp.take_along_axis(x, best[:, None], 1)[:, 0]  # noqa: E731
     velocity = jnp.where(walking[:, None], jnp.stack([pick(cx), pick(cy)], -1), 0.0)
     limit = jnp.maximum(room.room_half - radius[:, None], 0.0)  # [C, 2]
     new = jnp.where(walking[:, None], jnp.clip(pos + velocity * dt, -limit, limit), pos)
-    walkers = w.replace(goal=goal, back=back, velocity=velocity)
+    stop = walking & _apart(pos, new, radius, walking)  # [C]
+    velocity = jnp.where(stop[:, None], 0.0, velocity)
+    new = jnp.where(stop[:, None], pos, new)
+    waited = _waited(w, stood | (stop & (wants > 0)), dt)
+    walkers = w.replace(goal=goal, back=back, velocity=velocity, waited=waited)
     return room.replace(cyl_pos=new, motion=room.motion.replace(walkers=walkers))
 
 
