@@ -54,6 +54,19 @@ from jaxnav.viz import render  # noqa: E402
 from jaxnav.wrappers import AutoReset, EpisodeStats  # noqa: E402
 
 
+@pytest.fixture
+def optimised(monkeypatch):
+    """jaxnav's programs compiled at jaxnav's own LLVM level (`jaxnav.core.xla`) rather than the
+    session's -O0, for a test that trains long enough for its run time to outweigh the longer
+    compile (on 2 cores the goal task's learning test takes a third of the time): the session's
+    XLA_FLAGS without their level, so that `compiler_options` sets jaxnav's on each program it
+    compiles from now on (the backend keeps the flags it started with)."""
+    from jaxnav.core.xla import OPTION
+
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    monkeypatch.setenv("XLA_FLAGS", " ".join(f for f in flags if OPTION not in f))
+
+
 @pytest.fixture(autouse=True)
 def _program_store_off():
     """Every test starts with the program store off (`jaxnav.programs`): a command run in this

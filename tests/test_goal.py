@@ -305,7 +305,7 @@ def test_layout_goal_is_checked():
 
 
 @pytest.mark.slow
-def test_goal_success_rises_above_random(tmp_path):
+def test_goal_success_rises_above_random(tmp_path, optimised):
     """A short run in an open room: the success rate of its last updates is well above that of
     its first (a near-uniform random policy's). Slow: a training run long enough to learn."""
     import csv

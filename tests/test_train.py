@@ -22,7 +22,7 @@ TINY = dict(num_envs=64, rollout_length=32, minibatch_size=512, num_epochs=4, up
 
 
 @pytest.mark.slow
-def test_tiny_training_improves_reward():
+def test_tiny_training_improves_reward(optimised):
     """40 tiny updates raise the reward. Slow: a training run long enough to learn."""
     # Without the velocity smoother and latency a random policy collides often, so 40 tiny updates
     # show learning plainly (the sim-to-real default is learnt by the quick start, README Results).
