@@ -2,6 +2,7 @@
 a repeated run reads them from the program store (`jaxnav.programs`): the same run, bit for bit,
 as compiling one after the other, and nothing is compiled twice."""
 
+import dataclasses
 import re
 
 import jax
@@ -178,14 +179,23 @@ def test_each_program_compiles_while_the_next_is_traced(monkeypatch):
     assert not ahead and ("compile", "double") not in log and got.programs["add"] is add
 
 
-def test_cpu_programs_compile_at_jaxnav_level(monkeypatch):
-    """On the CPU, jaxnav's programs take `core.xla`'s options (LLVM at -O2); other backends and a
-    user's own level in XLA_FLAGS keep XLA's defaults."""
+def test_programs_compile_with_jaxnav_options(monkeypatch):
+    """jaxnav's programs take `core.xla`'s options: LLVM at -O2 on the CPU, deterministic ops on
+    a GPU where the config asks; other backends, and a user's own setting in XLA_FLAGS, keep
+    XLA's defaults."""
     monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.setattr(xla, "_deterministic", False)
     assert xla.compiler_options("cpu") == {xla.OPTION: xla.CPU_OPT_LEVEL}
-    assert xla.compiler_options("cuda") is None
+    assert xla.compiler_options("gpu") is None
+    xla.deterministic(True)
+    for gpu in ("gpu", "cuda", "rocm"):
+        assert xla.compiler_options(gpu) == {xla.DETERMINISTIC: True}
+    assert xla.compiler_options("tpu") is None
     monkeypatch.setenv("XLA_FLAGS", f"--{xla.OPTION}=3")
     assert xla.compiler_options("cpu") is None
+    assert xla.compiler_options("gpu") == {xla.DETERMINISTIC: True}
+    monkeypatch.setenv("XLA_FLAGS", f"--{xla.DETERMINISTIC}=false")
+    assert xla.compiler_options("gpu") is None
 
 
 def test_the_trainer_hands_its_options_to_xla(monkeypatch):
@@ -252,3 +262,15 @@ def test_a_reset_lowered_for_a_gpu_holds_few_hashes(task, most):
         jax.config.update(xla.THREEFRY_KERNEL, before)
     hashes = text.count("call @threefry2x32")
     assert 0 < hashes <= most, hashes
+
+
+def test_the_config_asks_for_deterministic_ops(monkeypatch):
+    """`PPOConfig.deterministic` sets the process's GPU option as `make_train` builds the trainer,
+    on and back off."""
+    monkeypatch.setattr(xla, "_deterministic", False)
+    config = tiny_config()
+    env = train_module.make_run_env(config)
+    ppo_train.make_train(dataclasses.replace(config.ppo, deterministic=True), env)
+    assert xla.compiler_options("gpu") == {xla.DETERMINISTIC: True}
+    ppo_train.make_train(config.ppo, env)
+    assert xla.compiler_options("gpu") is None

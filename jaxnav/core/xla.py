@@ -3,8 +3,14 @@
 On the CPU, XLA hands its fused kernels to LLVM at -O3. jaxnav's programs are large (a reset holds
 every room family's sampler) and each kernel runs briefly, so -O2 compiles the training chunk in
 about three quarters of the time and trains as fast (`benchmarks/compile_time.py --opt-levels`,
-docs/results.md). Other backends keep XLA's defaults, and so does a user's own
-`--xla_backend_optimization_level` in `XLA_FLAGS`.
+docs/results.md). A user's own `--xla_backend_optimization_level` in `XLA_FLAGS` is kept.
+
+On a GPU, XLA picks among kernels by timing them in each process (autotuning), and some of its
+reductions add in whatever order threads finish, so two runs of one seed could round differently
+and, over a training run, learn different policies. `deterministic` has jaxnav compile its GPU
+programs with `xla_gpu_deterministic_ops` (`PPOConfig.deterministic`, off by default): a seed
+then trains to the same bits on one machine, slower (docs/results.md, "One seed, one policy, on a
+GPU"). A user's own `--xla_gpu_deterministic_ops` in `XLA_FLAGS` is kept.
 
 On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,
@@ -22,6 +28,9 @@ import jax
 
 CPU_OPT_LEVEL = 2  # LLVM's optimisation level for jaxnav's CPU programs (XLA's own default: 3)
 OPTION = "xla_backend_optimization_level"
+DETERMINISTIC = "xla_gpu_deterministic_ops"  # XLA's option for the same bits every run
+GPUS = ("gpu", "cuda", "rocm")  # the names a GPU backend or platform goes by
+_deterministic = False  # set by `deterministic`
 
 
 def pow2(n: int, least: int = 1) -> int:
@@ -29,12 +38,23 @@ def pow2(n: int, least: int = 1) -> int:
     return max(least, 1 << max(n - 1, 0).bit_length())
 
 
-def compiler_options(backend: str | None = None) -> dict[str, int] | None:
+def compiler_options(backend: str | None = None) -> dict[str, int | bool] | None:
     """The options for a program on `backend` (default: JAX's default backend), or None for
-    XLA's defaults: on the CPU `CPU_OPT_LEVEL`, unless `XLA_FLAGS` sets the level itself."""
-    if OPTION in os.environ.get("XLA_FLAGS", ""):
-        return None
-    return {OPTION: CPU_OPT_LEVEL} if (backend or jax.default_backend()) == "cpu" else None
+    XLA's defaults: on the CPU `CPU_OPT_LEVEL`, on a GPU `DETERMINISTIC` where `deterministic`
+    turned it on, each unless `XLA_FLAGS` sets it itself."""
+    backend, flags = backend or jax.default_backend(), os.environ.get("XLA_FLAGS", "")
+    if backend == "cpu" and OPTION not in flags:
+        return {OPTION: CPU_OPT_LEVEL}
+    if backend in GPUS and _deterministic and DETERMINISTIC not in flags:
+        return {DETERMINISTIC: True}
+    return None
+
+
+def deterministic(on: bool) -> None:
+    """jaxnav's GPU programs compiled from now on in this process with XLA's deterministic ops
+    (`on`) or as XLA's defaults have them (`PPOConfig.deterministic`, set by `make_train`)."""
+    global _deterministic
+    _deterministic = bool(on)
 
 
 THREEFRY_KERNEL = "jax_threefry_gpu_kernel_lowering"

@@ -80,6 +80,12 @@ class PPOConfig:
     bits in a smaller program. Since the resets draw their numbers in blocks
     (`jaxnav.core.draws`), inlined is faster for both tasks: the kernel's calls cannot fuse with
     the step around them (docs/results.md, "Random numbers in blocks")."""
+    deterministic: bool = False
+    """On a GPU, compile with XLA's deterministic ops (`jaxnav.core.xla.deterministic`, set by
+    `make_train` for the process), so that one seed trains to the same bits on one machine; off,
+    XLA times its kernels per process and some sums add in the order threads finish, so two runs
+    of a seed differ. On one H200 the goal task's PPO runs at 13.0 M env-steps/s with it against
+    16.0 M (docs/results.md, "One seed, one policy, on a GPU"). The CPU's programs are always so."""
     fused_learner: bool = True
     """On GPUs, compute each minibatch's gradient as one kernel (`jaxnav.ppo.fused`: the same
     loss, the gradient to the GPU's TF32 rounding) where it applies: a categorical actor whose

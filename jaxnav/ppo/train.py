@@ -20,7 +20,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.core.types import ContinuousActions
-from jaxnav.core.xla import compiler_options, threefry_kernel
+from jaxnav.core.xla import compiler_options, deterministic, threefry_kernel
 from jaxnav.ppo import fused
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
@@ -186,8 +186,9 @@ def block_count(cfg: PPOConfig, devices=None) -> int:
 def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     """Builds the jitted PPO functions for `env` (any object with vmappable reset/step).
 
-    The robots are sharded over `devices` (default: every device of every process). On one GPU it
-    sets how this process lowers jax.random from now on (`cfg.threefry_kernel`).
+    The robots are sharded over `devices` (default: every device of every process). On a GPU it
+    sets how this process compiles (`cfg.deterministic`) and, on one, lowers jax.random
+    (`cfg.threefry_kernel`) from now on.
     """
     extra = critic_inputs(cfg, env)
     network = make_network(cfg, env.action_spec, extra)
@@ -374,6 +375,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         return _train_state(k_net, key, shard(with_reset_keys(env_state, keys)))
 
     platform = devices_used[0].platform
+    deterministic(cfg.deterministic)
     options = compiler_options(platform)
     # On one device only: XLA cannot split the kernel's call over the devices the robots are
     # sharded over, and several GPUs are not measured with it.
