@@ -67,6 +67,8 @@ VARIANTS = {
     "pool64_ahead": {"ppo": {"reset_share": 1 / 64, "reset_ahead": True}},
     # The learner's gradient as XLA's kernels of jax.grad rather than one (PPOConfig.fused_learner).
     "xla_learner": {"ppo": {"fused_learner": False}},
+    # Every room of the `crowd` family: 3-6 people walking (jaxnav.core.crowd) in each.
+    "people": {"randomize": {"families": "crowd"}},
 }
 
 
@@ -274,7 +276,8 @@ def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
     """One row: the env step (and with `split` its pieces) and PPO training of `variant`."""
     levers = VARIANTS[variant]
     scene = SceneConfig(**levers.get("scene", {}))
-    env = jaxnav.make_env(args.env, randomize=FULL, scene=scene)
+    randomize = dataclasses.replace(FULL, **levers.get("randomize", {}))
+    env = jaxnav.make_env(args.env, randomize=randomize, scene=scene)
     ppo = {**task_defaults(args.env).get("ppo", {}), **levers.get("ppo", {})}
     # For the env rows too, as make_train sets it for the PPO rows.
     threefry_kernel(ppo.get("threefry_kernel", False))
