@@ -258,26 +258,27 @@ def _still_ahead(still, pos, cx, cy):
     return d[0][:, None] + LOOKAHEAD * (cx * gx[:, None] + cy * gy[:, None]), d[0]
 
 
-def _people(w: Walkers, pos, radius, walking, cx, cy, dt: float):
+def _people(w: Walkers, pos, radius, walking, bold, cx, cy, dt: float):
     """[C, K] the cost of each walker's candidates (cx, cy) [C, K] among the other people, each
     taking half of the avoiding (reciprocal: the relative velocity of a candidate v is
-    2 v - v_i - v_j, last velocities); a bold walker (`Walkers.waited`) heeds touching only."""
+    2 v - v_i - v_j, last velocities); a `bold` [C] walker heeds touching only."""
     vel = w.velocity  # [C, 2]
     px, py = (pos[None, :, k] - pos[:, None, k] for k in (0, 1))  # [C, C] from i to j
     wx, wy = (
         (2 * c - vel[:, None, k])[:, :, None] - vel[None, None, :, k] for k, c in ((0, cx), (1, cy))
     )  # [C, K, C]: walker i, candidate, j
     reach = radius[:, None] + radius[None, :]  # [C, C]
-    weight = jnp.where(w.waited >= PATIENCE, 0.0, AVOID_WEIGHT)[:, None, None]  # [C, 1, 1]
+    weight = jnp.where(bold, 0.0, AVOID_WEIGHT)[:, None, None]  # [C, 1, 1]
     people = _avoidance(px[:, None], py[:, None], wx, wy, reach[:, None], dt, weight)
     others = walking[None, :] & ~jnp.eye(pos.shape[0], dtype=bool)  # [C, C]
     return jnp.where(others[:, None], people, 0.0).max(-1)
 
 
-def _waited(w: Walkers, stood, dt: float):
-    """[C] `Walkers.waited` after a step in which the walkers `stood` [C] short of their goals
-    for the other people: it counts up while they stand, on through BOLD, then starts over."""
-    waited = jnp.where((w.waited >= PATIENCE) | stood, w.waited + dt, 0.0)
+def _waited(waited, bold, stood, dt: float):
+    """[C] `Walkers.waited` after a step from `waited` [C] (`bold` [C]: at least PATIENCE) in
+    which the walkers `stood` [C] short of their goals for the other people: it counts up while
+    they stand, on through BOLD, then starts over."""
+    waited = jnp.where(bold | stood, waited + dt, 0.0)
     return jnp.where(waited >= PATIENCE + BOLD - 1e-6, 0.0, waited)
 
 
@@ -303,15 +304,16 @@ def walk(room, dt: float, robot=None):
     pos, radius = room.cyl_pos, room.cyl_radius  # [C, 2], [C]
     walking = (w.speed > 0) & room.cyl_active
     goal, back, desired = _heading(w, pos, walking, dt)
+    bold = w.waited >= PATIENCE  # [C]
     cx, cy = _candidates(desired)  # [C, K], the last one standing
     cost = jnp.hypot(cx - desired[:, :1], cy - desired[:, 1:])  # [C, K]
-    cost += _people(w, pos, radius, walking, cx, cy, dt)
+    cost += _people(w, pos, radius, walking, bold, cx, cy, dt)
     # Walls and still obstacles: no candidate that comes too near them, unless it moves away.
     still = room.replace(cyl_active=room.cyl_active & ~walking)
     ahead, now = _still_ahead(still, pos, cx, cy)  # [C, K], [C]
     cost += jnp.where((ahead < (radius + STATIC_GAP)[:, None]) & (ahead < now[:, None]), BLOCKED, 0)
     wants = jnp.linalg.norm(desired, axis=-1)  # [C] m/s
-    cost = cost.at[:, -1].add(jnp.where(w.waited >= PATIENCE, wants, 0.0))  # bold: not standing
+    cost = cost.at[:, -1].add(jnp.where(bold, wants, 0.0))  # bold: not standing
     stood = walking & (jnp.argmin(cost, -1) == cost.shape[1] - 1) & (wants > 0)  # for people
     if robot is not None:  # the reactive walkers give way to the robot too: [C, K]
         xy, velocity, r = robot
@@ -326,7 +328,7 @@ def walk(room, dt: float, robot=None):
     stop = walking & _apart(pos, new, radius, walking)  # [C]
     velocity = jnp.where(stop[:, None], 0.0, velocity)
     new = jnp.where(stop[:, None], pos, new)
-    waited = _waited(w, stood | (stop & (wants > 0)), dt)
+    waited = _waited(w.waited, bold, stood | (stop & (wants > 0)), dt)
     walkers = w.replace(goal=goal, back=back, velocity=velocity, waited=waited)
     return room.replace(cyl_pos=new, motion=room.motion.replace(walkers=walkers))
 
