@@ -94,7 +94,7 @@ def scan_steps(fn, steps):
 def env_pieces(env, n, steps, repeats, ppo: dict, split=True):
     """env-steps/s of a whole step and (`split`) of its pieces, each run alone over `steps` steps."""
     keys = jax.random.split(jax.random.PRNGKey(0), n)
-    cfg = PPOConfig(num_envs=n, **ppo)
+    cfg = PPOConfig(num_envs=n, total_steps=n * 1024, **ppo)  # at least one rollout of any length
     # The step training runs (episode statistics aside).
     wrapped = AutoReset(env, cfg.reset_pool, in_place=cfg.reset_in_place)
     state = jax.jit(wrapped.reset)(keys)

@@ -14,8 +14,9 @@ in TF32 too, in another order (`benchmarks/learner.py`). Every
 matrix side is padded to a power of two of at least 16 (Triton's smallest product) with zeros,
 which add nothing. `make` returns None where it does not apply, and the trainer keeps
 `jax.grad(ppo_loss)`. On several GPUs each runs the kernel on its own robots' rows of a minibatch
-(`jax.shard_map`): the advantage's mean and spread, the gradient and the loss's sums are then
-summed over the GPUs (`lax.psum`), as XLA's partitioned `jax.grad` sums its gradient.
+(`jax.shard_map`): the advantage's mean and spread are joined over the GPUs (one gather), then
+the gradient and the loss's sums summed over them (one `lax.psum` of one vector), as XLA's
+partitioned `jax.grad` sums its gradient.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import functools
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -251,16 +253,11 @@ def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret, a
     xc = obs if extra is None else jnp.concatenate([obs, extra], -1)  # [M, D + C]
     here = obs.shape[0]  # this device's rows
     rows = here if axis is None else here * axis[1]  # the minibatch's
-    total = (lambda x: x) if axis is None else functools.partial(lax.psum, axis_name=axis[0])
     da, dc = _pad(obs.shape[1]), _pad(xc.shape[1])
     actor, critic = _layers(params, "actor"), _layers(params, "critic")
     pa, pc = _padded(actor, da, _pad(actions)), _padded(critic, dc, 16)
-    adv = batch.advantage
-    if axis is None:
-        adv = (adv - jnp.mean(adv)) / (jnp.std(adv) + 1e-8)  # as ppo_loss: per minibatch
-    else:  # the same statistics over every device's rows
-        mean = total(adv.sum()) / rows
-        adv = (adv - mean) / (jnp.sqrt(total(jnp.square(adv - mean).sum()) / rows) + 1e-8)
+    mean, spread = _moments(batch.advantage, axis)
+    adv = (batch.advantage - mean) / (spread + 1e-8)  # as ppo_loss: per minibatch
     data = [
         jnp.pad(obs, ((0, 0), (0, da - obs.shape[1]))),
         jnp.pad(xc, ((0, 0), (0, dc - xc.shape[1]))),
@@ -306,7 +303,31 @@ def _grad(params, batch: Batch, *, loss, clip_value, tanh, actions, interpret, a
     )(*data, *weights)
     n = 2 * len(pa)
     grads = _tree(_unpadded(shares[:n], actor), _unpadded(shares[n:], critic))
-    return total(grads), _metrics(total(sums.sum(0)), rows, loss)
+    grads, sums = _summed((grads, sums.sum(0)), axis)
+    return grads, _metrics(sums, rows, loss)
+
+
+def _moments(x, axis):
+    """The mean and standard deviation of `x` [R]: this device's, or with `axis` (name, size)
+    of every device's rows (each holding R) in one cross-device op: each device's mean and sum
+    of squared deviations, gathered and joined (Chan et al.'s pairwise update)."""
+    mean = jnp.mean(x)
+    if axis is None:
+        return mean, jnp.std(x)
+    local = jnp.stack([mean, jnp.square(x - mean).sum()])
+    means, squares = lax.all_gather(local, axis[0]).T  # [size] each
+    total = jnp.mean(means)
+    squared = squares.sum() + x.shape[0] * jnp.square(means - total).sum()
+    return total, jnp.sqrt(squared / (x.shape[0] * axis[1]))
+
+
+def _summed(tree, axis):
+    """`tree` summed over the devices of `axis` (None: this device's), its leaves joined into
+    one vector first: one cross-device op rather than one a leaf."""
+    if axis is None:
+        return tree
+    flat, unflatten = jax.flatten_util.ravel_pytree(tree)
+    return unflatten(lax.psum(flat, axis[0]))
 
 
 def _metrics(sums, rows: int, loss: dict) -> dict:
