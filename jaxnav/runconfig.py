@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import typing
 from typing import Any
 
@@ -221,17 +222,23 @@ def _parse_bool(text: str) -> bool:
 
 def _field_doc(cls, name: str) -> str:
     """The docstring written under a dataclass field (see the config classes)."""
+    return _field_docs(cls).get(name, "")
+
+
+@functools.cache
+def _field_docs(cls) -> dict[str, str]:
+    """{field: the docstring written under it} of a dataclass, its source parsed once a class."""
     import ast
     import inspect
     import textwrap
 
-    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
-    body = tree.body[0].body
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    docs = {}
     for node, nxt in zip(body, body[1:], strict=False):
-        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", None) == name:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
             if isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant):
-                return " ".join(str(nxt.value.value).split())
-    return ""
+                docs.setdefault(node.target.id, " ".join(str(nxt.value.value).split()))
+    return docs
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
