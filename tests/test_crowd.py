@@ -230,11 +230,26 @@ def test_walker_config_spec_and_errors():
             crowd.WalkerConfig.parse(spec)
 
 
+def _no_end_where_another_stays(rooms):
+    """No walker of `rooms` (SceneParams [E, ...]) turns or stays (its goal, its next goal) within
+    touch of where another walker stays for good: each gets where it goes, as CrowdNav's people."""
+    w = jax.device_get(rooms.motion.walkers)
+    walking = (w.speed > 0) & np.asarray(rooms.cyl_active)  # [E, C]
+    stays = walking & (w.goal == w.back).all(-1)
+    radius = np.asarray(rooms.cyl_radius)
+    for ends in (w.goal, w.back):  # [E, C, 2]
+        gap = np.linalg.norm(ends[:, :, None] - w.goal[:, None], axis=-1)  # [E, C, C]: i's, j's
+        touch = gap < radius[:, :, None] + radius[:, None]
+        other = ~np.eye(radius.shape[1], dtype=bool)
+        assert not (touch & other & walking[:, :, None] & stays[:, None]).any()
+
+
 def test_aimed_walkers_cross_the_robots_way():
     """An aimed walker crosses as in CrowdNav's circle crossing: it starts near the circle whose
     diameter is the straight way from the spawn to the goal (or, without a goal, a circle of
     1-4 m radius centred ahead of the spawn) and walks to the point opposite across its centre,
-    where it stays; the others cross the room back and forth, mostly missing the way's middle."""
+    where it stays; the others cross the room back and forth, mostly missing the way's middle.
+    Nobody's goal or turning point is where another stays."""
     lay = RoomLayout(
         name="way",
         size=(8.0, 8.0),
@@ -253,6 +268,7 @@ def test_aimed_walkers_cross_the_robots_way():
         on = np.asarray(p.cyl_active)[:, 1:]
         assert on.mean() > 0.9  # every walker finds a crossing in 16 draws, nearly always
         w = p.motion.walkers
+        _no_end_where_another_stays(p)
         stays = np.asarray(w.back == w.goal).all(-1)[:, 1:][on]  # it stays at its goal
         return np.asarray(p.cyl_pos)[:, 1:][on], np.asarray(w.goal)[:, 1:][on], stays
 

@@ -391,6 +391,18 @@ def _aimed(d: Draws, half, r, spawn, goal):
     return start, end, inside
 
 
+def _clear_of_ends(points, r, room):
+    """[N] bool: points [N, 2] where a walker of radius `r` keeps FREE_GAP from where each walker
+    of `room` (SceneParams) turns or stays (its goal and its next goal): as CrowdNav's people, no
+    one's goal is where another stands for good, nor another's turning point."""
+    w = room.motion.walkers
+    ends = jnp.concatenate([w.goal, w.back])  # [2C, 2]
+    reach = r + jnp.tile(room.cyl_radius, 2) + FREE_GAP  # [2C]
+    walking = jnp.tile((w.speed > 0) & room.cyl_active, 2)  # [2C]
+    near = jnp.linalg.norm(points[:, None] - ends[None], axis=-1) < reach  # [N, 2C]
+    return ~(near & walking).any(-1)
+
+
 def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, goal=None):
     """`room` (SceneParams with `motion.walkers`) with up to `cfg.slots` walkers in cylinder slots
     `first`... : count uniform in cfg.count (cfg.crowd_count in a `crowd` room), radius, speed and
@@ -425,6 +437,8 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
         ok &= jnp.linalg.norm(start - spawn, axis=-1) > robot_radius + cfg.clearance + r
         if goal is not None:
             ok &= jnp.linalg.norm(start - goal, axis=-1) > robot_radius + r
+        placed = room.replace(motion=room.motion.replace(walkers=w))  # the walkers so far
+        ok &= _clear_of_ends(start, r, placed) & _clear_of_ends(end, r, placed)
         on = ok.any() & (j < count)
         pick = jnp.argmax(ok)
         put = lambda x, v, on=on, slot=slot: x.at[slot].set(jnp.where(on, v, x[slot]))  # noqa: E731
