@@ -24,6 +24,7 @@ import os
 import socket
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 from report import run_info, write_json
@@ -64,14 +65,16 @@ def measure(args, mode: str, k: int, n: int) -> dict:
     else:
         mine = list(range(k))
         cluster = ["--coordinator", f"localhost:{free_port()}", "--num-processes", str(k)]
+    errs = [tempfile.TemporaryFile("w+") for _ in mine]  # files, not pipes: none can fill up
     procs = [
         subprocess.Popen(
             [*base, *cluster, *(["--process-id", str(i)] if cluster else [])],
             env=device_env(args.platform, k, i),
             stdout=subprocess.PIPE,
+            stderr=err,
             text=True,
         )
-        for i in mine
+        for i, err in zip(mine, errs, strict=True)
     ]
     head = {"mode": mode, "devices": k, "processes": len(procs), "num_envs": n}
     try:
@@ -81,9 +84,23 @@ def measure(args, mode: str, k: int, n: int) -> dict:
             proc.kill()
             proc.wait()
         return {**head, "error": f"did not finish within {args.timeout} s"}
-    if any(proc.returncode for proc in procs):
-        return {**head, "error": "failed (its error is above)"}
+    finally:
+        last = [_echo(err) for err in errs]
+    failed = [line for proc, line in zip(procs, last, strict=True) if proc.returncode]
+    if failed:
+        return {**head, "error": f"failed: {failed[0][:300]}"}
     return {**head, **json.loads(outs[0].strip().splitlines()[-1])}  # process 0 speaks for the run
+
+
+def _echo(err) -> str:
+    """Copies a worker's stderr (a temporary file) to this process's, and returns its last line
+    (an exception's message), which the row keeps."""
+    err.seek(0)
+    text = err.read()
+    err.close()
+    sys.stderr.write(text)
+    lines = [line for line in text.splitlines() if line.strip()]
+    return lines[-1] if lines else "no message"
 
 
 def worker(args) -> None:

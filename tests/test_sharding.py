@@ -1,5 +1,6 @@
 """The robots are sharded over every local device; results match the single-device run."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -93,6 +94,22 @@ def test_scaling_speed_ups_are_strong_and_weak():
     scaling.speed_ups(rows)
     got = [(r.get("speed_up"), r.get("weak_speed_up")) for r in rows]
     assert got == [(1.0, 1.0), (1.5, None), (1.0, 1.0), (1.633, 1.96), (None, 2.0), (None, None)]
+
+
+def test_a_failed_scaling_row_keeps_its_workers_message(tmp_path):
+    """benchmarks/scaling.py runs each row in worker processes; a worker that fails leaves its
+    exception's message in the row (and the JSON), not only on the terminal."""
+    scaling = benchmark_script("scaling")
+    out = tmp_path / "rows.json"
+    flags = ["--platform", "cpu", "--devices", "2", "--modes", "single", "--num-envs", "5"]
+    flags += ["--updates", "1", "--repeats", "1", "--timeout", "120", "--json", str(out)]
+    proc = subprocess.run(
+        [sys.executable, scaling.__file__, *flags], capture_output=True, text=True, timeout=180
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["error"] == "failed: ValueError: --num-envs 5 must be a multiple of the 2 devices"
+    assert "must be a multiple" in proc.stderr  # the worker's own output is still shown
 
 
 def test_trace_device_time_on_a_hand_made_trace(tmp_path):
