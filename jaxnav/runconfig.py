@@ -190,7 +190,7 @@ def add_field_flags(group, attr: str, cls, prefix: str, names=None, shown=None) 
         flag = "--" + prefix + f.name.replace("_", "-")
         kind, nargs = _flag_type(hints[f.name])
         value = getattr(shown, f.name) if shown is not None else f.default
-        help_text = (_field_doc(cls, f.name) + f" (default: {value})").replace("%", "%%")
+        help_text = (_field_docs(cls).get(f.name, "") + f" (default: {value})").replace("%", "%%")
         dest = f"{attr}.{f.name}"
         group.add_argument(
             *([flag, ALIASES[dest]] if dest in ALIASES else [flag]),
@@ -218,11 +218,6 @@ def _parse_bool(text: str) -> bool:
     if text.lower() in ("0", "false", "no", "off"):
         return False
     raise argparse.ArgumentTypeError(f"expected true or false, got '{text}'")
-
-
-def _field_doc(cls, name: str) -> str:
-    """The docstring written under a dataclass field (see the config classes)."""
-    return _field_docs(cls).get(name, "")
 
 
 @functools.cache

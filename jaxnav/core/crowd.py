@@ -296,13 +296,18 @@ def _apart(pos, new, radius, walking):
     return near
 
 
+def _walking(room):
+    """[C] bool: the cylinder slots of `room` (SceneParams) in which someone walks."""
+    return (room.motion.walkers.speed > 0) & room.cyl_active
+
+
 def walk(room, dt: float, robot=None):
     """`room` (SceneParams whose `motion.walkers` is set) after the walkers' step of `dt` s.
     `robot`: (xy [2], velocity [2], radius) of the robot the reactive walkers give way to
     (None: no robot)."""
     w = room.motion.walkers
     pos, radius = room.cyl_pos, room.cyl_radius  # [C, 2], [C]
-    walking = (w.speed > 0) & room.cyl_active
+    walking = _walking(room)
     goal, back, desired = _heading(w, pos, walking, dt)
     bold = w.waited >= PATIENCE  # [C]
     cx, cy = _candidates(desired)  # [C, K], the last one standing
@@ -338,7 +343,7 @@ def hit_by_walker(room, xy, velocity, radius: float, z=None):
     with a collision disc of `radius` touches a non-reactive walker that is walking towards it,
     and nothing else (`z`: the robot's vertical span, as `signed_distance` takes it)."""
     w = room.motion.walkers
-    walking = (w.speed > 0) & room.cyl_active  # [C]
+    walking = _walking(room)  # [C]
     gap = jnp.linalg.norm(room.cyl_pos - xy, axis=-1) - room.cyl_radius  # [C]
     towards = jnp.sum(w.velocity * (xy - room.cyl_pos), -1) > 0
     by = walking & ~w.reactive & towards & (gap < radius + TOUCH)
@@ -398,7 +403,7 @@ def _clear_of_ends(points, r, room):
     w = room.motion.walkers
     ends = jnp.concatenate([w.goal, w.back])  # [2C, 2]
     reach = r + jnp.tile(room.cyl_radius, 2) + FREE_GAP  # [2C]
-    walking = jnp.tile((w.speed > 0) & room.cyl_active, 2)  # [2C]
+    walking = jnp.tile(_walking(room), 2)  # [2C]
     near = jnp.linalg.norm(points[:, None] - ends[None], axis=-1) < reach  # [N, 2C]
     return ~(near & walking).any(-1)
 
@@ -421,7 +426,7 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
     radius, speed, height = (d.uniform((m,), *b) for b in (cfg.radius, cfg.speed, cfg.height))
     reactive = d.bernoulli(cfg.reactive, (m,))
     aimed = d.bernoulli(cfg.aimed, (m,)) if cfg.aimed else None
-    still, spawn, w = room, room.spawn[:2], room.motion.walkers
+    still, spawn = room, room.spawn[:2]
     along = jnp.linspace(0.0, 1.0, SEGMENT_POINTS)[:, None, None]  # [P, 1, 1]
     for j in range(m):
         slot, r = first + j, radius[j]
@@ -437,23 +442,24 @@ def add_walkers(key, room, cfg: WalkerConfig, first: int, robot_radius: float, g
         ok &= jnp.linalg.norm(start - spawn, axis=-1) > robot_radius + cfg.clearance + r
         if goal is not None:
             ok &= jnp.linalg.norm(start - goal, axis=-1) > robot_radius + r
-        placed = room.replace(motion=room.motion.replace(walkers=w))  # the walkers so far
-        ok &= _clear_of_ends(start, r, placed) & _clear_of_ends(end, r, placed)
+        ok &= _clear_of_ends(start, r, room) & _clear_of_ends(end, r, room)  # the walkers so far
         on = ok.any() & (j < count)
         pick = jnp.argmax(ok)
         put = lambda x, v, on=on, slot=slot: x.at[slot].set(jnp.where(on, v, x[slot]))  # noqa: E731
-        room = room.replace(
-            cyl_pos=put(room.cyl_pos, start[pick]),
-            cyl_radius=put(room.cyl_radius, r),
-            cyl_height=put(room.cyl_height, height[j]),
-            cyl_bottom=put(room.cyl_bottom, 0.0),
-            cyl_active=put(room.cyl_active, True),
-        )
         stays = False if aimed is None else aimed[j] & (pick < TRIES)  # as CrowdNav's people
+        w = room.motion.walkers
         w = w.replace(
             goal=put(w.goal, end[pick]),
             back=put(w.back, jnp.where(stays, end[pick], start[pick])),
             speed=put(w.speed, speed[j]),
             reactive=put(w.reactive, reactive[j]),
         )
-    return room.replace(motion=room.motion.replace(walkers=w))
+        room = room.replace(
+            cyl_pos=put(room.cyl_pos, start[pick]),
+            cyl_radius=put(room.cyl_radius, r),
+            cyl_height=put(room.cyl_height, height[j]),
+            cyl_bottom=put(room.cyl_bottom, 0.0),
+            cyl_active=put(room.cyl_active, True),
+            motion=room.motion.replace(walkers=w),
+        )
+    return room
