@@ -9,9 +9,12 @@ stops each episode itself.
 
 from __future__ import annotations
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 
+from jaxnav.core import xla
 from jaxnav.core.types import EnvState
 
 EPISODE = "episode"  # info key of the finished-episode sums: return, length and each metric
@@ -74,7 +77,9 @@ class AutoReset(Wrapper):
 
     `groups`: G independent blocks of N/G consecutive envs, each with its own P/G draws from its
     own envs' keys (G = 1: one block). With the blocks sharded over devices, every device draws
-    for its own robots only, and no step needs another device's data.
+    for its own robots only, and no step needs another device's data. `devices`: those devices
+    (the envs split between them in equal consecutive parts), for the kernels that take one
+    device's part of a batch (the goal task's flood on GPUs: `xla.on_devices`).
 
     Drawing ahead: `draw(state, steps)` draws the pools of the next `steps` steps in one batch
     (steps x P episodes), and `step(state, action, fresh)` takes one step's pool from it (a scan
@@ -83,17 +88,26 @@ class AutoReset(Wrapper):
     batch instead of many small ones (docs/results.md has what it changes for `goal`).
     """
 
-    def __init__(self, env, pool: int | None = None, in_place: bool = False, groups: int = 1):
+    def __init__(
+        self, env, pool: int | None = None, in_place: bool = False, groups: int = 1, devices=None
+    ):
         super().__init__(env)
         if pool is not None and pool < 1:
             raise ValueError(f"AutoReset.pool: must be >= 1, got {pool}")
         if groups < 1:
             raise ValueError(f"AutoReset.groups: must be >= 1, got {groups}")
-        self.pool, self.in_place, self.groups = pool, in_place, groups
+        if devices is not None and groups % len(devices):
+            raise ValueError(f"AutoReset.groups: {groups} blocks over {len(devices)} devices")
+        self.pool, self.in_place, self.groups, self.devices = pool, in_place, groups, devices
+
+    def _on_devices(self):
+        """The context the resets trace in: `xla.on_devices(self.devices)` where given."""
+        return contextlib.nullcontext() if self.devices is None else xla.on_devices(self.devices)
 
     def reset(self, keys: jax.Array) -> EnvState:
         keys, k_reset = _split(keys)
-        return with_reset_keys(jax.vmap(self.env.reset)(k_reset), keys)
+        with self._on_devices():
+            return with_reset_keys(jax.vmap(self.env.reset)(k_reset), keys)
 
     def draws_per_block(self, total: int) -> int:
         """P/G: the new episodes each block draws per step, for `total` envs."""
@@ -128,9 +142,10 @@ class AutoReset(Wrapper):
             out = jax.vmap(self.env.reset)(k.reshape(-1, k.shape[-1]))
             return jax.tree_util.tree_map(lambda x: x.reshape(*lead, *x.shape[1:]), out)
 
-        if self.groups == 1:
-            return flat(keys)
-        return jax.vmap(flat, in_axes=block_axis, out_axes=block_axis)(keys)
+        with self._on_devices():
+            if self.groups == 1:
+                return flat(keys)
+            return jax.vmap(flat, in_axes=block_axis, out_axes=block_axis)(keys)
 
     def step(self, state: EnvState, action: jax.Array, fresh: EnvState | None = None) -> EnvState:
         """One step of every env; `fresh` (leaves [G, P/G, ...], one step of `draw`) are the new

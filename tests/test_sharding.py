@@ -5,14 +5,20 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import benchmark_script, cpu_env
 
+from jaxnav.core import xla
+from jaxnav.core.types import EnvState
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.train import block_count, shard_envs
+from jaxnav.wrappers import AutoReset
 
-SCRIPT = Path(__file__).parent / "scripts" / "tiny_train.py"
+SCRIPTS = Path(__file__).parent / "scripts"
+SCRIPT = SCRIPTS / "tiny_train.py"
 
 
 def train_on(devices: int, out: Path) -> dict:
@@ -51,6 +57,67 @@ def test_two_devices_match_one(tmp_path):
     assert len(chunk) == len(weights)
     for k in chunk:
         np.testing.assert_allclose(one[k], two[k], atol=1e-5, rtol=1e-4)
+
+
+def test_the_flood_kernel_floods_each_devices_own_grids(tmp_path):
+    """On GPUs the goal task's flood kernel takes one device's batch: with the batch split
+    between devices (`xla.on_devices`, as training's resets trace) each floods its own part
+    (`jax.shard_map`, no op waiting for another device), the same steps as the scans; a batch
+    that does not split evenly takes the scans. Pallas' interpreter on two CPU devices here."""
+    out = tmp_path / "flood.json"
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPTS / "split_flood.py"), str(out)],
+        env=cpu_env(2),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    got = json.loads(out.read_text())
+    assert got["devices"] == 2
+    even, odd = got["even"], got["odd"]
+    assert even["equal"] and even["kernel"] and even["split"] and even["collectives"] == 0
+    assert odd["equal"] and not odd["kernel"] and not odd["split"]
+    assert even["reached"] > 0 and odd["reached"] > 0
+
+
+def test_training_resets_trace_with_the_devices_they_run_on():
+    """`AutoReset(devices=...)` traces every reset (the first, a step's own, the drawn-ahead
+    ones) inside `xla.on_devices`, so that the flood knows the devices its batch is split
+    between; outside, `xla.spanned` is what it was."""
+    before = xla.spanned()
+    seen = []
+    env = AutoReset(_Recorder(seen), pool=2, groups=2, devices=("d0", "d1"))
+    keys = jax.random.split(jax.random.PRNGKey(0), 4)
+    state = env.reset(keys)
+    env.step(state, jnp.zeros(4, jnp.int32))
+    env.draw(state, 3)
+    assert seen == [("d0", "d1")] * 3
+    assert xla.spanned() == before
+    with pytest.raises(ValueError, match="AutoReset.groups"):
+        AutoReset(_Recorder(seen), groups=3, devices=("d0", "d1"))
+
+
+class _Recorder:
+    """An env of one number whose reset records the devices `xla.spanned` names as it traces."""
+
+    def __init__(self, seen: list):
+        self.seen = seen
+
+    def reset(self, key):
+        self.seen.append(xla.spanned())
+        return EnvState(
+            data=jnp.float32(0),
+            obs=jnp.zeros(1),
+            reward=jnp.float32(0),
+            done=jnp.bool_(False),
+            truncated=jnp.bool_(False),
+            metrics={},
+            info={},
+        )
+
+    def step(self, state, action):
+        return state.replace(done=jnp.bool_(True))
 
 
 def test_num_envs_must_split_evenly():

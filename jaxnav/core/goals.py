@@ -36,11 +36,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh, PartitionSpec
 from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from jaxnav.core import families, flood_kernel
+from jaxnav.core import families, flood_kernel, xla
 from jaxnav.core import layout as lay
 from jaxnav.core.draws import Draws
 from jaxnav.core.geometry import planar_distance, signed_distance
@@ -180,17 +181,18 @@ def grid_steps(free: jax.Array, seed: jax.Array, sweeps: int = SWEEPS) -> jax.Ar
 
     Under `jax.vmap`, a rule of its own (`jax.custom_batching.custom_vmap`) hands the whole batch
     to one flood: on the CPU one that loops over the rows with the batch on the arrays' minor axis
-    (`_flood_rows`; docs/results.md, "A flood a row at a time"), on one GPU a Pallas kernel that
-    runs every scan of a block of grids in one program (`flood_kernel`) where the batch is large
-    enough. Elsewhere (smaller batches; several devices, whose batch a kernel cannot split
-    between them; other accelerators) every scan is a log-depth `associative_scan`
+    (`_flood_rows`; docs/results.md, "A flood a row at a time"), on GPUs a Pallas kernel that
+    runs every scan of a block of grids in one program (`flood_kernel`), on each GPU's own part
+    of the batch where the devices it is split between are known (`xla.spanned`) and each part
+    is large enough (`_gpu_flood`). Elsewhere (smaller batches; several devices whose part of the
+    batch is not known; other accelerators) every scan is a log-depth `associative_scan`
     (`_flood_scans`). All give the same steps, bit for bit."""
     backend = jax.default_backend()
-    one_gpu = backend == "gpu" and jax.device_count() == 1 and _fits_kernel(free.shape)
-    if backend != "cpu" and not one_gpu:
+    devices = xla.spanned() if backend == "gpu" and _fits_kernel(free.shape) else None
+    if backend != "cpu" and devices is None:
         return _flood_scans(free, seed, sweeps)
     free, seed = jnp.broadcast_arrays(free, seed)
-    return _batched_steps(sweeps, one_gpu)(free, seed)
+    return _batched_steps(sweeps, devices)(free, seed)
 
 
 def _fits_kernel(shape) -> bool:
@@ -199,18 +201,15 @@ def _fits_kernel(shape) -> bool:
 
 
 @functools.cache
-def _batched_steps(sweeps: int, gpu: bool):
-    """`grid_steps` with `sweeps` rounds, whose vmap passes the batch to one flood: one GPU's
-    (`gpu`: the kernel for a batch of at least `flood_kernel.MIN_BATCH` grids, else the
-    associative scans) or the CPU's `_flood_rows`."""
+def _batched_steps(sweeps: int, devices: tuple | None):
+    """`grid_steps` with `sweeps` rounds, whose vmap passes the batch to one flood: the GPUs'
+    (`devices`, `_gpu_flood`) or, with None, the CPU's `_flood_rows`."""
 
     @jax.custom_batching.custom_vmap
     def steps(free, seed):
-        if not gpu:
+        if devices is None:
             return _flood_rows(free, seed, sweeps)
-        if math.prod(free.shape[:-2]) >= flood_kernel.MIN_BATCH:
-            return flood_kernel.flood(free, seed, sweeps)
-        return _flood_scans(free, seed, sweeps)
+        return _gpu_flood(free, seed, sweeps, devices)
 
     @steps.def_vmap
     def _batched(axis_size, in_batched, free, seed):
@@ -221,6 +220,23 @@ def _batched_steps(sweeps: int, gpu: bool):
         return steps(free, seed), True  # an outer vmap batches this call in turn
 
     return steps
+
+
+def _gpu_flood(free, seed, sweeps: int, devices: tuple, interpret: bool = False) -> jax.Array:
+    """`grid_steps` of grids [B, ..., H, W] whose first axis is split between `devices` in equal
+    consecutive parts: the kernel on each device's part (`jax.shard_map` over several: no device
+    waits for another) where each holds at least `flood_kernel.MIN_BATCH` grids, else the
+    associative scans. `interpret`: the kernel through Pallas' interpreter (tests, on the CPU)."""
+    n, batch = len(devices), math.prod(free.shape[:-2])
+    if free.ndim < 3 or free.shape[0] % n or batch // n < flood_kernel.MIN_BATCH:
+        return _flood_scans(free, seed, sweeps)
+    kernel = functools.partial(flood_kernel.flood, sweeps=sweeps, interpret=interpret)
+    if n == 1:
+        return kernel(free, seed)
+    part = PartitionSpec("grids")  # the first axis, one part a device
+    mesh = Mesh(np.array(devices), ("grids",))
+    split = jax.shard_map(kernel, mesh=mesh, in_specs=(part, part), out_specs=part, check_vma=False)
+    return split(free, seed)
 
 
 def _flood_scans(free: jax.Array, seed: jax.Array, sweeps: int) -> jax.Array:

@@ -18,10 +18,13 @@ On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 so few calls are left to inline.
 
 `pow2` rounds a size up as a Pallas (Triton) block's sides must be, for jaxnav's GPU kernels.
+`spanned` names the devices a batch being traced is split between (`on_devices`), for the kernels
+that take one device's batch at a time (the goal flood's), which then run on each device's part.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import jax
@@ -31,6 +34,7 @@ OPTION = "xla_backend_optimization_level"
 DETERMINISTIC = "xla_gpu_deterministic_ops"  # XLA's option for the same bits every run
 GPUS = ("gpu", "cuda", "rocm")  # the names a GPU backend or platform goes by
 _deterministic = False  # set by `deterministic`
+_devices: tuple | None = None  # set by `on_devices` while a batch split between them traces
 
 
 def pow2(n: int, least: int = 1) -> int:
@@ -67,3 +71,23 @@ def threefry_kernel(on: bool, backend: str | None = None) -> None:
     their setting is left as it is (it is part of every jit's cache key)."""
     if (backend or jax.default_backend()) == "gpu":
         jax.config.update(THREEFRY_KERNEL, bool(on))
+
+
+@contextlib.contextmanager
+def on_devices(devices):
+    """While the computations of a batch split between `devices` (its first axis, in equal
+    consecutive parts, as `ppo.train.shard_envs` splits the robots) trace: `spanned` names them."""
+    global _devices
+    before, _devices = _devices, tuple(devices)
+    try:
+        yield
+    finally:
+        _devices = before
+
+
+def spanned() -> tuple | None:
+    """The devices of the batch tracing now: `on_devices`' devices; else the only device, or
+    None where there are several and which of them a batch is on is not known."""
+    if _devices is not None:
+        return _devices
+    return tuple(jax.devices()) if jax.device_count() == 1 else None

@@ -199,7 +199,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
     g = block_count(cfg, devices)
-    env = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place, groups=g)
+    env = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place, g, devices_used)
     reset = lambda keys: shard(env.reset(keys))  # noqa: E731
     step = lambda state, action, fresh: shard(env.step(state, action, fresh))  # noqa: E731
     shard_draws = shard_envs(cfg.num_envs, devices, axis=1)  # [T, G, P/G, ...]: by block
