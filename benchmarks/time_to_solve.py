@@ -142,7 +142,7 @@ def train_to_bar(trainer, config, env, judge_state, max_seconds: float, full=Fal
     Returns (compile s, history: the entries, the first entry that met the bar or None)."""
     key = jax.random.PRNGKey(config.seed)
     tick = time.perf_counter()  # the programs compiled at once, as a run's: apart from training
-    trainer, _, ahead = find_programs(trainer, config, env, key)  # several devices: at first call
+    trainer, _, ahead = find_programs(trainer, config, env, key)
     ts = jax.block_until_ready(trainer.init(key))
     for program in trainer.programs.values() if ahead else ():
         program.wait()

@@ -435,13 +435,13 @@ def find_programs(trainer, config, env, key, ahead: bool = True, check=None):
     call it with (the outputs of those before it: `Trainer.arguments`). `check(state)` (e.g. the
     memory check) runs as soon as that TrainState is known, before anything compiles.
 
-    With `ahead` and one device, each program starts compiling in a thread of its own as soon as
-    it is found and the check has passed (`_CompiledAhead`: XLA's compile lets go of the GIL, so
-    the next one is traced meanwhile and they compile at once), and the trainer calls the
-    compiled programs: the same program on the same inputs as when compiled at its first call.
-    With several devices the chunk's input shardings are those XLA chooses for init's output,
-    known only once init is compiled: there (and for a trainer without programs) each compiles at
-    its first call.
+    With `ahead`, each program starts compiling in a thread of its own as soon as it is found
+    and the check has passed (`_CompiledAhead`: XLA's compile lets go of the GIL, so the next
+    one is traced meanwhile and they compile at once), and the trainer calls the compiled
+    programs: the same program on the same inputs as when compiled at its first call. On several
+    devices that needs the programs' shardings fixed in advance (`Trainer.laid_out`, as
+    `make_train` lays them out); a trainer without them (or without programs) compiles each at
+    its first call there.
     """
     if not trainer.programs:
         state = jax.eval_shape(trainer.init, key)
@@ -449,7 +449,7 @@ def find_programs(trainer, config, env, key, ahead: bool = True, check=None):
             check(state)
         return trainer, state, False
     run = programs.run_of(config, env)
-    ahead = ahead and jax.device_count() == 1
+    ahead = ahead and (jax.device_count() == 1 or trainer.laid_out)
     found, waiting, compiled, state = {}, [], {}, None
     for name, jitted in trainer.programs.items():
         waiting.append((name, trainer.arguments(name, found, key)))

@@ -76,6 +76,9 @@ class Trainer(NamedTuple):
     arguments: callable = None
     # The programs init's TrainState follows from: "init", or "draws" and "start".
     state_from: tuple = ()
+    # Every program's input and output shardings fixed when it was made (`make_train`), so that
+    # on several devices each can compile before the programs before it have run.
+    laid_out: bool = False
 
     def with_programs(self, **programs) -> Trainer:
         """This trainer with `programs` in place of the ones of the same names."""
@@ -381,7 +384,8 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     # sharded over, and several GPUs are not measured with it.
     threefry_kernel(cfg.threefry_kernel and len(devices_used) == 1, platform)
     jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
-    keys_of = jax.jit(first_keys)  # a few ops: XLA's own options
+    laid = layouts(devices_used, cfg.reset_ahead, calls)
+    keys_of = jax.jit(first_keys, **laid.get("keys", {}))  # a few ops: XLA's own options
 
     def compose(programs: dict):
         rollout, learn, draws = programs["rollout"], programs["learn"], programs.get("draws")
@@ -452,9 +456,48 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         "draws": _draws,
         "start": start,
     }
-    first = {"draws": jit(_draws), "start": jit(start)} if cfg.reset_ahead else {"init": jit(init)}
+    pin = lambda fn, name, **kw: jit(fn, **laid.get(name, {}), **kw)  # noqa: E731
+    first = (
+        {"draws": pin(_draws, "draws"), "start": pin(start, "start")}
+        if cfg.reset_ahead
+        else {"init": pin(init, "init")}
+    )
     # Both take the train state and reuse its buffers: the robots' and the learner's.
-    steps = {"rollout": jit(_rollout, donate_argnums=0), "learn": jit(_learn, donate_argnums=0)}
+    steps = {
+        "rollout": pin(_rollout, "rollout", donate_argnums=0),
+        "learn": pin(_learn, "learn", donate_argnums=0),
+    }
     programs = {**first, **steps}
-    trainer = Trainer(network, None, None, jit(train), parts, {}, compose, arguments, tuple(first))
+    trainer = Trainer(
+        network, None, None, jit(train), parts, {}, compose, arguments, tuple(first), True
+    )
     return trainer.with_programs(**programs)
+
+
+def layouts(devices: list, ahead: bool, calls: int) -> dict:
+    """{program: {"in_shardings": ..., "out_shardings": ...}} of `make_train`'s programs on
+    several `devices` ({} on one): the learner's state on every device, the robots' state [N, ...]
+    and the reset keys split along their first axis, the new episodes drawn ahead [T, G, P/G, ...]
+    and the rollout's transitions [T, N, ...] along their second (`shard_envs`), as XLA lays
+    them out when left to choose. Fixed, each program compiles from its arguments' shapes alone,
+    before the programs before it have run (`training.find_programs`)."""
+    if len(devices) == 1:
+        return {}
+    mesh = Mesh(np.array(devices), ("envs",))
+    every, robots, steps = (
+        NamedSharding(mesh, PartitionSpec(*spec)) for spec in ((), ("envs",), (None, "envs"))
+    )
+    state = TrainState(
+        params=every, opt_state=every, obs_stats=every, env_state=robots, key=every, update=every
+    )
+    drawn = ((robots, steps),) if ahead else ()  # the draws' (reset keys, new episodes)
+    shardings = {
+        "keys": ((every,), (every, every, robots)),  # first_keys: (k_net, key, reset keys)
+        "init": ((every,), state),
+        "draws": ((robots,), (robots, steps)),
+        "start": ((every, every, robots, (steps,) * calls), state),
+        "rollout": ((state, *drawn), (state, steps)),
+        "learn": ((state, steps), (state, every)),
+    }
+    names = ("in_shardings", "out_shardings")
+    return {name: dict(zip(names, pair, strict=True)) for name, pair in shardings.items()}

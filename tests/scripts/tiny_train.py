@@ -11,6 +11,7 @@ import numpy as np
 import jaxnav
 from jaxnav.ppo.config import preset
 from jaxnav.ppo.train import make_train
+from jaxnav.training import find_programs
 
 env = jaxnav.make_env("avoid", max_steps=50)
 # Two robot blocks whatever the device count: one device then computes what two devices do,
@@ -42,10 +43,17 @@ waits = [
 # start and update, with the new episodes drawn ahead).
 run_ts, _ = trainer.run_chunk(trainer.init(jax.random.PRNGKey(0)))
 chunk_leaves = jax.tree_util.tree_leaves(jax.device_get(run_ts.params))
+# And as a run starts them: every program compiled at once before any has run (on several
+# devices too: their shardings are fixed, `Trainer.laid_out`), then called.
+early, _, ahead = find_programs(trainer, None, env, jax.random.PRNGKey(0))
+early_ts, _ = early.run_chunk(early.init(jax.random.PRNGKey(0)))
+early_leaves = jax.tree_util.tree_leaves(jax.device_get(early_ts.params))
 np.savez(
     sys.argv[1],
     *leaves,
     **{f"chunk_{i}": x for i, x in enumerate(chunk_leaves)},
+    **{f"ahead_{i}": x for i, x in enumerate(early_leaves)},
+    ahead=ahead,
     chunk_updates=int(run_ts.update),
     chunk_shards=len(run_ts.env_state.obs.sharding.device_set),
     devices=len(jax.devices()),
