@@ -21,6 +21,7 @@ import argparse
 import faulthandler
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -86,10 +87,24 @@ def measure(args, mode: str, k: int, n: int) -> dict:
         return {**head, "error": f"did not finish within {args.timeout} s"}
     finally:
         last = [_echo(err) for err in errs]
-    failed = [line for proc, line in zip(procs, last, strict=True) if proc.returncode]
+    failed = [failure(proc.returncode, line) for proc, line in zip(procs, last, strict=True)]
+    failed = [line for line in failed if line]
     if failed:
         return {**head, "error": f"failed: {failed[0][:300]}"}
     return {**head, **json.loads(outs[0].strip().splitlines()[-1])}  # process 0 speaks for the run
+
+
+def failure(returncode: int, last: str) -> str | None:
+    """What a worker that ended with `returncode` and the stderr line `last` failed of: None for
+    success; a signal's name where one killed it (its Python stack, from `faulthandler`, is in
+    the stderr echoed above the row), else its last line."""
+    if returncode < 0:
+        try:
+            name = signal.Signals(-returncode).name
+        except ValueError:
+            name = f"signal {-returncode}"
+        return f"killed by {name} (its stack is in its stderr)"
+    return last if returncode else None
 
 
 def _echo(err) -> str:
@@ -106,6 +121,7 @@ def _echo(err) -> str:
 def worker(args) -> None:
     """Inside a subprocess: joins the run (multi), times PPO, prints one JSON line. Shortly before
     its time is up it prints every thread's stack to stderr, to show where a stuck run waits."""
+    faulthandler.enable()  # a crash in XLA or a kernel: the Python stack where it happened
     faulthandler.dump_traceback_later(max(args.timeout - 10, 1), exit=False)
     sys.path.insert(0, str(Path(__file__).parent))
     from time_to_solve import parse_sets

@@ -186,6 +186,17 @@ def test_a_failed_scaling_row_keeps_its_workers_message(tmp_path):
     assert "must be a multiple" in proc.stderr  # the worker's own output is still shown
 
 
+def test_a_crashed_scaling_worker_is_named_by_its_signal():
+    """A worker that a signal killed (a segmentation fault in XLA leaves no exception) gives its
+    row the signal's name; others their last stderr line; success no error."""
+    scaling = benchmark_script("scaling")
+    assert scaling.failure(-11, "Extension modules: numpy") == (
+        "killed by SIGSEGV (its stack is in its stderr)"
+    )
+    assert scaling.failure(1, "ValueError: bad") == "ValueError: bad"
+    assert scaling.failure(0, "a warning") is None
+
+
 def test_trace_device_time_on_a_hand_made_trace(tmp_path):
     """benchmarks/throughput.py's per-accelerator profile summary on a hand-made trace: the span
     from first op to last, busy as the union of overlapping ops, the time in collective ops;
