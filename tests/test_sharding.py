@@ -1,5 +1,6 @@
 """The robots are sharded over every local device; results match the single-device run."""
 
+import concurrent.futures
 import json
 import subprocess
 import sys
@@ -91,7 +92,7 @@ def test_the_flood_kernel_floods_each_devices_own_grids(tmp_path):
 def test_training_resets_trace_with_the_devices_they_run_on():
     """`AutoReset(devices=...)` traces every reset (the first, a step's own, the drawn-ahead
     ones) inside `xla.on_devices`, so that the flood knows the devices its batch is split
-    between; outside, `xla.spanned` is what it was."""
+    between; outside, and in other threads, `xla.spanned` is what it was."""
     before = xla.spanned()
     seen = []
     env = AutoReset(_Recorder(seen), pool=2, groups=2, devices=("d0", "d1"))
@@ -101,6 +102,10 @@ def test_training_resets_trace_with_the_devices_they_run_on():
     env.draw(state, 3)
     assert seen == [("d0", "d1")] * 3
     assert xla.spanned() == before
+    # Per thread: a program traced in another thread meanwhile does not take them.
+    with xla.on_devices(("d0", "d1")):
+        elsewhere = concurrent.futures.ThreadPoolExecutor(1).submit(xla.spanned).result()
+    assert elsewhere == before
     with pytest.raises(ValueError, match="AutoReset.groups"):
         AutoReset(_Recorder(seen), groups=3, devices=("d0", "d1"))
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 
 import jax
 
@@ -34,7 +35,7 @@ OPTION = "xla_backend_optimization_level"
 DETERMINISTIC = "xla_gpu_deterministic_ops"  # XLA's option for the same bits every run
 GPUS = ("gpu", "cuda", "rocm")  # the names a GPU backend or platform goes by
 _deterministic = False  # set by `deterministic`
-_devices: tuple | None = None  # set by `on_devices` while a batch split between them traces
+_tracing = threading.local()  # `.devices`: set by `on_devices` in the thread that traces
 
 
 def pow2(n: int, least: int = 1) -> int:
@@ -76,18 +77,20 @@ def threefry_kernel(on: bool, backend: str | None = None) -> None:
 @contextlib.contextmanager
 def on_devices(devices):
     """While the computations of a batch split between `devices` (its first axis, in equal
-    consecutive parts, as `ppo.train.shard_envs` splits the robots) trace: `spanned` names them."""
-    global _devices
-    before, _devices = _devices, tuple(devices)
+    consecutive parts, as `ppo.train.shard_envs` splits the robots) trace in this thread:
+    `spanned` names them (programs may be traced in several threads at once)."""
+    before = getattr(_tracing, "devices", None)
+    _tracing.devices = tuple(devices)
     try:
         yield
     finally:
-        _devices = before
+        _tracing.devices = before
 
 
 def spanned() -> tuple | None:
     """The devices of the batch tracing now: `on_devices`' devices; else the only device, or
     None where there are several and which of them a batch is on is not known."""
-    if _devices is not None:
-        return _devices
+    devices = getattr(_tracing, "devices", None)
+    if devices is not None:
+        return devices
     return tuple(jax.devices()) if jax.device_count() == 1 else None
