@@ -249,13 +249,17 @@ def run(
             check_new_out(out)
         env, trainer = interruptible(_build, config)
         key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
-        check = lambda shapes: memory_check(config, env, shapes)  # noqa: E731
+
+        def check(shapes):  # before anything compiles: no compile outlives a refused start
+            nonlocal created
+            memory_check(config, env, shapes)
+            folder.create()
+            created = True
+            distributed.ready()  # every process's start went well
+
         trainer, _, ahead = interruptible(
             lambda: find_programs(trainer, config, env, key, check=check)
         )
-        folder.create()
-        created = True
-        distributed.ready()
         if stop is not None:
             stop.at_once(_start_note(folder), folder.remove)
         compiling = _Compiling(since) if ahead else None
