@@ -169,9 +169,14 @@ def shard_envs(num_envs: int, devices=None, axis: int = 0):
         return lambda tree: tree
     if num_envs % len(devices):
         raise ValueError(f"--num-envs {num_envs} must be a multiple of the {len(devices)} devices")
-    spec = PartitionSpec(*[None] * axis, "envs")
-    sharding = NamedSharding(Mesh(np.array(devices), ("envs",)), spec)
+    sharding = envs_sharding(devices, axis)
     return lambda tree: jax.lax.with_sharding_constraint(tree, sharding)
+
+
+def envs_sharding(devices: list, axis: int = 0) -> NamedSharding:
+    """The robots' layout over `devices`: arrays split along `axis` in equal consecutive parts,
+    one a device (the mesh axis "envs")."""
+    return NamedSharding(Mesh(np.array(devices), ("envs",)), PartitionSpec(*[None] * axis, "envs"))
 
 
 def block_count(cfg: PPOConfig, devices=None) -> int:
@@ -469,7 +474,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     }
     programs = {**first, **steps}
     trainer = Trainer(
-        network, None, None, jit(train), parts, {}, compose, arguments, tuple(first), True
+        network, None, None, jit(train), parts, {}, compose, arguments, tuple(first), laid_out=True
     )
     return trainer.with_programs(**programs)
 
@@ -483,10 +488,8 @@ def layouts(devices: list, ahead: bool, calls: int) -> dict:
     before the programs before it have run (`training.find_programs`)."""
     if len(devices) == 1:
         return {}
-    mesh = Mesh(np.array(devices), ("envs",))
-    every, robots, steps = (
-        NamedSharding(mesh, PartitionSpec(*spec)) for spec in ((), ("envs",), (None, "envs"))
-    )
+    robots, steps = envs_sharding(devices, 0), envs_sharding(devices, 1)
+    every = NamedSharding(robots.mesh, PartitionSpec())  # replicated
     state = TrainState(
         params=every, opt_state=every, obs_stats=every, env_state=robots, key=every, update=every
     )
