@@ -31,11 +31,35 @@ def test_recall_by_hand():
     # (1, 0) ahead: left-front (bearing 0 opens it); (0.3, -0.3) nearer than (0, -0.5) on the
     # right; (-2, 0) behind, beyond reach.
     np.testing.assert_allclose(out, [1.5, math.hypot(0.3, 0.3), 1.0, 1.5], rtol=1e-6)
-    # Turned a quarter left, from (0.5, 0): (1, 0) is on its right now, (0, -0.5) and (0.3, -0.3)
-    # behind on its left.
-    pose = np.array([0.5, 0.0, math.pi / 2], np.float32)
+    # Turned a quarter left, from (0.5, -0.1): (1, 0) is on its right now, (0, -0.5) and
+    # (0.3, -0.3) behind on its left, (-2, 0) ahead on the left, beyond reach.
+    pose = np.array([0.5, -0.1, math.pi / 2], np.float32)
     out = recall(points, seen, pose, 4, 1.5)
-    np.testing.assert_allclose(out, [1.5, 0.5, 1.5, math.hypot(0.2, 0.3)], rtol=1e-6)
+    np.testing.assert_allclose(
+        out, [1.5, math.hypot(0.5, 0.1), 1.5, math.hypot(0.2, 0.2)], rtol=1e-6
+    )
+
+
+@pytest.mark.parametrize("bins", [4, 7, 16])
+def test_recall_bins_are_the_bearings(bins):
+    """Each remembered point counts in the bin of its bearing from the heading, atan2's angle
+    binned as the module docstring says, computed here independently in float64 for random
+    points and poses (points within 1e-4 rad of a bin's edge left out); numpy (the robot) and
+    jax.numpy (the simulator) alike."""
+    rng = np.random.default_rng(bins)
+    points = rng.uniform(-1.2, 1.2, (200, 2)).astype(np.float32)
+    seen = rng.random(200) < 0.8
+    for pose in rng.uniform([-0.3, -0.3, -4.0], [0.3, 0.3, 4.0], (20, 3)).astype(np.float32):
+        d = points.astype(np.float64) - pose[:2]
+        bearing = np.mod(np.arctan2(d[:, 1], d[:, 0]) - pose[2] + np.pi, 2 * np.pi)  # [0, 2 pi)
+        where = bearing * bins / (2 * np.pi)
+        clear = np.abs(where - np.round(where)) > 1e-4 * bins / (2 * np.pi)
+        which = np.floor(where).astype(int) % bins
+        distance = np.hypot(d[:, 0], d[:, 1])
+        want = [min([1.5, *distance[(which == b) & seen & clear]]) for b in range(bins)]
+        for xp in (np, jnp):
+            got = recall(points[clear], seen[clear], pose, bins, np.float32(1.5), xp=xp)
+            np.testing.assert_allclose(np.asarray(got), want, rtol=1e-6)
 
 
 def test_sector_points_by_hand():
