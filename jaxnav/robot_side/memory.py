@@ -20,6 +20,7 @@ same readings and poses.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -83,12 +84,20 @@ def recall(points, seen, pose, bins: int, reach: float, xp=np):
     ahead, left = cos * dx + sin * dy, cos * dy - sin * dx  # [N] in the robot's frame
     # The bin: how many of its inner edges the bearing has passed, compared as `_turn` values
     # (XLA's CPU backend spent most of the memory's time on an arctangent per point).
-    edges = -math.pi + (2 * math.pi / bins) * np.arange(1, bins)  # [bins - 1] rad
-    edges = _turn(np.cos(edges), np.sin(edges), np).astype(np.float32)
-    which = (_turn(ahead, left, xp)[:, None] >= edges[None, :]).sum(-1)  # [N] 0 .. bins - 1
+    which = (_turn(ahead, left, xp)[:, None] >= _edges(bins)[None, :]).sum(-1)  # [N] 0 .. bins - 1
     member = (which[:, None] == xp.arange(bins)[None, :]) & seen[:, None]  # [N, bins]
     near = xp.where(member, distance[:, None], reach).min(0)
     return xp.minimum(near, reach)
+
+
+@functools.cache
+def _edges(bins: int) -> np.ndarray:
+    """[bins - 1] float32 `_turn` values of the bins' inner edges (made once per bin count: the
+    robot reads its memory every control step)."""
+    edges = -math.pi + (2 * math.pi / bins) * np.arange(1, bins)  # rad
+    edges = _turn(np.cos(edges), np.sin(edges), np).astype(np.float32)
+    edges.flags.writeable = False  # shared by every call
+    return edges
 
 
 def _turn(ahead, left, xp=np):
