@@ -149,6 +149,9 @@ VARIANTS["memory_hall_margin7"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.075
 VARIANTS["memory_hall_margin7_c30_g995"] = (
     VARIANTS["memory_hall_margin7"] + COLLISION_30 + GAMMA_995
 )
+# ... trained twice as long (200 M steps), and with a margin drawn per episode between 5 and 10 cm.
+VARIANTS["memory_hall_margin7_long"] = VARIANTS["memory_hall_margin7"] + LONG
+VARIANTS["memory_hall_margin5_10"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.05", "0.1")
 VARIANTS["cpu_preset_margin7"] = (*VARIANTS["cpu_preset"][:-3], MARGIN, "0.075", "0.075")
 VARIANTS["cpu_preset_memory_margin7"] = (
     "--task.memory-bins",
