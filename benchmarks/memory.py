@@ -152,6 +152,15 @@ VARIANTS["memory_hall_margin7_c30_g995"] = (
 # ... trained twice as long (200 M steps), and with a margin drawn per episode between 5 and 10 cm.
 VARIANTS["memory_hall_margin7_long"] = VARIANTS["memory_hall_margin7"] + LONG
 VARIANTS["memory_hall_margin5_10"] = (*VARIANTS["memory_hall"][:-3], MARGIN, "0.05", "0.1")
+# ... with a memory of 32 directions of 11.25° rather than 16, or of the last 4 s rather than 2.
+VARIANTS["memory_hall_margin7_bins32"] = VARIANTS["memory_hall_margin7"] + (
+    "--task.memory-bins",
+    "32",
+)
+VARIANTS["memory_hall_margin7_steps40"] = VARIANTS["memory_hall_margin7"] + (
+    "--task.memory-steps",
+    "40",
+)
 VARIANTS["cpu_preset_margin7"] = (*VARIANTS["cpu_preset"][:-3], MARGIN, "0.075", "0.075")
 VARIANTS["cpu_preset_memory_margin7"] = (
     "--task.memory-bins",
