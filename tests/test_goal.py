@@ -680,6 +680,8 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     assert widths == {"cpu": (64, 64), "gpu": (256, 256)}
     memory = {name: build_config(name, env="goal").task.memory_bins for name in ("cpu", "gpu")}
     assert memory == {"cpu": 16, "gpu": 16}  # both presets' policies have a memory
+    span = {name: build_config(name, env="goal").task.memory_steps for name in ("cpu", "gpu")}
+    assert span == {"cpu": 20, "gpu": 40}  # of 2 s and 4 s
     assert build_config("gpu", env="avoid").ppo.hidden == (64, 64)
     narrow = build_config("gpu", env="goal", overrides={"ppo": {"hidden": (32,)}})
     assert narrow.ppo.hidden == (32,)
