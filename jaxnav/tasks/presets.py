@@ -42,7 +42,7 @@ GOAL = {
         # rather than 81 %. A 7.5 cm collision margin in training: BARN 89.3 % rather than 85.5 %
         # (86.9 % with 5 cm, 90.8 % with 10 cm), the suite 94.8 % rather than 92.5 % (95.1 % with
         # 5 cm, 94.0 % with 10 cm); in clutter 83.8 % against 89.6 % with 5 cm; three seeds each
-        # (benchmarks/memory.py). A memory of the last 4 s rather than 2: BARN 91.0 % rather than
+        # (benchmarks/memory.py). A memory of the last 4 s rather than 2: BARN 91.1 % rather than
         # 88.4 % (every seed of three at 90 % or more), its hard worlds 86.2 % rather than 81.2 %.
         "gpu": {
             "ppo": {"hidden": (256, 256)},
