@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnav.core.draws import BLOCK, Draws, draws, normal_of
+from jaxnav.core.draws import BLOCK, Draws, draws, hashed_uniform, normal_of
 
 N = 20_000  # draws per statistic: standard errors about 0.2 % of a uniform's range
 
@@ -81,3 +81,35 @@ def test_blocks_are_apart_from_small_numbers_folded_into_the_key(fold):
     d = Draws(key)
     blocks = np.concatenate([np.asarray(d.uniform((BLOCK,))) for _ in range(3)])
     assert not np.isin(own, blocks).any()
+
+
+@pytest.mark.parametrize("keys", ["split", "sequential"])
+def test_hashed_uniform_is_uniform_and_independent(keys):
+    """The camera noise's hash (`hashed_uniform`): in [0, 1), even over 64 bins (chi-square),
+    uncorrelated between neighbouring values of a key, between the two halves a step's noise and
+    dropout read, and between neighbouring keys, even keys that differ in one counter (seeds
+    0, 1, 2 ...); the same for a typed key as for its raw words."""
+    n, shape = 4000, (2, 5, 24)
+    if keys == "split":
+        raw = jax.random.split(jax.random.PRNGKey(0), n)
+    else:
+        raw = jax.vmap(jax.random.PRNGKey)(jnp.arange(n))
+    u = np.asarray(jax.jit(jax.vmap(lambda k: hashed_uniform(k, shape)))(raw)).reshape(n, -1)
+    assert u.dtype == np.float32 and (u >= 0).all() and (u < 1).all()
+    typed = jax.vmap(jax.random.wrap_key_data)(raw)
+    np.testing.assert_array_equal(
+        jax.vmap(lambda k: hashed_uniform(k, shape))(typed), u.reshape(n, *shape)
+    )
+    counts = np.bincount((u.ravel() * 64).astype(int), minlength=64)
+    expected = u.size / 64
+    assert ((counts - expected) ** 2 / expected).sum() < 120  # 63 degrees of freedom: mean 63
+    np.testing.assert_allclose([u.mean(), u.var()], [0.5, 1 / 12], rtol=0.01)
+    half = u.shape[1] // 2
+    pairs = [
+        (u[:, :-1].ravel(), u[:, 1:].ravel()),  # neighbouring values of a key
+        (u[:, :half].ravel(), u[:, half:].ravel()),  # the noise's and the dropout's
+        (u[:-1].ravel(), u[1:].ravel()),  # neighbouring keys
+    ]
+    for a, b in pairs:
+        assert abs(np.corrcoef(a, b)[0, 1]) < 4 / np.sqrt(a.size)
+    assert np.unique(u[:, 0]).size > 0.99 * n  # the first value of every key differs

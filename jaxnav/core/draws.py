@@ -80,6 +80,28 @@ class Draws:
         return jnp.minimum(i, p.shape[0] - 1).astype(jnp.int32)
 
 
+def _mix(x: jax.Array) -> jax.Array:
+    """[...] uint32 each word mixed by a bijective 32-bit hash (two xorshift-multiply rounds)."""
+    x = (x ^ (x >> 16)) * jnp.uint32(0x7FEB352D)
+    x = (x ^ (x >> 15)) * jnp.uint32(0x846CA68B)
+    return x ^ (x >> 16)
+
+
+def hashed_uniform(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """[shape] float32 uniform in [0, 1) of `key`: each value's index hashed with the key's two
+    words (`_mix`, twice), 24 bits a value. For noise drawn anew every step (the camera's), where
+    jax.random.uniform's threefry (20 rounds for every two values; on the CPU a rolled loop)
+    took 1.5 ms of a 512-robot step that this takes 0.1 ms of (docs/results.md, "The camera's
+    noise from a cheaper hash"); its statistics: tests/test_draws.py. A typed key or a raw
+    uint32[2] one."""
+    if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jax.random.key_data(key)
+    words = key.reshape(-1).astype(jnp.uint32)
+    index = jnp.arange(math.prod(shape), dtype=jnp.uint32).reshape(shape)
+    bits = _mix(_mix(index ^ words[0]) + words[1])
+    return (bits >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)
+
+
 def normal_of(u: jax.Array) -> jax.Array:
     """[...] standard normal values of uniform ones in [0, 1) (the inverse CDF, as jax.random
     draws them)."""

@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnav.core.checks import require_finite
-from jaxnav.core.draws import normal_of
+from jaxnav.core.draws import hashed_uniform, normal_of
 from jaxnav.core.geometry import ray_cast
 from jaxnav.core.robot import RobotSpec
 from jaxnav.robot_side.observation import (
@@ -276,7 +276,7 @@ def camera_readings(params, qpos, key, cfg: SensorConfig, robot: RobotSpec) -> R
     obstacles and camera mount error (`params`: its `SceneParams`), before `far_mask`."""
     rays = ray_readings(params, qpos, cfg, robot)
     reading = rays.reading
-    u = jax.random.uniform(key, (2, *reading.shape))  # one hash: noise and dropout
+    u = hashed_uniform(key, (2, *reading.shape))  # noise and dropout
     std = params.noise_std + params.noise_quad * jnp.square(jnp.minimum(reading, cfg.range_max))
     reading = reading + std * normal_of(u[0])
     dropped = u[1] < params.dropout
