@@ -91,9 +91,8 @@ def hashed_uniform(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
     """[shape] float32 uniform in [0, 1) of `key`: each value's index hashed with the key's two
     words (`_mix`, twice), 24 bits a value. For noise drawn anew every step (the camera's), where
     jax.random.uniform's threefry (20 rounds for every two values; on the CPU a rolled loop)
-    took 1.5 ms of a 512-robot step that this takes 0.1 ms of (docs/results.md, "The camera's
-    noise from a cheaper hash"); its statistics: tests/test_draws.py. A typed key or a raw
-    uint32[2] one."""
+    costs a 512-robot step ten times as long (`benchmarks/camera_noise.py`); its statistics:
+    tests/test_draws.py. A typed key or a raw uint32[2] one."""
     if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
         key = jax.random.key_data(key)
     words = key.reshape(-1).astype(jnp.uint32)
