@@ -47,9 +47,15 @@ def _commit() -> str:
     return _git("rev-parse", "HEAD") or "unknown"
 
 
+# What the scripts write themselves (results, pictures, the README's table and the docs' figures):
+# not the code measured, so a change there does not make a result dirty.
+OUTPUTS = (":(exclude)benchmarks/results", ":(exclude)README.md", ":(exclude)docs")
+
+
 def _dirty() -> bool:
-    """Whether the tracked files differ from the commit (the result may not be reproducible)."""
-    return bool(_git("status", "--porcelain", "--untracked-files=no"))
+    """Whether the tracked files of the code measured differ from the commit (the result may not
+    be reproducible); `OUTPUTS`, which a script may be writing while it runs, are not counted."""
+    return bool(_git("status", "--porcelain", "--untracked-files=no", "--", ".", *OUTPUTS))
 
 
 FIELDS = {
