@@ -19,6 +19,10 @@ def _session_compilation_cache() -> None:
         folder = tempfile.mkdtemp(prefix="jaxnav-xla-cache-")
         atexit.register(shutil.rmtree, folder, ignore_errors=True)
         os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+    # Every program, however quickly it compiled: at -O0 most of the suite's programs compile in
+    # under JAX's default second, and many are compiled again by other tests, workers and
+    # subprocesses (the quick tier on 2 cores: 307 s with it, 326 s without).
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 
 # Quicker XLA compiles for the whole session, its subprocesses included: the suite's time is
