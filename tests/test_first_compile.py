@@ -45,8 +45,10 @@ def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, 
             events[event].append(kwargs.get("fun_name", ""))
 
     monkeypatch.setattr(train_module, "find_programs", find_programs)
-    # As outside the tests, whose XLA_FLAGS set LLVM's level: the programs take jaxnav's options.
-    options = lambda platform: {xla.OPTION: xla.CPU_OPT_LEVEL}  # noqa: E731
+    # As outside the tests, whose XLA_FLAGS set LLVM's level: the programs take jaxnav's options,
+    # here at the session's level (-O0), so that these eight tiny runs compile as quickly as the
+    # rest of the suite's programs.
+    options = lambda platform: {xla.OPTION: 0}  # noqa: E731
     monkeypatch.setattr(ppo_train, "compiler_options", options)
     monkeypatch.setattr(programs, "compiler_options", options)
     programs.use(store)
