@@ -34,13 +34,14 @@ def _mujoco() -> str:
     return mujoco.__version__
 
 
-def _git(*args: str) -> str:
+def _git(*args: str) -> str | None:
+    """git's output in the checkout, stripped; None where git failed or is missing."""
     repo = Path(__file__).resolve().parent.parent
     try:
         out = subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired):
-        return ""
-    return out.stdout.strip() if out.returncode == 0 else ""
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
 
 
 def _commit() -> str:
@@ -52,10 +53,12 @@ def _commit() -> str:
 OUTPUTS = (":(exclude)benchmarks/results", ":(exclude)README.md", ":(exclude)docs")
 
 
-def _dirty() -> bool:
+def _dirty() -> bool | None:
     """Whether the tracked files of the code measured differ from the commit (the result may not
-    be reproducible); `OUTPUTS`, which a script may be writing while it runs, are not counted."""
-    return bool(_git("status", "--porcelain", "--untracked-files=no", "--", ".", *OUTPUTS))
+    be reproducible); `OUTPUTS`, which a script may be writing while it runs, are not counted.
+    None where git cannot tell (no checkout, no git)."""
+    changed = _git("status", "--porcelain", "--untracked-files=no", "--", ".", *OUTPUTS)
+    return None if changed is None else bool(changed)
 
 
 FIELDS = {

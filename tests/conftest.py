@@ -21,7 +21,7 @@ def _session_compilation_cache() -> None:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
     # Every program, however quickly it compiled: at -O0 most of the suite's programs compile in
     # under JAX's default second, and many are compiled again by other tests, workers and
-    # subprocesses (the quick tier on 2 cores: 307 s with it, 326 s without).
+    # subprocesses.
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 

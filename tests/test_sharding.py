@@ -36,12 +36,12 @@ def train_on(devices: int, out: Path) -> dict:
 
 @pytest.mark.slow
 def test_two_devices_match_one(tmp_path):
-    """Training sharded over two devices, as a run trains (init, then a chunk of the draws',
-    start's, rollout's and learner's programs), gives the one-device result, and no op of its
-    rollout waits for the other device (no collective in the compiled rollout: a branch on all
-    robots, as the in-place auto-reset has, would put one in every env step); compiled at their
-    first calls or all at once before any has run. Slow: two training processes (a device count
-    is fixed per process)."""
+    """Training sharded over two devices, as a run trains (init from the draws' and start's
+    programs, then a chunk of the draws', rollout's and learner's), gives the one-device result,
+    and no op of the programs an env step runs in waits for the other device (no collective in
+    the compiled rollout or draws: a branch on all robots, as the in-place auto-reset has, would
+    put one in every env step); compiled at their first calls or all at once before any has run.
+    Slow: two training processes (a device count is fixed per process)."""
     one = train_on(1, tmp_path / "one.npz")
     two = train_on(2, tmp_path / "two.npz")
     assert int(one["devices"]) == 1 and int(two["devices"]) == 2

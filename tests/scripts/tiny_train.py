@@ -1,5 +1,5 @@
-"""Trains a tiny run as a run does (its programs: init, then chunks of the draws, start, rollout
-and learner) and saves its final weights: `python tiny_train.py OUT.npz`.
+"""Trains a tiny run as a run does (its programs: init from the draws and start, then a chunk of
+the draws, rollout and learner) and saves its final weights: `python tiny_train.py OUT.npz`.
 
 Run by tests in a subprocess, so that XLA_FLAGS (forced host devices) take effect before jax loads.
 """
@@ -32,15 +32,22 @@ trainer = make_train(cfg, env)
 # Each program compiled at its first call: init, then one chunk of the whole budget's updates.
 ts, _ = trainer.run_chunk(trainer.init(jax.random.PRNGKey(0)))
 leaves = jax.tree_util.tree_leaves(jax.device_get(ts.params))
-# The cross-device ops of the compiled rollout (`make_train` names its scope), read from the
-# program just run, from the abstract arguments a run gives it (as `find_programs` does).
-args = trainer.arguments("rollout", trainer.programs, jax.random.PRNGKey(0))
-hlo = trainer.programs["rollout"].lower(*args).compile().as_text()
-rollout = [line for line in hlo.splitlines() if "/rollout/" in line]
+# The cross-device ops of the programs every env step runs in (the rollout and the draws of its
+# new episodes), compiled again from the abstract arguments a run gives them (as `find_programs`
+# does: the same programs, so XLA's in-memory cache has them).
 collectives = ("all-reduce", "all-gather", "all-to-all", "collective-permute", "reduce-scatter")
+
+
+def hlo_of(name: str) -> list[str]:
+    args = trainer.arguments(name, trainer.programs, jax.random.PRNGKey(0))
+    return trainer.programs[name].lower(*args).compile().as_text().splitlines()
+
+
+stepped = [*hlo_of("rollout"), *hlo_of("draws")]
+rollout = [line for line in stepped if "/rollout/" in line]  # `make_train` names its scope
 waits = [
     line
-    for line in rollout
+    for line in stepped
     if any(f" {op}(" in line or f" {op}-start(" in line for op in collectives)
 ]
 # And as a run starts them: every program compiled at once before any has run (on several
