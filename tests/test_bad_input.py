@@ -287,8 +287,10 @@ def test_evaluate_unwritable_output_before_evaluating(capsys, monkeypatch, flag)
     assert_one_error_line(code, err, flag, "/proc", "cannot write")
 
 
+@pytest.mark.slow
 def test_evaluate_never_reports_nan(tmp_path, capsys, monkeypatch):
-    """A room whose metrics are not finite is an error, and no JSON is written."""
+    """A room whose metrics are not finite is an error, and no JSON is written. Slow: an
+    evaluation compiled for this check."""
     real = evaluation.evaluate_rooms
 
     def diverged(*args, **kwargs):

@@ -150,11 +150,15 @@ def _crossings(rooms: int, seed: int) -> list[RoomLayout]:
     return layouts
 
 
+@pytest.mark.slow
 def test_people_meeting_from_every_side_never_stand_for_good():
+    """People who meet at a circle's centre or face to face do not stand for good: nobody stands
+    for others longer than the patience rule's `PATIENCE`, everyone reaches the far side, and no
+    one steps into another. Slow: 256 rooms of walkers compiled and walked for 60 s for this
+    check."""
     # Crowds meeting at a circle's centre, or face to face, can leave every candidate but
     # standing closing on someone. Without the patience rule 40 of these people (22 of the 256
-    # rooms) stood 5 s or more in 60 s, one for 39 s; with it nobody stands for people more than
-    # PATIENCE, everyone reaches the far side, and no one steps into another.
+    # rooms) stood 5 s or more in 60 s, one for 39 s.
     layouts = _crossings(256, seed=0)
     pos, vel = (np.asarray(x) for x in _walk(_params(layouts), None, steps=600))  # [T, K, C, 2]
     n = max(len(lay.cylinders) for lay in layouts)
@@ -244,12 +248,14 @@ def _no_end_where_another_stays(rooms):
         assert not (touch & other & walking[:, :, None] & stays[:, None]).any()
 
 
+@pytest.mark.slow
 def test_aimed_walkers_cross_the_robots_way():
     """An aimed walker crosses as in CrowdNav's circle crossing: it starts near the circle whose
     diameter is the straight way from the spawn to the goal (or, without a goal, a circle of
     1-4 m radius centred ahead of the spawn) and walks to the point opposite across its centre,
     where it stays; the others cross the room back and forth, mostly missing the way's middle.
-    Nobody's goal or turning point is where another stays."""
+    Nobody's goal or turning point is where another stays. Slow: the walkers' placement compiled
+    twice (half and all of them aimed) for this check."""
     lay = RoomLayout(
         name="way",
         size=(8.0, 8.0),

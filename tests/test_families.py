@@ -90,9 +90,11 @@ def test_families_mix_without_recompiling(rooms):
     assert out.box_pos.shape == (KEYS * len(NAMES), NB, 2)
 
 
+@pytest.mark.slow
 def test_pick_is_the_room_lax_switch_draws():
     """`families.pick` keeps the room `lax.switch` would: the same bits for every key and family,
-    in a batch (as resets run) and for one robot alone."""
+    in a batch (as resets run) and for one robot alone. Slow: every family's sampler compiled
+    three times (picked and switched in a batch, picked alone) for this check."""
     branches = [lambda k, f=f: f(k, NB, NC, RADIUS) for f in families.FAMILIES.values()]
     keys = jax.random.split(jax.random.PRNGKey(5), 3 * len(NAMES))
     index = jnp.arange(3 * len(NAMES)) % len(NAMES)

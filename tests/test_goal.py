@@ -565,12 +565,14 @@ RING = RoomLayout(
 SMALL_RING = dataclasses.replace(RING, name="small_ring", size=(2.6, 2.6))
 
 
+@pytest.mark.slow
 def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
     """A reset floods the grid once, from the goal: the field reaches the spawn, which moves out
     of a pocket the goal is not in; where no cell is far enough the path is cleared first. The
     goals, rooms and fields are bit for bit those of the signed distance over the whole grid at
     once (`goals.grid_clearance` computes it in blocks of rows), and the field is `goal_field`'s,
-    whichever rooms share the batch."""
+    whichever rooms share the batch. Slow: the goal's draw compiled four times (batches of 4, 3
+    and 2 x 2, and one robot) for this check."""
     rooms = [OPEN, RING, SMALL_RING, POCKET]
     spawns = [(-1.5, -1.5), (0.0, 0.0), (0.0, 0.0), (-2.0, 1.0)]
     bank = make_bank(rooms, 8, 4)

@@ -451,10 +451,12 @@ def test_update_is_its_rollout_then_its_learner(ahead):
         {"critic_output": "tanh", "hidden": (32, 48, 20), "critic": 5},  # paper's critic, 3 layers
     ],
 )
+@pytest.mark.slow
 def test_fused_gradient_matches_jax_grad(case):
     """The learner's one-kernel gradient (`jaxnav.ppo.fused`, through Pallas' interpreter) is
     jax.grad's of `ppo_loss`, and its metrics the loss's, to float32 rounding; ratios spread on
-    both sides of the clip, a state the critic alone reads."""
+    both sides of the clip, a state the critic alone reads. Slow: the kernel compiled through
+    Pallas' interpreter, on one device and split over two, for this check."""
     from jaxnav.core.types import DiscreteActions
     from jaxnav.ppo import fused
     from jaxnav.ppo.config import preset
