@@ -4,8 +4,8 @@ from blocks that one `jax.random.uniform` call draws each.
 A room sampler draws dozens of small values (sizes, counts, poses, the robot's parameters). With a
 key per value, each is a threefry hash of its own, and on a GPU JAX inlines every hash as ~130
 unrolled ops, which XLA copies into the fusions that read them. From a `Draws`, a reset costs a
-few hashes: lowered for CUDA, the `avoid` reset has 44 % fewer ops (docs/results.md, "Random
-numbers in blocks").
+few hashes: lowered for CUDA, the `avoid` reset has 44 % fewer ops (docs/results.md, "What
+was decided and why").
 """
 
 from __future__ import annotations

@@ -181,7 +181,7 @@ def grid_steps(free: jax.Array, seed: jax.Array, sweeps: int = SWEEPS) -> jax.Ar
 
     Under `jax.vmap`, a rule of its own (`jax.custom_batching.custom_vmap`) hands the whole batch
     to one flood: on the CPU one that loops over the rows with the batch on the arrays' minor axis
-    (`_flood_rows`; docs/results.md, "A flood a row at a time"), on GPUs a Pallas kernel that
+    (`_flood_rows`; docs/results.md, "What was decided and why"), on GPUs a Pallas kernel that
     runs every scan of a block of grids in one program (`flood_kernel`), on each GPU's own part
     of the batch where the devices it is split between are known (`xla.spanned`) and each part
     is large enough (`_gpu_flood`). Elsewhere (smaller batches; several devices whose part of the
@@ -338,8 +338,8 @@ def grid_clearance(params: SceneParams, extent: tuple[float, float]) -> jax.Arra
 
     Computed in `GRID_BLOCKS` blocks of rows, in a loop: a loop's operands are computed once,
     where XLA's CPU backend otherwise fuses the room sampler that drew `params` into the
-    per-cell computation and repeats it for every cell (docs/results.md, "A goal reset and
-    a sensor the CPU computes once").
+    per-cell computation and repeats it for every cell (docs/results.md, "What was
+    decided and why").
     """
     centres = _room_centres(extent, params.room_half)
     blocks = centres.reshape(GRID_BLOCKS, -1, *centres.shape[1:])  # [B, rows/B, cols, 2]

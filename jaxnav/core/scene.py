@@ -154,7 +154,7 @@ def _robot_spec(cfg: SceneConfig, robot: RobotSpec) -> mujoco.MjSpec:
             # The base's three joints: MJX factors M densely (below 60 degrees of freedom, but on
             # a TPU), on a GPU a batched Cholesky call and two triangular solves a step; its
             # sparse factorisation is a few element-wise ops that fuse. On the CPU the sparse one
-            # stepped no faster (docs/results.md, "The mass matrix factored sparsely").
+            # stepped no faster (docs/results.md, "What was decided and why").
             spec.option.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
     return spec
 

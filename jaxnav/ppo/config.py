@@ -73,13 +73,13 @@ class PPOConfig:
     between old and new state for every robot: the same result bit for bit (tested; see
     `jaxnav.wrappers.AutoReset`), less memory traffic per step but a branch on every step, which
     a GPU waits for (and several GPUs agree on); off, PPO runs faster and compiles sooner on one
-    GPU and on two, and the same on a CPU (docs/results.md, "The auto-reset's branch")."""
+    GPU and on two, and the same on a CPU (docs/results.md, "What was decided and why")."""
     threefry_kernel: bool = False
     """On one GPU, call jax.random's threefry as JAX's CUDA kernel instead of inlining its rounds
     (`jaxnav.core.xla.threefry_kernel`, set by `make_train` for the process): the same random
     bits in a smaller program. Since the resets draw their numbers in blocks
     (`jaxnav.core.draws`), inlined is faster for both tasks: the kernel's calls cannot fuse with
-    the step around them (docs/results.md, "Random numbers in blocks")."""
+    the step around them (docs/results.md, "What was decided and why")."""
     deterministic: bool = False
     """On a GPU, compile with XLA's deterministic ops (`jaxnav.core.xla.deterministic`, set by
     `make_train` for the process), so that one seed trains to the same bits on one machine; off,
