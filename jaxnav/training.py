@@ -255,13 +255,13 @@ def run(
             memory_check(config, env, shapes)
             folder.create()
             created = True
+            if stop is not None:  # from the folder's first instant, a signal takes it back
+                stop.at_once(_start_note(folder), folder.remove)
             distributed.ready()  # every process's start went well
 
         trainer, _, ahead = interruptible(
             lambda: find_programs(trainer, config, env, key, check=check)
         )
-        if stop is not None:
-            stop.at_once(_start_note(folder), folder.remove)
         compiling = _Compiling(since) if ahead else None
         ts = interruptible(trainer.init, key, waiting=compiling)
         args = (trainer, ts, [], 0.0, progress, stop, env.metric_names, compiling)

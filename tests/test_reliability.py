@@ -230,6 +230,39 @@ def test_sigint_while_importing_exits_at_once(tmp_path, delay):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_signal_from_the_run_folders_first_instant_takes_it_back(fake, tmp_path, monkeypatch):
+    """The run folder is made once the memory check has passed, while the programs are still
+    traced; a signal from that instant ends the start as one while compiling does: the folder
+    removed, the line saying so (not "nothing was written" over a folder holding config.json and
+    a lock, which the next `--out` of it refused)."""
+    out, stop, left = tmp_path / "run", process.Interrupts(), []
+
+    def exit_now(code):  # the handler's os._exit, here after noting what it left
+        left.append(out.exists())
+        raise SystemExit(code)
+
+    monkeypatch.setattr(process.os, "_exit", exit_now)
+    monkeypatch.setattr(process, "end_children", lambda: None)
+    find = train_module.find_programs
+
+    def find_programs(trainer, config, env, key, check=None):
+        def checked(state):  # the folder is made here; the signal comes right after
+            check(state)
+            assert out.is_dir()
+            stop._handle(signal.SIGINT, None)
+
+        return find(trainer, config, env, key, check=checked)
+
+    monkeypatch.setattr(train_module, "find_programs", find_programs)
+    config = train_module.build_config(
+        "cpu", 0, None, train_cli.overrides_from_args(train_cli.parse_args(TINY_FLAGS))
+    )
+    with pytest.raises(SystemExit, match="130"):
+        train_module.run(config, out, progress=False, stop=stop)
+    assert left == [False]
+    assert stop.note == f"removed the unfinished run folder {out}"
+
+
 def test_an_interrupt_ends_the_children_a_library_started():
     """`import mujoco` starts pyGLFW's version probe, a Python that prints to a pipe back to its
     parent: ended with its parent, it would print a BrokenPipeError traceback (`process.end_children`)."""
