@@ -659,8 +659,8 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
 
 
 def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
-    """The goal task's own PPO defaults (1/64 of the robots draw a new episode per step, each
-    rollout's drawn at its start) go over every preset, its cpu defaults (512 robots, 2 epochs)
+    """The goal task's own PPO defaults (1/64 of the robots draw a new episode per step; each
+    rollout's drawn at its start, as every task's) go over every preset, its cpu defaults (512 robots, 2 epochs)
     over the cpu preset's and its gpu defaults (256 x 256 networks, a memory) over the gpu
     preset's, all under the user's settings; other tasks keep the preset's."""
     from jaxnav.training import build_config
@@ -668,7 +668,7 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     for name in ("cpu", "gpu", "paper"):
         goal, avoid = build_config(name, env="goal").ppo, build_config(name, env="avoid").ppo
         assert (goal.reset_share, goal.reset_ahead) == (1 / 64, True)
-        assert (avoid.reset_share, avoid.reset_ahead) == (1 / 16, False)
+        assert (avoid.reset_share, avoid.reset_ahead) == (1 / 16, True)
         robots = {"cpu": 512, "gpu": 8192, "paper": 1}[name]
         assert (goal.num_envs, avoid.num_envs) == (robots, 256 if name == "cpu" else robots)
     cpu = build_config("cpu", env="goal", overrides={"ppo": {"num_envs": 128}}).ppo

@@ -64,10 +64,12 @@ class PPOConfig:
     """New episodes drawn per step for the robots whose episode ended, as a share of num_envs
     (at least 8, or every robot; 1: one per robot; the goal task's own default is 1/64, for its
     longer episodes). See `jaxnav.wrappers.AutoReset`."""
-    reset_ahead: bool = False
+    reset_ahead: bool = True
     """Draw the new episodes of a whole rollout at its start, in one batch of rollout_length x
-    pool draws, instead of a pool at every step: the same distribution from other keys (the goal
-    task's default; see `jaxnav.wrappers.AutoReset.draw`)."""
+    pool draws, instead of a pool at every step: the same distribution from other keys (see
+    `jaxnav.wrappers.AutoReset.draw`). The task's reset then compiles once, in the draws'
+    program, rather than in init's and the rollout's (docs/results.md, "What was decided and
+    why"); false: a pool at every step, in the rollout."""
     reset_in_place: bool = False
     """Write the new episodes into the rows of the robots that finished only, instead of selecting
     between old and new state for every robot: the same result bit for bit (tested; see

@@ -17,8 +17,8 @@ GOAL_GPU_FAMILIES = "all,long_hall:1"
 
 GOAL = {
     "defaults": {
-        # Short episodes whose resets flood the room: fewer new episodes per step, drawn ahead.
-        "ppo": {"reset_share": 1 / 64, "reset_ahead": True, "privileged_critic": True},
+        # Short episodes whose resets flood the room: fewer new episodes per step.
+        "ppo": {"reset_share": 1 / 64, "privileged_critic": True},
         "randomize": {"families": "all"},
     },
     "preset_defaults": {
