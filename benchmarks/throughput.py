@@ -57,15 +57,15 @@ VARIANTS = {
     "full": {"scene": {"fast_contacts": True}, "ppo": {"reset_in_place": False}},
     "contacts": {"scene": {"fast_contacts": True}},
     "in_place": {"ppo": {"reset_in_place": True}},
-    # Where the new episodes are drawn (PPOConfig.reset_ahead) and how jax.random lowers on a GPU
+    # Where the new episodes are drawn (PPOConfig.reset_ahead: each step's pool in the rollout
+    # rather than a rollout's ahead of it) and how jax.random lowers on a GPU
     # (PPOConfig.threefry_kernel); the env-only rows draw per step either way.
-    "ahead": {"ppo": {"reset_ahead": True}},
+    "per_step": {"ppo": {"reset_ahead": False}},
     "kernel": {"ppo": {"threefry_kernel": True}},
-    "ahead_kernel": {"ppo": {"reset_ahead": True, "threefry_kernel": True}},
     "inline": {"ppo": {"threefry_kernel": False}},
     # New episodes for 1/64 of the robots per step instead of 1/16 (PPOConfig.reset_share).
     "pool64": {"ppo": {"reset_share": 1 / 64}},
-    "pool64_ahead": {"ppo": {"reset_share": 1 / 64, "reset_ahead": True}},
+    "pool64_per_step": {"ppo": {"reset_share": 1 / 64, "reset_ahead": False}},
     # The learner's gradient as XLA's kernels of jax.grad rather than one (PPOConfig.fused_learner).
     "xla_learner": {"ppo": {"fused_learner": False}},
     # Every room of the `crowd` family: 3-6 people walking (jaxnav.core.crowd) in each.

@@ -660,9 +660,9 @@ def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_har
 
 def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     """The goal task's own PPO defaults (1/64 of the robots draw a new episode per step; each
-    rollout's drawn at its start, as every task's) go over every preset, its cpu defaults (512 robots, 2 epochs)
-    over the cpu preset's and its gpu defaults (256 x 256 networks, a memory) over the gpu
-    preset's, all under the user's settings; other tasks keep the preset's."""
+    rollout's drawn at its start, as every task's) go over every preset, its cpu defaults (512
+    robots, 2 epochs) over the cpu preset's and its gpu defaults (256 x 256 networks, a memory)
+    over the gpu preset's, all under the user's settings; other tasks keep the preset's."""
     from jaxnav.training import build_config
 
     for name in ("cpu", "gpu", "paper"):

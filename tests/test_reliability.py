@@ -200,6 +200,24 @@ def test_too_many_robots_refused_before_anything_is_written(tmp_path, monkeypatc
     assert not (tmp_path / "run").exists()
 
 
+def test_the_memory_check_counts_a_rollouts_episodes_drawn_ahead(tmp_path, monkeypatch, capsys):
+    """Drawn ahead (`--reset-ahead`, the default), a rollout's new episodes are held at once: with
+    one a robot a step, 16 steps of them, a robot needs more than with one step's drawn at a time,
+    and fewer robots fit."""
+    monkeypatch.chdir(tmp_path)
+    flags = ["--num-envs", "10000000", "--rollout-length", "16", "--total-steps", "160000000"]
+    flags += ["--reset-share", "1"]
+    need = {}
+    for ahead in ("true", "false"):
+        code = train_cli.main(["--out", f"run-{ahead}", *flags, "--reset-ahead", ahead])
+        assert code == 2
+        line = one_error_line(capsys.readouterr().err, "--num-envs 10000000", "kB per robot")
+        kb = float(line.split(" kB per robot")[0].rsplit("(", 1)[1])
+        need[ahead] = (kb, int(line.rsplit("about ", 1)[1].replace(",", "")))
+        assert not (tmp_path / f"run-{ahead}").exists()
+    assert need["true"][0] > need["false"][0] and need["true"][1] < need["false"][1], need
+
+
 def test_unwritable_run_folder_is_one_line(tmp_path):
     folder = train_module._RunFolder(Path("/proc"), train_module.build_config())
     with pytest.raises(ValueError, match="--out /proc: cannot write"):

@@ -2,10 +2,10 @@
 
 One update = `_rollout` (scan over the horizon, all robots vmapped) -> GAE -> `_update_epoch` x E,
 each a scan of `_update_minibatch`. `run_chunk` runs `updates_per_chunk` updates so the host can
-log, draw and checkpoint between chunks: a loop in Python over them, each three programs
-(each rollout's new episodes drawn ahead, `reset_ahead`, then the rollout and the learner), or two
-where each step draws its own (the rollout, then the learner), which XLA compiles at once. `train` runs everything in one jitted
-call.
+log, draw and checkpoint between chunks: a loop in Python over them, each three programs (the
+rollout's new episodes drawn ahead, `reset_ahead`; the rollout; the learner), or two where each
+step draws its own (the rollout, then the learner), which XLA compiles at once. `train` runs
+everything in one jitted call.
 """
 
 from __future__ import annotations
