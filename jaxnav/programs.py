@@ -1,6 +1,6 @@
-"""A training run's programs (`Trainer.programs`: init, the rollout and the learner, or the draws,
-start, rollout and learner of a run that draws its new episodes ahead), traced once and kept on
-disk.
+"""A training run's programs (`Trainer.programs`: the draws, start, rollout and learner, or init,
+the rollout and the learner of a run whose steps draw their own new episodes), traced once and
+kept on disk.
 
 Before XLA compiles anything, a start traces the task's reset and step (under `vmap`, in a scan)
 and lowers them to StableHLO: several seconds of Python on every start (7-9 s for the goal
