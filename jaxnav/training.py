@@ -333,6 +333,9 @@ def resume(
     try:
         ckpt, config, meta = _resume_point(out, total_steps)  # every process reads it
         env, trainer = interruptible(_build, config)
+        if stop is not None:  # from the lock's first instant, a signal releases it
+            note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
+            stop.at_once(note, lambda: locked and lock.release())
         if main:
             try:
                 lock.acquire()
@@ -346,9 +349,6 @@ def resume(
                     f"python -m jaxnav.train --resume {out}"
                 ) from None
         distributed.ready()
-        if stop is not None:
-            note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
-            stop.at_once(note, lock.release if main else None)
         key, since = jax.random.PRNGKey(config.seed), time.perf_counter()
         trainer, _, ahead = interruptible(find_programs, trainer, config, env, key)
         compiling = _Compiling(since) if ahead else None

@@ -281,6 +281,33 @@ def test_a_signal_from_the_run_folders_first_instant_takes_it_back(fake, tmp_pat
     assert stop.note == f"removed the unfinished run folder {out}"
 
 
+def test_a_signal_while_a_resume_holds_the_lock_releases_it(fake, tmp_path, monkeypatch):
+    """A resume takes the run's lock, then cleans stale writes, writes config.json and waits for
+    the other processes; a signal from the lock's first instant releases the lock and says nothing
+    was lost (not the start's "nothing was written" over a lock left behind)."""
+    assert fake("--out", "run", *TINY_FLAGS) == 0
+    out, stop, held = tmp_path / "run", process.Interrupts(), []
+
+    def exit_now(code):  # the handler's os._exit, here after noting whether the lock is held
+        held.append((out / files.LOCK).exists())
+        raise SystemExit(code)
+
+    monkeypatch.setattr(process.os, "_exit", exit_now)
+    monkeypatch.setattr(process, "end_children", lambda: None)
+    clean = checkpoint.remove_stale_writes
+
+    def signalled(folder):  # right after the lock is taken
+        assert (out / files.LOCK).exists()
+        clean(folder)
+        stop._handle(signal.SIGINT, None)
+
+    monkeypatch.setattr(checkpoint, "remove_stale_writes", signalled)
+    with pytest.raises(SystemExit, match="130"):
+        train_module.resume(out, progress=False, stop=stop)
+    assert held == [False]
+    assert stop.note == f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
+
+
 def test_an_interrupt_ends_the_children_a_library_started():
     """`import mujoco` starts pyGLFW's version probe, a Python that prints to a pipe back to its
     parent: ended with its parent, it would print a BrokenPipeError traceback (`process.end_children`)."""
