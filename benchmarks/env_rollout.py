@@ -4,7 +4,8 @@
     python benchmarks/env_rollout.py --variants default,rows1,no_fidelity,pool_all ...
 
 Each variant is the default training env (5-row camera, sim-to-real ranges of randomize.FIDELITY,
-the auto-reset pool of the PPO default) with one thing changed, to time what each piece costs:
+the auto-reset pool of the PPO default, drawn at every step; PPO draws a rollout's ahead of it, as
+`goal_ahead` does) with one thing changed, to time what each piece costs:
 `rows1`/`rows3` (a 1- or 3-row camera), `no_fidelity` (randomize.FIDELITY off), `families` (sampled
 rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step),
 `wheeled` (the wheeled validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles
