@@ -11,8 +11,8 @@ with jaxnav's compiler options and the preset's shapes (`PIECES`), `--repeats` t
 programs (medians): trace+lower and XLA compile seconds, and the size of its HLO (ops of the
 lowered StableHLO, characters of the optimised HLO).
 
-Per task: in this process, each of a run's programs (`Trainer.programs`: init, the rollout and the
-learner, or the draws, start, rollout and learner of a task that draws its new episodes ahead)
+Per task: in this process, each of a run's programs (`Trainer.programs`: the draws, start, rollout
+and learner, or init, the rollout and the learner with `--reset-ahead false`)
 lowered (tracing: `jax.stages` `.lower`) and compiled (`.compile`) on its own, in turn, with the
 size of its HLO text, and the sums over the chunk's (all but init and start); then `python -m
 jaxnav.train` run twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a
@@ -113,7 +113,8 @@ def piece_programs(env_name: str, preset: str) -> dict:
     key = shape(jax.random.PRNGKey, 0)  # raw key data: (2,) for threefry
     keys = jax.ShapeDtypeStruct((cfg.num_envs, *key.shape), key.dtype)
     ts = trainer.arguments("state", trainer.programs, key)  # init's TrainState
-    rolled = shape(parts["rollout"], ts)  # (ts, traj)
+    rollout_args = trainer.arguments("rollout", trainer.programs, key)  # (ts, drawn ahead?)
+    rolled = shape(parts["rollout"], *rollout_args)  # (ts, traj)
     action = jax.tree_util.tree_map(
         lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), rolled[1].action
     )
@@ -134,9 +135,9 @@ def piece_programs(env_name: str, preset: str) -> dict:
     else:
         programs["autoreset_step"] = (wrapped.step, (ts.env_state, action))
     programs["init"] = (parts["init"], (key,))
-    programs["rollout"] = (parts["rollout"], (ts,))
+    programs["rollout"] = (parts["rollout"], rollout_args)
     programs["learn"] = (parts["learn"], rolled)
-    programs["update"] = (parts["update"], trainer.arguments("rollout", trainer.programs, key))
+    programs["update"] = (parts["update"], rollout_args)
     return programs
 
 

@@ -10,7 +10,9 @@ For each size: (a) env-only random rollouts of the training distribution (sim-to
 one control step into physics / sensor / reset sampling / a whole reset / policy forward, and of
 one PPO update into rollout and learning. `--env goal` times the `goal` task instead (its reset
 also draws the goal and its distance field), with the task's own PPO defaults (new episodes for
-1/64 of the robots, drawn ahead in training; the env step draws them per step). Every timing is
+1/64 of the robots). PPO draws a rollout's new episodes ahead of it; the env-only step draws
+them per step, so an update's learning share (the update less 32 env-only steps) also holds
+what drawing ahead saves. Every timing is
 the best of `--repeats` runs of a jitted scan, after compiling it, with `block_until_ready`.
 
 `--variants` times the speed levers on and off (`VARIANTS`): `full` is the full MJX path (MJX's
@@ -290,7 +292,8 @@ def measure(n: int, variant: str, args, split: bool, trace=None) -> dict:
         row["policy_forward"] = policy_piece(n, args.steps, args.repeats)
     if not args.no_train:
         row["train"] = training(env, n, args.updates, args.repeats, ppo, trace)
-        # An update's time beyond its 32 env steps: the policy, GAE and 4 x 4 gradient steps.
+        # An update's time beyond its 32 env-only steps: the policy, GAE and 4 x 4 gradient
+        # steps, less what drawing a rollout's episodes ahead saves over drawing them per step.
         step_s = row["env"]["step"]["ms_per_step"] / 1e3
         row["train"]["learn_ms_per_update"] = 1e3 * (row["train"]["s_per_update"] - 32 * step_s)
     row["peak_memory_mb"] = round(peak_memory_mb())

@@ -103,11 +103,11 @@ def memory_check(config: RunConfig, env, shapes) -> None:
     width *= 1 + 2 * cfg.rollout_length / cfg.num_minibatches
     # A Transition per step: raw and normalised obs, 6 scalars, the episode sums (float32/int32).
     step = 4 * (2 * env.observation_size + 8 + len(env.metric_names))
-    # The state, the next one and the auto-reset's draws (a step's, or with `reset_ahead` a
-    # rollout's: rollout_length x reset_pool episodes over num_envs robots); the rollout and its
+    # The state, the next one and a step's auto-reset merge, and with `reset_ahead` a rollout's
+    # draws (rollout_length x reset_pool episodes over num_envs robots); the rollout and its
     # shuffled copy.
-    drawn = cfg.rollout_length * cfg.reset_pool / cfg.num_envs if cfg.reset_ahead else 1.0
-    per_robot = (2 + max(1.0, drawn)) * state + 2 * cfg.rollout_length * step + width
+    drawn = cfg.rollout_length * cfg.reset_pool / cfg.num_envs if cfg.reset_ahead else 0.0
+    per_robot = (3 + drawn) * state + 2 * cfg.rollout_length * step + width
     # `share`: robots per memory = num_envs / share. The CPU's devices share this process's memory
     # (one process per host); an accelerator holds its own device's robots.
     if devices[0].platform == "cpu":
@@ -335,7 +335,7 @@ def resume(
         env, trainer = interruptible(_build, config)
         if stop is not None:  # from the lock's first instant, a signal releases it
             note = f"nothing was lost; continue with: python -m jaxnav.train --resume {out}"
-            stop.at_once(note, lambda: locked and lock.release())
+            stop.at_once(note, lock.release)  # a lock not (yet) taken: releases nothing
         if main:
             try:
                 lock.acquire()

@@ -85,7 +85,7 @@ class AutoReset(Wrapper):
     (steps x P episodes), and `step(state, action, fresh)` takes one step's pool from it (a scan
     over the steps with the draws as its xs). The draws do not depend on the state, so the
     episodes come from the same distribution as the per-step draws, from other keys: one large
-    batch instead of many small ones (docs/results.md has what it changes for `goal`).
+    batch instead of many small ones (PPO's default; docs/results.md has what it changes).
     """
 
     def __init__(

@@ -205,13 +205,14 @@ def test_the_memory_check_counts_a_rollouts_episodes_drawn_ahead(tmp_path, monke
     one a robot a step, 16 steps of them, a robot needs more than with one step's drawn at a time,
     and fewer robots fit."""
     monkeypatch.chdir(tmp_path)
-    flags = ["--num-envs", "10000000", "--rollout-length", "16", "--total-steps", "160000000"]
+    # 100 M robots: more than any host holds either way (about 1.8 TB drawn per step).
+    flags = ["--num-envs", "100000000", "--rollout-length", "16", "--total-steps", "1600000000"]
     flags += ["--reset-share", "1"]
     need = {}
     for ahead in ("true", "false"):
         code = train_cli.main(["--out", f"run-{ahead}", *flags, "--reset-ahead", ahead])
         assert code == 2
-        line = one_error_line(capsys.readouterr().err, "--num-envs 10000000", "kB per robot")
+        line = one_error_line(capsys.readouterr().err, "--num-envs 100000000", "kB per robot")
         kb = float(line.split(" kB per robot")[0].rsplit("(", 1)[1])
         need[ahead] = (kb, int(line.rsplit("about ", 1)[1].replace(",", "")))
         assert not (tmp_path / f"run-{ahead}").exists()

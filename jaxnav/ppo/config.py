@@ -62,8 +62,8 @@ class PPOConfig:
     """Standardise observations with running mean/variance."""
     reset_share: float = 0.0625
     """New episodes drawn per step for the robots whose episode ended, as a share of num_envs
-    (at least 8, or every robot; 1: one per robot; the goal task's own default is 1/64, for its
-    longer episodes). See `jaxnav.wrappers.AutoReset`."""
+    (at least 8, or every robot; 1: one per robot; the goal task's own default is 1/64, as its
+    resets flood the room). See `jaxnav.wrappers.AutoReset`."""
     reset_ahead: bool = True
     """Draw the new episodes of a whole rollout at its start, in one batch of rollout_length x
     pool draws, instead of a pool at every step: the same distribution from other keys (see
