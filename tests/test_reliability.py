@@ -202,8 +202,8 @@ def test_too_many_robots_refused_before_anything_is_written(tmp_path, monkeypatc
 
 def test_the_memory_check_counts_a_rollouts_episodes_drawn_ahead(tmp_path, monkeypatch, capsys):
     """Drawn ahead (`--reset-ahead`, the default), a rollout's new episodes are held at once: with
-    one a robot a step, 16 steps of them, a robot needs more than with one step's drawn at a time,
-    and fewer robots fit."""
+    a new episode a robot a step, 16 steps of them, a robot needs more memory than with one step's
+    drawn at a time, and fewer robots fit."""
     monkeypatch.chdir(tmp_path)
     # 100 M robots: more than any host holds either way (about 1.8 TB drawn per step).
     flags = ["--num-envs", "100000000", "--rollout-length", "16", "--total-steps", "1600000000"]
@@ -284,8 +284,9 @@ def test_a_signal_from_the_run_folders_first_instant_takes_it_back(fake, tmp_pat
 
 def test_a_signal_while_a_resume_holds_the_lock_releases_it(fake, tmp_path, monkeypatch):
     """A resume takes the run's lock, then cleans stale writes, writes config.json and waits for
-    the other processes; a signal from the lock's first instant releases the lock and says nothing
-    was lost (not the start's "nothing was written" over a lock left behind)."""
+    the other processes; a signal once the lock is taken (here, while stale writes are cleaned)
+    releases it and says nothing was lost (not the start's "nothing was written" over a lock left
+    behind)."""
     assert fake("--out", "run", *TINY_FLAGS) == 0
     out, stop, held = tmp_path / "run", process.Interrupts(), []
 
