@@ -409,6 +409,24 @@ def test_resume_names_changed_flags_as_typed(fake, tmp_path, capsys, flags):
     one_error_line(capsys.readouterr().err, f"drop {flags[0]}")
 
 
+def test_a_lock_released_again_while_it_is_released_lets_go_once(tmp_path, monkeypatch):
+    """A signal's cleanup may release the run's lock while the run's own release is under way (the
+    `finally` of a resume): the second release does nothing, the lock's file goes and its fd is
+    closed once."""
+    lock, closed = files.RunLock(tmp_path), []
+    lock.acquire()
+    fd, unlink, close = lock.fd, Path.unlink, os.close
+
+    def unlink_interrupted(path, *args, **kwargs):  # the signal comes here, mid-release
+        lock.release()
+        unlink(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "unlink", unlink_interrupted)
+    monkeypatch.setattr(files.os, "close", lambda fd: (closed.append(fd), close(fd)))
+    lock.release()
+    assert closed.count(fd) == 1 and lock.fd is None and not (tmp_path / files.LOCK).exists()
+
+
 HOLD_LOCK = """
 import sys, time
 from pathlib import Path

@@ -194,12 +194,13 @@ class RunLock:
             os.close(fd)
 
     def release(self) -> None:
-        if self.fd is None:
+        # Taken first: a signal's cleanup that releases it again meanwhile finds nothing to do.
+        fd, self.fd = self.fd, None
+        if fd is None:
             return
         with contextlib.suppress(OSError):
             self.file.unlink()  # while still holding it: a waiting process retries on the new file
-        os.close(self.fd)
-        self.fd = None
+        os.close(fd)
 
 
 # `write_atomic`'s temporary files of the files a run folder's lock holder rewrites.
