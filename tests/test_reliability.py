@@ -249,19 +249,27 @@ def test_sigint_while_importing_exits_at_once(tmp_path, delay):
     assert not (tmp_path / "run").exists()
 
 
+def exits_noting(monkeypatch, noted) -> list:
+    """The signal handler's end of the process (`os._exit`; the children's end a no-op) made a
+    SystemExit, after appending `noted()` to the list returned: what the signal left behind."""
+    seen = []
+
+    def exit_now(code):
+        seen.append(noted())
+        raise SystemExit(code)
+
+    monkeypatch.setattr(process.os, "_exit", exit_now)
+    monkeypatch.setattr(process, "end_children", lambda: None)
+    return seen
+
+
 def test_a_signal_from_the_run_folders_first_instant_takes_it_back(fake, tmp_path, monkeypatch):
     """The run folder is made once the memory check has passed, while the programs are still
     traced; a signal from that instant ends the start as one while compiling does: the folder
     removed, the line saying so (not "nothing was written" over a folder holding config.json and
     a lock, which the next `--out` of it refused)."""
-    out, stop, left = tmp_path / "run", process.Interrupts(), []
-
-    def exit_now(code):  # the handler's os._exit, here after noting what it left
-        left.append(out.exists())
-        raise SystemExit(code)
-
-    monkeypatch.setattr(process.os, "_exit", exit_now)
-    monkeypatch.setattr(process, "end_children", lambda: None)
+    out, stop = tmp_path / "run", process.Interrupts()
+    left = exits_noting(monkeypatch, out.exists)
     find = train_module.find_programs
 
     def find_programs(trainer, config, env, key, check=None):
@@ -288,14 +296,8 @@ def test_a_signal_while_a_resume_holds_the_lock_releases_it(fake, tmp_path, monk
     releases it and says nothing was lost (not the start's "nothing was written" over a lock left
     behind)."""
     assert fake("--out", "run", *TINY_FLAGS) == 0
-    out, stop, held = tmp_path / "run", process.Interrupts(), []
-
-    def exit_now(code):  # the handler's os._exit, here after noting whether the lock is held
-        held.append((out / files.LOCK).exists())
-        raise SystemExit(code)
-
-    monkeypatch.setattr(process.os, "_exit", exit_now)
-    monkeypatch.setattr(process, "end_children", lambda: None)
+    out, stop = tmp_path / "run", process.Interrupts()
+    held = exits_noting(monkeypatch, (out / files.LOCK).exists)
     clean = checkpoint.remove_stale_writes
 
     def signalled(folder):  # right after the lock is taken
