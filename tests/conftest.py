@@ -25,11 +25,27 @@ def _session_compilation_cache() -> None:
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 
+def _loop_emitters() -> bool:
+    """Whether this jaxlib's XLA still has its older CPU loop emitters (jaxlib 0.11 has not)."""
+    import importlib.metadata
+
+    major, minor = (int(part) for part in importlib.metadata.version("jaxlib").split(".")[:2])
+    return (major, minor) < (0, 11)
+
+
 # Quicker XLA compiles for the whole session, its subprocesses included: the suite's time is
 # mostly compiling small programs (every env a test builds compiles its own), and these flags
 # trade run time for compile time (the whole suite on 2 cores: 21 min with them, 26 without).
-# Set before jax is imported; a caller's own XLA_FLAGS (even empty) are kept as they are.
-FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+# Where XLA has them, its older CPU loop emitters (`FUSION_EMITTERS` off) take about a third less
+# CPU time to compile a tiny training run and run its programs about 3x slower. Set before jax is
+# imported; a caller's own XLA_FLAGS (even empty) are kept as they are.
+FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
+FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true" + (
+    f" --{FUSION_EMITTERS}=false" if _loop_emitters() else ""
+)
+# A test whose claim is about the bits XLA's own CPU code computes (two programs bit for bit alike,
+# a bound found on these trajectories) compiles its programs with these options.
+XLA_CPU_CODE = {FUSION_EMITTERS: True} if _loop_emitters() else {}
 
 
 _session_compilation_cache()
@@ -64,11 +80,21 @@ def optimised(monkeypatch):
     session's -O0, for a test that trains long enough for its run time to outweigh the longer
     compile (on 2 cores the goal task's learning test takes a third of the time): the session's
     XLA_FLAGS without their level, so that `compiler_options` sets jaxnav's on each program it
-    compiles from now on (the backend keeps the flags it started with)."""
-    from jaxnav.core.xla import OPTION
+    compiles from now on (the backend keeps the flags it started with), with XLA's own CPU fusion
+    emitters, which the session turns off (FAST_XLA), back on for them."""
+    from jaxnav import evaluation, programs
+    from jaxnav.core import xla
+    from jaxnav.ppo import train
 
     flags = os.environ.get("XLA_FLAGS", "").split()
-    monkeypatch.setenv("XLA_FLAGS", " ".join(f for f in flags if OPTION not in f))
+    monkeypatch.setenv("XLA_FLAGS", " ".join(f for f in flags if xla.OPTION not in f))
+
+    def options(backend=None):  # jaxnav's, and on the CPU XLA's own code
+        own = xla.compiler_options(backend)
+        return {**own, **XLA_CPU_CODE} if (backend or jax.default_backend()) == "cpu" else own
+
+    for module in (train, programs, evaluation):
+        monkeypatch.setattr(module, "compiler_options", options)
 
 
 @pytest.fixture(autouse=True)

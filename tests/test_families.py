@@ -1,10 +1,13 @@
 """Room families: valid rooms over many keys, no recompilation when they mix, coverage, the suite."""
 
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import XLA_CPU_CODE
 
 from jaxnav.core import families
 from jaxnav.core import grid as occupancy
@@ -98,10 +101,11 @@ def test_pick_is_the_room_lax_switch_draws():
     branches = [lambda k, f=f: f(k, NB, NC, RADIUS) for f in families.FAMILIES.values()]
     keys = jax.random.split(jax.random.PRNGKey(5), 3 * len(NAMES))
     index = jnp.arange(3 * len(NAMES)) % len(NAMES)
-    picked = jax.jit(jax.vmap(lambda i, k: families.pick(i, branches, k)))(index, keys)
-    switched = jax.jit(jax.vmap(lambda i, k: jax.lax.switch(i, branches, k)))(index, keys)
+    jit = functools.partial(jax.jit, compiler_options=XLA_CPU_CODE)
+    picked = jit(jax.vmap(lambda i, k: families.pick(i, branches, k)))(index, keys)
+    switched = jit(jax.vmap(lambda i, k: jax.lax.switch(i, branches, k)))(index, keys)
     chex.assert_trees_all_equal(picked, switched)
-    one = jax.jit(lambda i, k: families.pick(i, branches, k))(index[4], keys[4])
+    one = jit(lambda i, k: families.pick(i, branches, k))(index[4], keys[4])
     chex.assert_trees_all_equal(one, jax.tree_util.tree_map(lambda x: x[4], switched))
 
 

@@ -80,24 +80,26 @@ def same_run(got, want) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "flags, names",
+    "flags, names, stored",
     [
         (
             ("--reset-ahead", "false"),
             {"init": "init", "rollout": "_rollout", "learn": "_learn"},
+            False,
         ),
-        ((), {"draws": "_draws", "start": "start", "rollout": "_rollout", "learn": "_learn"}),
+        ((), {"draws": "_draws", "start": "start", "rollout": "_rollout", "learn": "_learn"}, True),
     ],
 )
 def test_programs_compiled_at_once_train_the_same_and_compile_once(
-    tmp_path, monkeypatch, capsys, flags, names
+    tmp_path, monkeypatch, capsys, flags, names, stored
 ):
     """Slow: tiny training runs in this process, tracing and compiling the trainer. Compiled at
-    once, from the program store (traced and kept by the first run, read back by the second: no
-    trace of the task's programs), the run is the one whose programs compiled at their first
-    calls, bit for bit. Compiled ahead, the compile line also says when the chunk's run began.
-    The programs (`names`: program -> its function's name) are init, the rollout and the
-    learner, or, with new episodes drawn ahead, the draws, start, rollout and learner."""
+    once, and (`stored`: the default's programs) from the program store (traced and kept by the
+    first run, read back by the second: no trace of the task's programs), the run is the one
+    whose programs compiled at their first calls, bit for bit. Compiled ahead, the compile line
+    also says when the chunk's run began. The programs (`names`: program -> its function's name)
+    are init, the rollout and the learner, or, with new episodes drawn ahead (the default), the
+    draws, start, rollout and learner; the store keeps programs whatever their names."""
     want = trained(tmp_path / "after", monkeypatch, ahead=False, flags=flags)
     line = re.search(r"first chunk in ([\d.]+) s(.*)", capsys.readouterr().out)
     assert line and line.group(2) == "", line  # compiled at its first call: no split to show
@@ -111,7 +113,8 @@ def test_programs_compiled_at_once_train_the_same_and_compile_once(
     for traced in names.values():
         assert sum(f"({traced})" in name for name in got[2][COMPILE_EVENT]) == 1, got[2]
     assert checkpoint.resolve(tmp_path / "beside").name == "update_000006"
-
+    if not stored:
+        return
     store = tmp_path / "programs"
     for run in ("traced", "read back"):
         got = trained(tmp_path / run, monkeypatch, ahead=True, store=store, flags=flags)
