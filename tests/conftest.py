@@ -36,9 +36,9 @@ def _loop_emitters() -> bool:
 # Quicker XLA compiles for the whole session, its subprocesses included: the suite's time is
 # mostly compiling small programs (every env a test builds compiles its own), and these flags
 # trade run time for compile time (the whole suite on 2 cores: 21 min with them, 26 without).
-# Where XLA has them, its older CPU loop emitters (`FUSION_EMITTERS` off) take about a third less
-# CPU time to compile a tiny training run and run its programs about 3x slower. Set before jax is
-# imported; a caller's own XLA_FLAGS (even empty) are kept as they are.
+# Where XLA has them, its older CPU loop emitters (`FUSION_EMITTERS` off) compile quicker code that
+# runs slower (docs/development.md). Set before jax is imported; a caller's own XLA_FLAGS (even
+# empty) are kept as they are.
 FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
 FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true" + (
     f" --{FUSION_EMITTERS}=false" if _loop_emitters() else ""
