@@ -35,7 +35,7 @@ def _loop_emitters() -> bool:
 
 # Quicker XLA compiles for the whole session, its subprocesses included: the suite's time is
 # mostly compiling small programs (every env a test builds compiles its own), and these flags
-# trade run time for compile time (the whole suite on 2 cores: 21 min with them, 26 without).
+# trade run time for compile time (the suite's times with them: docs/development.md).
 # Where XLA has them, its older CPU loop emitters (`FUSION_EMITTERS` off) compile quicker code that
 # runs slower (docs/development.md). Set before jax is imported; a caller's own XLA_FLAGS (even
 # empty) are kept as they are.
