@@ -40,12 +40,13 @@ def _loop_emitters() -> bool:
 # runs slower (docs/development.md). Set before jax is imported; a caller's own XLA_FLAGS (even
 # empty) are kept as they are.
 FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
+LOOP_EMITTERS = _loop_emitters()
 FAST_XLA = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true" + (
-    f" --{FUSION_EMITTERS}=false" if _loop_emitters() else ""
+    f" --{FUSION_EMITTERS}=false" if LOOP_EMITTERS else ""
 )
 # A test whose claim is about the bits XLA's own CPU code computes (two programs bit for bit alike,
 # a bound found on these trajectories) compiles its programs with these options.
-XLA_CPU_CODE = {FUSION_EMITTERS: True} if _loop_emitters() else {}
+XLA_CPU_CODE = {FUSION_EMITTERS: True} if LOOP_EMITTERS else {}
 
 
 _session_compilation_cache()
