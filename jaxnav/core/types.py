@@ -62,10 +62,34 @@ ActionSpec = DiscreteActions | ContinuousActions
 
 
 @struct.dataclass
+class Body:
+    """The robot's physics state from one control step to the next: what MuJoCo's next step
+    reads (its integration state and the solver's warm start). Everything else in `mjx.Data`
+    (body poses, inertias, forces) each step derives from these before reading it, so an env
+    carries, auto-resets and stores these five arrays rather than mjx.Data's forty-odd."""
+
+    time: jax.Array  # [] s
+    qpos: jax.Array  # [nq] the free base's x, y, yaw first (and a wheeled model's wheel angles)
+    qvel: jax.Array  # [nv]
+    act: jax.Array  # [na] actuator activations (none for the models here)
+    qacc_warmstart: jax.Array  # [nv] the constraint solver's starting accelerations
+
+    @classmethod
+    def of(cls, data: mjx.Data) -> Body:
+        """The carried part of `data`."""
+        return cls(data.time, data.qpos, data.qvel, data.act, data.qacc_warmstart)
+
+    def into(self, data: mjx.Data) -> mjx.Data:
+        """`data` (e.g. `mjx.make_data`'s) with this state in place: what a step starts from."""
+        fields = dataclasses.fields(self)
+        return data.replace(**{f.name: getattr(self, f.name) for f in fields})
+
+
+@struct.dataclass
 class EnvState:
     """One robot's state (a batch adds a leading axis to every array)."""
 
-    data: mjx.Data  # physics state
+    data: Body  # physics state
     obs: jax.Array  # [observation_size] float32
     reward: jax.Array  # [] float32, of the last step
     done: jax.Array  # [] bool: the last step ended the episode (collision, success or time)

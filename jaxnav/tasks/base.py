@@ -31,7 +31,7 @@ from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import Scene, SceneConfig
 from jaxnav.core.sensors import SensorConfig, observe
-from jaxnav.core.types import ActionSpec, ContinuousActions, DiscreteActions
+from jaxnav.core.types import ActionSpec, Body, ContinuousActions, DiscreteActions
 
 GRAVITY = 9.81  # m/s^2, for the wheels' traction limit
 MAX_LATENCY = 4  # control steps of command history kept for the episode's latency
@@ -221,7 +221,7 @@ class NavTask:
         """C, the task's inputs for a privileged critic in `state.info["critic"]` (0: none)."""
         return getattr(self.task, "critic_observations", 0)
 
-    def new_episode(self, key: jax.Array) -> tuple[SceneParams, mjx.Data]:
+    def new_episode(self, key: jax.Array) -> tuple[SceneParams, Body]:
         """A fresh room, spawn, moving obstacles and parameters, and the physics state at the
         spawn."""
         params = sample(key, self.randomize, self.bank, self.robot.radius)
@@ -243,7 +243,7 @@ class NavTask:
         k_move = jax.random.fold_in(key, 1)
         return motion.add_movers(k_move, params, self.randomize, self.robot.radius, goal)
 
-    def move(self, params: SceneParams, data: mjx.Data) -> SceneParams:
+    def move(self, params: SceneParams, data: Body | mjx.Data) -> SceneParams:
         """`params` after the obstacles' motion over one control period (`motion.advance`; the
         reactive walkers give way to the robot as `data` has it); unchanged in an env where
         nothing moves."""
@@ -252,7 +252,7 @@ class NavTask:
         robot = (data.qpos[:2], data.qvel[:2], self.robot.radius)
         return motion.advance(params, self.control_period, robot)
 
-    def walker_hit(self, params: SceneParams, data: mjx.Data, hit) -> dict:
+    def walker_hit(self, params: SceneParams, data: Body | mjx.Data, hit) -> dict:
         """{"walker_hit": [] float32, 1 where this step's collision `hit` is a non-reactive walker
         running into the robot while it stood (`crowd.hit_by_walker`)}; {} where nobody walks."""
         if not self.walking:
@@ -261,14 +261,14 @@ class NavTask:
         by = crowd.hit_by_walker(params, data.qpos[:2], data.qvel[:2], self.scene.bumper_radius, z)
         return {"walker_hit": (by & hit).astype(jnp.float32)}
 
-    def place(self, params: SceneParams) -> mjx.Data:
+    def place(self, params: SceneParams) -> Body:
         """The physics state of the robot at rest at `params.spawn`: its position alone. The
-        quantities MuJoCo derives from it (body and geom poses, contacts) come with the first
-        step, which computes them from the position before anything reads them, so a reset
+        quantities MuJoCo derives from it (body and geom poses, contacts) come with each step,
+        which computes them from the carried `Body` before anything reads them, so a reset
         computes none (MJX's kinematics cost the reset's compile 1 s of 5.6 s for avoid on 2
         CPU cores, docs/results.md "Start-up"; `tests/test_speed.py` checks that the steps are
         the same either way)."""
-        return self._data0.replace(qpos=self._data0.qpos.at[:3].set(params.spawn))
+        return Body.of(self._data0.replace(qpos=self._data0.qpos.at[:3].set(params.spawn)))
 
     def command(self, action: jax.Array) -> jax.Array:
         """[2] the (forward m/s, yaw rad/s) the policy's `action` asks for: a row of the command
@@ -281,17 +281,17 @@ class NavTask:
             return jnp.clip(action, jnp.asarray(spec.low), jnp.asarray(spec.high))
         return jnp.asarray(spec.table())[action]
 
-    def sense(self, params: SceneParams, data: mjx.Data, key: jax.Array) -> jax.Array:
+    def sense(self, params: SceneParams, data: Body | mjx.Data, key: jax.Array) -> jax.Array:
         """[num_sectors] float32 sector minima of the depth sensor, with the episode's noise."""
         return observe(params, data.qpos, key, self.sensor, self.robot)
 
-    def gap(self, params: SceneParams, data: mjx.Data) -> jax.Array:
+    def gap(self, params: SceneParams, data: Body | mjx.Data) -> jax.Array:
         """[] m between the robot's collision volume and the nearest wall or obstacle (moving
         ones included); < 0 where they overlap."""
         z = tuple(jnp.float32(v) for v in self.scene.bumper_z)
         return signed_distance(params, data.qpos[:2], z) - self.scene.bumper_radius
 
-    def touching(self, params: SceneParams, data: mjx.Data) -> jax.Array:
+    def touching(self, params: SceneParams, data: Body | mjx.Data) -> jax.Array:
         """[] bool: the robot's collision volume, grown by the episode's margin (training's
         `RandomizeConfig.collision_margin`, else 0), touches a wall or an obstacle."""
         return self.gap(params, data) < params.margin
@@ -322,10 +322,10 @@ class NavTask:
         ratio = jnp.where(limited, bound / jnp.where(limited, jnp.abs(change), 1.0), jnp.inf)
         return change * jnp.minimum(1.0, ratio.min())
 
-    def drive(self, params: SceneParams, data: mjx.Data, command: jax.Array):
+    def drive(self, params: SceneParams, body: Body, command: jax.Array):
         """Holds `command` [2] (forward m/s, yaw rad/s, as `actuate` passes it) for one period of
-        the scene's physics steps. Returns the new data and whether the bumper touched anything
-        after any of them."""
+        the scene's physics steps from `body`. Returns the new Body and whether the bumper touched
+        anything after any of them."""
         m = self.scene.physics_model(params)
         control = self._wheel_speeds if self.scene.wheeled else self._base_forces
 
@@ -335,8 +335,8 @@ class NavTask:
 
         # The touches as the scan's outputs, not its carry: under vmap a carry that starts
         # unbatched and ends batched makes the scan batch its body twice.
-        data, touched = jax.lax.scan(substep, data, None, self.scene.substeps)
-        return data, touched.any()
+        data, touched = jax.lax.scan(substep, body.into(self._data0), None, self.scene.substeps)
+        return Body.of(data), touched.any()
 
     def _base_forces(self, params: SceneParams, d: mjx.Data, command: jax.Array) -> jax.Array:
         """Fast physics: [3] forces (x, y) and yaw torque that push the base towards the commanded
