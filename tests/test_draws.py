@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnav.core.draws import BLOCK, Draws, draws, hashed_uniform, normal_of
+from jaxnav.core.draws import BLOCK, Draws, draws, hashed_permutation, hashed_uniform, normal_of
 
 N = 20_000  # draws per statistic: standard errors about 0.2 % of a uniform's range
 
@@ -113,3 +113,38 @@ def test_hashed_uniform_is_uniform_and_independent(keys):
     for a, b in pairs:
         assert abs(np.corrcoef(a, b)[0, 1]) < 4 / np.sqrt(a.size)
     assert np.unique(u[:, 0]).size > 0.99 * n  # the first value of every key differs
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 1000, 4096, 5000])
+def test_hashed_permutation_is_a_permutation_of_its_key(n):
+    """The learner's shuffle (`hashed_permutation`) takes every index below n once, whether n
+    fills its cipher's domain (4,096: 2 x 6 bits) or not (the others walk their cycles); the same
+    key gives the same order, another key another; a typed key as its raw words."""
+    keys = jax.random.split(jax.random.PRNGKey(1), 3)
+    perms = [np.asarray(jax.jit(hashed_permutation, static_argnums=1)(k, n)) for k in keys]
+    for p in perms:
+        assert p.dtype == np.int32 and np.array_equal(np.sort(p), np.arange(n))
+    again = hashed_permutation(jax.random.wrap_key_data(keys[0]), n)
+    np.testing.assert_array_equal(again, perms[0])
+    if n >= 5:
+        assert not np.array_equal(perms[0], perms[1]) and not np.array_equal(perms[1], perms[2])
+
+
+@pytest.mark.parametrize("n", [16, 24])
+def test_hashed_permutation_places_every_index_evenly(n):
+    """Over 6,000 keys of the learner's kind (split from one another), each index lands in each
+    position about equally often (chi-square over the n x n table), and a minibatch's members
+    are independent of each other: two neighbouring indices fall in the same half of the order
+    as often as a uniform shuffle puts them there ((n/2 - 1) / (n - 1))."""
+    keys = jax.random.split(jax.random.PRNGKey(2), 6000)
+    perms = np.asarray(jax.jit(jax.vmap(lambda k: hashed_permutation(k, n)))(keys))
+    table = np.zeros((n, n))
+    for position in range(n):
+        table[:, position] = np.bincount(perms[:, position], minlength=n)
+    expected = len(keys) / n
+    chi2 = ((table - expected) ** 2 / expected).sum()
+    dof = (n - 1) ** 2
+    assert chi2 < dof + 5 * np.sqrt(2 * dof)
+    where = np.argsort(perms, axis=1)  # [keys, n]: each index's position
+    together = ((where[:, 0] < n // 2) == (where[:, 1] < n // 2)).mean()
+    assert abs(together - (n / 2 - 1) / (n - 1)) < 0.03

@@ -101,6 +101,35 @@ def hashed_uniform(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
     return (bits >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)
 
 
+FEISTEL_ROUNDS = 4  # rounds of `hashed_permutation`'s cipher (Luby-Rackoff's count for a PRP)
+
+
+def hashed_permutation(key: jax.Array, n: int) -> jax.Array:
+    """[n] int32: a permutation of 0..n-1 of `key`, without sorting. Each index is enciphered by
+    a balanced Feistel network on the fewest even number of bits that covers n (`FEISTEL_ROUNDS`
+    rounds, each mixing one half with a round's key word by `_mix`); an index that lands past n
+    is enciphered again until it lands below (cycle walking), so the indices below n map onto
+    themselves one to one. For the learner's minibatches: jax.random.permutation sorts twice by
+    random keys, 8 radix-sort passes an epoch on a GPU and a comparison sort on the CPU
+    (docs/results.md, "What was decided and why"); statistics: tests/test_draws.py."""
+    if n <= 1:
+        return jnp.arange(n, dtype=jnp.int32)
+    half = ((n - 1).bit_length() + 1) // 2  # bits of each half: 2 * half >= bits of n - 1
+    mask = jnp.uint32((1 << half) - 1)
+    words = jax.random.bits(key, (FEISTEL_ROUNDS,), jnp.uint32)
+
+    def encipher(x):  # [n] uint32 below 2^(2 half) -> the same range, one to one
+        left, right = x >> half, x & mask
+        for i in range(FEISTEL_ROUNDS):
+            left, right = right, left ^ (_mix(right ^ words[i]) & mask)
+        return (left << half) | right
+
+    x = encipher(jnp.arange(n, dtype=jnp.uint32))
+    walk = lambda x: jnp.where(x >= n, encipher(x), x)  # noqa: E731
+    x = jax.lax.while_loop(lambda x: (x >= n).any(), walk, x)
+    return x.astype(jnp.int32)
+
+
 def normal_of(u: jax.Array) -> jax.Array:
     """[...] standard normal values of uniform ones in [0, 1) (the inverse CDF, as jax.random
     draws them)."""

@@ -19,6 +19,7 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from jaxnav.core.draws import hashed_permutation
 from jaxnav.core.types import ContinuousActions
 from jaxnav.core.xla import compiler_options, deterministic, threefry_kernel
 from jaxnav.ppo import fused
@@ -290,7 +291,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     def _update_epoch(carry, _):
         params, opt_state, batch, key = carry
         key, k_perm = jax.random.split(key)
-        perm = jax.random.permutation(k_perm, cfg.batch_size // g)  # the same in every block
+        perm = hashed_permutation(k_perm, cfg.batch_size // g)  # the same in every block
 
         def minibatches(x):  # [G, B/G, ...] -> [B/M, M, ...], minibatch i: every block's i-th part
             x = x[:, perm].reshape(g, cfg.num_minibatches, cfg.minibatch_size // g, *x.shape[2:])
