@@ -76,13 +76,12 @@ class Body:
 
     @classmethod
     def of(cls, data: mjx.Data) -> Body:
-        """The carried part of `data`."""
-        return cls(data.time, data.qpos, data.qvel, data.act, data.qacc_warmstart)
+        """The carried part of `data`: its fields of this class's names."""
+        return cls(**{f.name: getattr(data, f.name) for f in dataclasses.fields(cls)})
 
     def into(self, data: mjx.Data) -> mjx.Data:
         """`data` (e.g. `mjx.make_data`'s) with this state in place: what a step starts from."""
-        fields = dataclasses.fields(self)
-        return data.replace(**{f.name: getattr(self, f.name) for f in fields})
+        return data.replace(**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
 
 
 @struct.dataclass
