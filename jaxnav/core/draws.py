@@ -105,29 +105,30 @@ FEISTEL_ROUNDS = 4  # rounds of `hashed_permutation`'s cipher (Luby-Rackoff's co
 
 
 def hashed_permutation(key: jax.Array, n: int) -> jax.Array:
-    """[n] int32: a permutation of 0..n-1 of `key`, without sorting. Each index is enciphered by
-    a balanced Feistel network on the fewest even number of bits that covers n (`FEISTEL_ROUNDS`
-    rounds, each mixing one half with a round's key word by `_mix`); an index that lands past n
-    is enciphered again until it lands below (cycle walking), so the indices below n map onto
-    themselves one to one. For the learner's minibatches: jax.random.permutation sorts twice by
-    random keys, 8 radix-sort passes an epoch on a GPU and a comparison sort on the CPU
-    (docs/results.md, "What was decided and why"); statistics: tests/test_draws.py."""
+    """[n] int32: a permutation of 0..n-1 of `key`, without sorting and without a loop. Every
+    index of the cipher's domain (the fewest even number of bits covering n, so up to 4n
+    indices) is enciphered by a balanced Feistel network (`FEISTEL_ROUNDS` rounds, each mixing one
+    half with a round's key word by `_mix`), a one-to-one map of the domain; the images below n,
+    kept in the order of their indices (a prefix sum places each), are the permutation. For the
+    learner's minibatches: jax.random.permutation sorts twice by random keys, 8 radix-sort passes
+    an epoch on a GPU and a comparison sort on the CPU, and walking the cipher's cycles instead
+    loops with the GPU waiting on the host at each turn (docs/results.md, "What was decided and
+    why"); statistics: tests/test_draws.py."""
     if n <= 1:
         return jnp.arange(n, dtype=jnp.int32)
     half = ((n - 1).bit_length() + 1) // 2  # bits of each half: 2 * half >= bits of n - 1
     mask = jnp.uint32((1 << half) - 1)
     words = jax.random.bits(key, (FEISTEL_ROUNDS,), jnp.uint32)
-
-    def encipher(x):  # [n] uint32 below 2^(2 half) -> the same range, one to one
-        left, right = x >> half, x & mask
-        for i in range(FEISTEL_ROUNDS):
-            left, right = right, left ^ (_mix(right ^ words[i]) & mask)
-        return (left << half) | right
-
-    x = encipher(jnp.arange(n, dtype=jnp.uint32))
-    walk = lambda x: jnp.where(x >= n, encipher(x), x)  # noqa: E731
-    x = jax.lax.while_loop(lambda x: (x >= n).any(), walk, x)
-    return x.astype(jnp.int32)
+    index = jnp.arange(1 << (2 * half), dtype=jnp.uint32)  # [D], D = 2^(2 half) in [n, 4n)
+    left, right = index >> half, index & mask
+    for i in range(FEISTEL_ROUNDS):
+        left, right = right, left ^ (_mix(right ^ words[i]) & mask)
+    x = ((left << half) | right).astype(jnp.int32)  # [D]: a permutation of 0..D-1
+    if x.shape[0] == n:
+        return x
+    below = x < n
+    place = jnp.where(below, jnp.cumsum(below, dtype=jnp.int32) - 1, n)  # [D]: n drops
+    return jnp.zeros(n, jnp.int32).at[place].set(x, mode="drop", unique_indices=True)
 
 
 def normal_of(u: jax.Array) -> jax.Array:
