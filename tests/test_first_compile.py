@@ -48,7 +48,7 @@ def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, 
     # As outside the tests, whose XLA_FLAGS set LLVM's level: the programs take jaxnav's options,
     # here at the session's level (-O0), so that these eight tiny runs compile as quickly as the
     # rest of the suite's programs.
-    options = lambda platform, program="": {xla.OPTION: 0}  # noqa: E731
+    options = lambda platform: {xla.OPTION: 0}  # noqa: E731
     monkeypatch.setattr(ppo_train, "compiler_options", options)
     monkeypatch.setattr(programs, "compiler_options", options)
     programs.use(store)
@@ -185,34 +185,28 @@ def test_each_program_compiles_while_the_next_is_traced(monkeypatch):
 
 
 def test_programs_compile_with_jaxnav_options(monkeypatch):
-    """jaxnav's programs take `core.xla`'s options: LLVM at -O2 on the CPU, at -O0 for the
-    draws' program on a GPU, deterministic ops on a GPU where the config asks; other backends,
-    and a user's own setting in XLA_FLAGS, keep XLA's defaults."""
+    """jaxnav's programs take `core.xla`'s options: LLVM at -O2 on the CPU, deterministic ops on
+    a GPU where the config asks; other backends, and a user's own setting in XLA_FLAGS, keep
+    XLA's defaults."""
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     monkeypatch.setattr(xla, "_deterministic", False)
-    assert xla.GPU_OPT_LEVELS == {"draws": 0}
     assert xla.compiler_options("cpu") == {xla.OPTION: xla.CPU_OPT_LEVEL}
-    assert xla.compiler_options("cpu", "draws") == {xla.OPTION: xla.CPU_OPT_LEVEL}
-    assert xla.compiler_options("gpu") is None and xla.compiler_options("gpu", "rollout") is None
-    assert xla.compiler_options("gpu", "draws") == {xla.OPTION: 0}
+    assert xla.compiler_options("gpu") is None
     xla.deterministic(True)
     for gpu in ("gpu", "cuda", "rocm"):
         assert xla.compiler_options(gpu) == {xla.DETERMINISTIC: True}
-        assert xla.compiler_options(gpu, "draws") == {xla.OPTION: 0, xla.DETERMINISTIC: True}
-    assert xla.compiler_options("tpu") is None and xla.compiler_options("tpu", "draws") is None
+    assert xla.compiler_options("tpu") is None
     monkeypatch.setenv("XLA_FLAGS", f"--{xla.OPTION}=3")
     assert xla.compiler_options("cpu") is None
-    assert xla.compiler_options("gpu", "draws") == {xla.DETERMINISTIC: True}
+    assert xla.compiler_options("gpu") == {xla.DETERMINISTIC: True}
     monkeypatch.setenv("XLA_FLAGS", f"--{xla.DETERMINISTIC}=false")
     assert xla.compiler_options("gpu") is None
-    assert xla.compiler_options("gpu", "draws") == {xla.OPTION: 0}
 
 
 def test_the_trainer_hands_its_options_to_xla(monkeypatch):
-    """The options reach XLA's compile of the trainer's programs, each asked for by its name: an
-    option XLA does not know, given to the draws' program alone, fails the compile, naming it."""
-    wrong = lambda platform, program="": {"xla_no_such_one": 1} if program == "draws" else None  # noqa: E731
-    monkeypatch.setattr(ppo_train, "compiler_options", wrong)
+    """The options reach XLA's compile of the trainer's programs: an option XLA does not know
+    fails the compile, naming it."""
+    monkeypatch.setattr(ppo_train, "compiler_options", lambda platform: {"xla_no_such_one": 1})
     config = tiny_config()
     trainer = ppo_train.make_train(config.ppo, train_module.make_run_env(config))
     with pytest.raises(Exception, match="xla_no_such_one"):

@@ -5,9 +5,6 @@ every room family's sampler) and each kernel runs briefly, so -O2 compiles the t
 about three quarters of the time and trains as fast (`benchmarks/compile_time.py --opt-levels`,
 docs/results.md). A user's own `--xla_backend_optimization_level` in `XLA_FLAGS` is kept.
 
-On a GPU, XLA hands its kernels to LLVM at -O3 too; the program that draws a rollout's new
-episodes (every room family's sampler, the goal's flood) compiles at -O0 (`GPU_OPT_LEVELS`).
-
 On a GPU, XLA picks among kernels by timing them in each process (autotuning), and some of its
 reductions add in whatever order threads finish, so two runs of one seed could round differently
 and, over a training run, learn different policies. `deterministic` has jaxnav compile its GPU
@@ -34,10 +31,6 @@ import threading
 import jax
 
 CPU_OPT_LEVEL = 2  # LLVM's optimisation level for jaxnav's CPU programs (XLA's own default: 3)
-# LLVM's level for the training's GPU programs of these names (the others: XLA's default). The
-# draws of a rollout's new episodes are the goal task's longest compile; at -O0 they compile in
-# 7.7 s against 9.4 s and run as fast (docs/results.md, "What was decided and why").
-GPU_OPT_LEVELS = {"draws": 0}
 OPTION = "xla_backend_optimization_level"
 DETERMINISTIC = "xla_gpu_deterministic_ops"  # XLA's option for the same bits every run
 GPUS = ("gpu", "cuda", "rocm")  # the names a GPU backend or platform goes by
@@ -50,20 +43,16 @@ def pow2(n: int, least: int = 1) -> int:
     return max(least, 1 << max(n - 1, 0).bit_length())
 
 
-def compiler_options(backend: str | None = None, program: str = "") -> dict[str, int | bool] | None:
+def compiler_options(backend: str | None = None) -> dict[str, int | bool] | None:
     """The options for a program on `backend` (default: JAX's default backend), or None for
-    XLA's defaults: on the CPU `CPU_OPT_LEVEL`, on a GPU the level `GPU_OPT_LEVELS` gives the
-    training's `program` (its name) and `DETERMINISTIC` where `deterministic` turned it on, each
-    unless `XLA_FLAGS` sets it itself."""
+    XLA's defaults: on the CPU `CPU_OPT_LEVEL`, on a GPU `DETERMINISTIC` where `deterministic`
+    turned it on, each unless `XLA_FLAGS` sets it itself."""
     backend, flags = backend or jax.default_backend(), os.environ.get("XLA_FLAGS", "")
-    if backend == "cpu":
-        return None if OPTION in flags else {OPTION: CPU_OPT_LEVEL}
-    options = {}
-    if backend in GPUS and program in GPU_OPT_LEVELS and OPTION not in flags:
-        options[OPTION] = GPU_OPT_LEVELS[program]
+    if backend == "cpu" and OPTION not in flags:
+        return {OPTION: CPU_OPT_LEVEL}
     if backend in GPUS and _deterministic and DETERMINISTIC not in flags:
-        options[DETERMINISTIC] = True
-    return options or None
+        return {DETERMINISTIC: True}
+    return None
 
 
 def deterministic(on: bool) -> None:
