@@ -118,8 +118,8 @@ def test_hashed_uniform_is_uniform_and_independent(keys):
 @pytest.mark.parametrize("n", [1, 2, 5, 1000, 4096, 5000])
 def test_hashed_permutation_is_a_permutation_of_its_key(n):
     """The learner's shuffle (`hashed_permutation`) takes every index below n once, whether n
-    fills its cipher's domain (4,096: 2 x 6 bits) or not (the others keep the images below n); the same
-    key gives the same order, another key another; a typed key as its raw words."""
+    fills its cipher's domain (4,096: 2 x 6 bits) or not (the others keep the images below n);
+    the same key gives the same order, another key another; a typed key as its raw words."""
     keys = jax.random.split(jax.random.PRNGKey(1), 3)
     perms = [np.asarray(jax.jit(hashed_permutation, static_argnums=1)(k, n)) for k in keys]
     for p in perms:
