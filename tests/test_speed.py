@@ -324,7 +324,7 @@ def test_the_carried_body_steps_as_the_whole_mjx_data(scene):
     MuJoCo's kinematics (`NavTask.place`): driven for 30 steps among obstacles, the robot's poses
     and velocities are bit for bit those of mjx.Data carried whole from a posed start (every
     derived field from the step before; the wheeled model's contacts and solver included). The
-    wheeled case is slow: MJX's collision pass on the room model compiles twice (107-147 s on 2
+    wheeled case is slow: MJX's collision pass on the room model compiles twice (107-150 s on 2
     cores)."""
     from jaxnav.core.types import Body
 
