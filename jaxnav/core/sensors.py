@@ -243,20 +243,20 @@ def reduce_sectors(reading, valid, floor, cfg: SensorConfig, xp=jnp):
     `valid` [R, C] bool, `floor` [R, C] bool. The one reduction of the module docstring; `xp` is
     the array module (jax.numpy here, numpy on the robot), so both compute it the same way."""
     rows = reading.shape[0]
-    group = lambda x: (
-        x.reshape(rows, cfg.num_sectors, -1).transpose(1, 0, 2).reshape(cfg.num_sectors, -1)
-    )  # noqa: E731
-    reading, valid, floor = group(reading), group(valid), group(floor)
-    counted = (~floor).sum(-1)
-    invalid = (~floor & ~valid).sum(-1)
-    per_sector = reading.shape[-1]  # static: below readings_per_stray, k is always 1
+    split = lambda x: x.reshape(rows, cfg.num_sectors, -1)  # noqa: E731  [R, S, k]
+    reading, valid, floor = split(reading), split(valid), split(floor)
+    per_sector = rows * reading.shape[-1]  # static: below readings_per_stray, k is always 1
+    # Both counts in one sum (not floor, + `base` x not floor and unknown): XLA's CPU backend
+    # computes the readings anew inside each reduction of them, so one fewer is one fewer pass.
+    base = per_sector + 1
+    counts = ((~floor).astype(xp.int32) + (~floor & ~valid).astype(xp.int32) * base).sum((0, 2))
+    counted, invalid = counts % base, counts // base  # [S] each
     if cfg.readings_per_stray and per_sector >= cfg.readings_per_stray:
-        nearest = sector_nearest(
-            xp.where(valid & ~floor, reading, xp.nan), cfg.readings_per_stray, xp=xp
-        )
+        known = xp.where(valid & ~floor, reading, xp.nan).transpose(1, 0, 2)
+        nearest = sector_nearest(known.reshape(cfg.num_sectors, -1), cfg.readings_per_stray, xp=xp)
         nearest = xp.where(xp.isnan(nearest), xp.inf, nearest)
     else:
-        nearest = xp.where(valid & ~floor, reading, xp.inf).min(-1)
+        nearest = xp.where(valid & ~floor, reading, xp.inf).min((0, 2))
     near = invalid >= cfg.blind_fraction * counted  # as the robot side: at least that share
     out = xp.where(near, cfg.range_min, xp.where(xp.isinf(nearest), cfg.range_max, nearest))
     return xp.clip(out, cfg.range_min, cfg.range_max)

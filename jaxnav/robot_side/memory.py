@@ -85,8 +85,9 @@ def recall(points, seen, pose, bins: int, reach: float, xp=np):
     # The bin: how many of its inner edges the bearing has passed, compared as `_turn` values
     # (XLA's CPU backend spent most of the memory's time on an arctangent per point).
     which = (_turn(ahead, left, xp)[:, None] >= _edges(bins)[None, :]).sum(-1)  # [N] 0 .. bins - 1
-    member = (which[:, None] == xp.arange(bins)[None, :]) & seen[:, None]  # [N, bins]
-    near = xp.where(member, distance[:, None], reach).min(0)
+    # [bins, N]: the points along the minor axis, which XLA's CPU backend reduces in vector lanes
+    member = (which[None, :] == xp.arange(bins)[:, None]) & seen[None, :]
+    near = xp.where(member, distance[None, :], reach).min(1)
     return xp.minimum(near, reach)
 
 
