@@ -16,7 +16,7 @@ training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turni
 in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing away too:
 `_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`; all, with a
 collision costing 30 rather than 10: `_aimed_all_c30`, a discount of 0.995: `_g995`, both:
-`_c30_g995`); and with
+`_c30_g995`; all, with continuous commands: `_aimed_all_cont`); and with
 `--preset cpu` (the README's goal run, whose training wall time is its row's `train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
 collision margin (`cpu_preset_margin7`), with the memory too (`cpu_preset_memory_margin7`; with
@@ -128,6 +128,10 @@ VARIANTS["lidar_crowd_fast_back_long"] = VARIANTS["lidar_crowd_fast_back"] + LON
 VARIANTS["memory_crowd_fast_aimed_back"] = VARIANTS["memory_crowd_fast_aimed"] + BACK
 VARIANTS["memory_crowd_fast_aimed_all_back"] = VARIANTS["memory_crowd_fast_aimed_all"] + BACK
 VARIANTS["memory_crowd_fast_aimed_all_long"] = VARIANTS["memory_crowd_fast_aimed_all"] + LONG
+# ... and continuous commands (forward m/s, yaw rad/s) rather than three actions, so that the
+# robot can slow down and wait for a person to pass.
+CONTINUOUS = ("--task.actions", "continuous")
+VARIANTS["memory_crowd_fast_aimed_all_cont"] = VARIANTS["memory_crowd_fast_aimed_all"] + CONTINUOUS
 # ... and a collision that costs 30 rather than 10, a longer horizon (discount 0.995 rather than
 # 0.99), or both: waiting for a person to pass costs less against a collision.
 COLLISION_30 = ("--task.collision-reward", "-30")
