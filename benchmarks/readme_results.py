@@ -4,9 +4,9 @@
     python benchmarks/readme_results.py --run runs/avoid-cpu             # evaluate an existing run
 
 On this machine it (1) trains the quick start, `python -m jaxnav.train --out RUN` (timed, wall clock,
-compile included), unless `--run` names a finished run, (2) evaluates it on the held-out room of the
-paper's Fig. 6 (100 episodes) and on the benchmark suite (20 episodes a room) exactly as `python -m
-jaxnav.evaluate` does, and (3) with `--paper` trains the `paper` preset and evaluates it on the suite
+compile included, with an empty compilation cache as on a fresh machine), unless `--run` names a
+finished run, (2) evaluates it on the held-out room of the paper's Fig. 6 (100 episodes) and on the
+benchmark suite (20 episodes a room) exactly as `python -m jaxnav.evaluate` does, and (3) with `--paper` trains the `paper` preset and evaluates it on the suite
 (`--gather-only --paper`: only that, keeping the other CPU lines of the last run).
 The accelerator lines come from the JSON their own scripts wrote on the H200 (commands in
 `GATHERED`). Everything lands in `benchmarks/results/readme.json`; `--write-readme` puts `render()`
@@ -24,6 +24,7 @@ import platform
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -70,21 +71,34 @@ def machine() -> str:
     return f"{cores}-core CPU ({platform.machine()}), Python {platform.python_version()}"
 
 
-def sh(*args: str) -> None:
+def sh(*args: str, env: dict | None = None) -> None:
     print("+", " ".join(args), flush=True)
-    subprocess.run(args, check=True, cwd=ROOT)
+    subprocess.run(args, check=True, cwd=ROOT, env=env)
 
 
 def train(run: Path, *flags: str) -> float:
-    """Wall seconds of `python -m jaxnav.train --out run *flags`. A run this script trained before
-    in its own folders (`OWN_RUNS`, git-ignored) is replaced; any other folder must be new (the
-    training refuses one that holds a run)."""
+    """Wall seconds of `python -m jaxnav.train --out run *flags` as on a fresh machine: with an
+    empty compilation cache and program store (a new JAX_COMPILATION_CACHE_DIR), so that no
+    earlier run's programs shorten it. A run this script trained before in its own folders
+    (`OWN_RUNS`, git-ignored) is replaced; any other folder must be new (the training refuses one
+    that holds a run)."""
     if run.resolve() in OWN_RUNS and run.exists():
         print(f"readme_results.py: replacing this script's earlier run in {run}", flush=True)
         shutil.rmtree(run)
-    tick = time.perf_counter()
-    sh(sys.executable, "-m", "jaxnav.train", "--out", str(run), "--no-progress", *flags)
-    return time.perf_counter() - tick
+    with tempfile.TemporaryDirectory(prefix="jaxnav-cache-") as cache:
+        env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": cache}
+        tick = time.perf_counter()
+        sh(
+            sys.executable,
+            "-m",
+            "jaxnav.train",
+            "--out",
+            str(run),
+            "--no-progress",
+            *flags,
+            env=env,
+        )
+        return time.perf_counter() - tick
 
 
 def evaluate(run: Path, out: Path, *flags: str, pictures: str = "readme_pictures") -> dict:
