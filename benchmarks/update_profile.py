@@ -74,7 +74,19 @@ def source_lines(hlo: str) -> dict[str, str]:
     return {op: src for op, frame in ops if (src := innermost(frame))}
 
 
+def charged(events, sources: dict) -> dict:
+    """{program: Counter(source line -> microseconds)} of a trace's op `events`, each op charged to
+    its program's `sources` line; a loop's own span (which holds its body's ops) is left out."""
+    summed = collections.defaultdict(collections.Counter)
+    for e in events:
+        module, op = e.get("args", {}).get("hlo_module"), e["name"]
+        if module in sources and not op.startswith(("while", "call", "conditional")):
+            summed[module][sources[module].get(op, "(no jaxnav frame)")] += e["dur"]
+    return summed
+
+
 def profile(args) -> dict:
+    """The preset's update: each program's min and median ms, and its ops by source line."""
     config = build_config(args.preset, env=args.env, overrides={"ppo": {"updates_per_chunk": 1}})
     trainer = make_train(config.ppo, make_run_env(config))
     programs = trainer.programs
@@ -91,11 +103,9 @@ def profile(args) -> dict:
             times.append((t1 - t0, t2 - t1, time.perf_counter() - t2))
         return ts, drawn, out
 
-    for _ in range(2):
-        ts, drawn, out = update(ts)
     times = []
-    for _ in range(args.timed):
-        ts, drawn, out = update(ts, times)
+    for i in range(2 + args.timed):  # two to warm up
+        ts, drawn, out = update(ts, times if i >= 2 else None)
     ms = np.asarray(times) * 1e3  # [timed, 3]
     inputs = {"draws": (ts.env_state.info["reset_key"],), "rollout": (ts, drawn), "learn": out}
     sources = {  # each program's ops -> their jaxnav source line
@@ -107,22 +117,17 @@ def profile(args) -> dict:
         for _ in range(args.profiled):
             ts, _, _ = update(ts)
         jax.profiler.stop_trace()
-        events, _ = trace_events(folder)
-    summed = collections.defaultdict(collections.Counter)  # program -> source -> us
-    for e in events:
-        module, op = e.get("args", {}).get("hlo_module"), e["name"]
-        if module not in sources or op.startswith(("while", "call", "conditional")):
-            continue  # a loop's own span holds its body's ops, which are charged themselves
-        summed[module][sources[module].get(op, "(no jaxnav frame)")] += e["dur"]
+        summed = charged(trace_events(folder)[0], sources)
+    per_update = lambda us: round(us / 1e3 / args.profiled, 2)  # noqa: E731  ms
     return {
         "config": {"env": args.env, "preset": args.preset, "num_envs": config.ppo.num_envs},
         "programs": {
             name: {
                 "min_ms": round(float(ms[:, i].min()), 1),
                 "median_ms": round(float(np.median(ms[:, i])), 1),
-                "op_ms": round(sum(summed[f"jit__{name}"].values()) / 1e3 / args.profiled, 1),
+                "op_ms": round(per_update(sum(summed[f"jit__{name}"].values())), 1),
                 "top": [
-                    {"source": src, "ms": round(us / 1e3 / args.profiled, 2)}
+                    {"source": src, "ms": per_update(us)}
                     for src, us in summed[f"jit__{name}"].most_common(args.top)
                 ],
             }
