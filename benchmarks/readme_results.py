@@ -6,8 +6,9 @@
 On this machine it (1) trains the quick start, `python -m jaxnav.train --out RUN` (timed, wall clock,
 compile included, with an empty compilation cache as on a fresh machine), unless `--run` names a
 finished run, (2) evaluates it on the held-out room of the paper's Fig. 6 (100 episodes) and on the
-benchmark suite (20 episodes a room) exactly as `python -m jaxnav.evaluate` does, and (3) with `--paper` trains the `paper` preset and evaluates it on the suite
-(`--gather-only --paper`: only that, keeping the other CPU lines of the last run).
+benchmark suite (20 episodes a room) exactly as `python -m jaxnav.evaluate` does, and (3) with
+`--paper` trains the `paper` preset and evaluates it on the suite (`--gather-only --paper`: only
+that, keeping the other CPU lines of the last run).
 The accelerator lines come from the JSON their own scripts wrote on the H200 (commands in
 `GATHERED`). Everything lands in `benchmarks/results/readme.json`; `--write-readme` puts `render()`
 of it between the README's results markers, and tests/test_readme_results.py checks that the README's
@@ -87,17 +88,9 @@ def train(run: Path, *flags: str) -> float:
         shutil.rmtree(run)
     with tempfile.TemporaryDirectory(prefix="jaxnav-cache-") as cache:
         env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": cache}
+        command = (sys.executable, "-m", "jaxnav.train", "--out", str(run), "--no-progress")
         tick = time.perf_counter()
-        sh(
-            sys.executable,
-            "-m",
-            "jaxnav.train",
-            "--out",
-            str(run),
-            "--no-progress",
-            *flags,
-            env=env,
-        )
+        sh(*command, *flags, env=env)
         return time.perf_counter() - tick
 
 
