@@ -89,33 +89,36 @@ def profile(args) -> dict:
     """The preset's update: each program's min and median ms, and its ops by source line."""
     config = build_config(args.preset, env=args.env, overrides={"ppo": {"updates_per_chunk": 1}})
     trainer = make_train(config.ppo, make_run_env(config))
-    programs = trainer.programs
+    programs, compiled = trainer.programs, {}
     ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(args.seed)))
+
+    def run(name, *operands):  # compiled once, from the first operands, so its text is at hand
+        if name not in compiled:
+            compiled[name] = programs[name].lower(*operands).compile()
+        return jax.block_until_ready(compiled[name](*operands))
 
     def update(ts, times=None):
         t0 = time.perf_counter()
-        drawn = jax.block_until_ready(programs["draws"](ts.env_state.info["reset_key"]))
+        drawn = run("draws", ts.env_state.info["reset_key"])
         t1 = time.perf_counter()
-        out = jax.block_until_ready(programs["rollout"](ts, drawn))
+        out = run("rollout", ts, drawn)
         t2 = time.perf_counter()
-        ts, _ = jax.block_until_ready(programs["learn"](*out))
+        ts, _ = run("learn", *out)
         if times is not None:
             times.append((t1 - t0, t2 - t1, time.perf_counter() - t2))
-        return ts, drawn, out
+        return ts
 
     times = []
     for i in range(2 + args.timed):  # two to warm up
-        ts, drawn, out = update(ts, times if i >= 2 else None)
+        ts = update(ts, times if i >= 2 else None)
     ms = np.asarray(times) * 1e3  # [timed, 3]
-    inputs = {"draws": (ts.env_state.info["reset_key"],), "rollout": (ts, drawn), "learn": out}
     sources = {  # each program's ops -> their jaxnav source line
-        f"jit__{name}": source_lines(programs[name].lower(*operands).compile().as_text())
-        for name, operands in inputs.items()
+        f"jit__{name}": source_lines(program.as_text()) for name, program in compiled.items()
     }
     with tempfile.TemporaryDirectory() as folder:
         jax.profiler.start_trace(folder)
         for _ in range(args.profiled):
-            ts, _, _ = update(ts)
+            ts = update(ts)
         jax.profiler.stop_trace()
         summed = charged(trace_events(folder)[0], sources)
     per_update = lambda us: round(us / 1e3 / args.profiled, 2)  # noqa: E731  ms
