@@ -293,6 +293,42 @@ def test_each_drawn_episode_is_the_reset_of_its_own_key(groups):
     assert jax.tree_util.tree_leaves(fresh)[0].shape[:3] == (steps, groups, pool // groups)
 
 
+@pytest.mark.parametrize("task", ["avoid", pytest.param("goal", marks=pytest.mark.slow)])
+def test_drawn_episodes_observed_apart_are_the_resets(task, mixed_env, monkeypatch):
+    """A task's reset in two parts (`begin`, then `first_observation`, as AutoReset's draws make
+    them: the observations in OBSERVED_APART batches after the rooms) is its reset: every drawn
+    episode is its key's, its rooms, poses, goals and keys bit for bit, its first observation
+    (and the goal task's memory of it) within float rounding. The goal task with its memory, as
+    the presets have it. Slow for goal: its draws compile (15 s on 2 cores)."""
+    env = mixed_env
+    if task == "goal":
+        env = jaxnav.make_env("goal", randomize=TRAINING, memory_bins=16, max_steps=20)
+    n, pool, steps = 16, 4, 3  # 12 episodes drawn: two batches of 6
+    auto, stats = AutoReset(EpisodeStats(env), pool), EpisodeStats(env)
+    state = jax.jit(auto.reset)(jax.random.split(jax.random.PRNGKey(4), n))
+    apart = []  # the draws' traces of first_observation: its batch is a vmap inside a loop
+    observe = env.first_observation
+    monkeypatch.setattr(env, "first_observation", lambda *a: apart.append(1) or observe(*a))
+    after, fresh = jax.jit(auto.draw, static_argnums=1)(state, steps)
+    monkeypatch.undo()
+    assert apart
+    pairs = jax.vmap(jax.random.split)(state.info[RESET_KEY])  # [N, 2, 2]
+    first = auto._pool_keys(pairs[:, 1])[0]  # [P, 2]
+    keys = jax.vmap(lambda t: jax.vmap(lambda k: jax.random.fold_in(k, t))(first))(
+        jnp.arange(steps)
+    )
+    want = jax.jit(jax.vmap(stats.reset))(keys.reshape(-1, 2))  # [T * P]
+    got = jax.tree_util.tree_map(lambda x: x.reshape(steps * pool, *x.shape[3:]), fresh)
+    leaves = [jax.tree_util.tree_flatten_with_path(x)[0] for x in (got, want)]
+    for (path, a), (_, b) in zip(*leaves, strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        if np.issubdtype(a.dtype, np.floating):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-5, err_msg=str(path))
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=str(path))
+    assert np.abs(np.asarray(got.obs)).max() > 0.1  # observed, not left as zeros
+
+
 @pytest.mark.parametrize("in_place", [False, True])
 @pytest.mark.parametrize("ahead", [False, True])
 def test_grouped_auto_reset_is_each_block_on_its_own(in_place, ahead):

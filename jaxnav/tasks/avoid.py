@@ -104,20 +104,27 @@ class AvoidEnv(NavTask):
         task.check_robot(self.robot)
         self.action_spec = task.action_spec
 
-    def reset(self, key: jax.Array) -> EnvState:
-        """A new episode: fresh room, spawn and parameters drawn from the randomisation."""
+    def begin(self, key: jax.Array) -> tuple[EnvState, jax.Array]:
+        """A new episode (`NavTask.begin`): fresh room, spawn and parameters drawn from the
+        randomisation."""
         key, k_scene, k_obs = jax.random.split(key, 3)
         params, data = self.new_episode(k_scene)
         f0, b0 = jnp.float32(0), jnp.bool_(False)
-        return EnvState(
+        state = EnvState(
             data=data,
-            obs=jnp.tile(self.sense(params, data, k_obs), 1 + self.task.history),
+            obs=None,
             reward=f0,
             done=b0,
             truncated=b0,
             metrics={"collision": f0, **self.walker_hit(params, data, b0)},
             info={"params": params, "steps": jnp.int32(0), "key": key, "actuator": Actuator.zero()},
         )
+        return state, k_obs
+
+    def first_observation(self, state: EnvState, key: jax.Array) -> EnvState:
+        """The first frame, standing in for the earlier ones."""
+        frame = self.sense(state.info["params"], state.data, key)
+        return state.replace(obs=jnp.tile(frame, 1 + self.task.history))
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; reward per Table I; end on collision or time."""

@@ -31,7 +31,7 @@ from jaxnav.core.randomize import LayoutBank, RandomizeConfig, SceneParams
 from jaxnav.core.robot import TURTLEBOT2I, RobotSpec
 from jaxnav.core.scene import Scene, SceneConfig
 from jaxnav.core.sensors import SensorConfig, observe
-from jaxnav.core.types import ActionSpec, Body, ContinuousActions, DiscreteActions
+from jaxnav.core.types import ActionSpec, Body, ContinuousActions, DiscreteActions, EnvState
 
 GRAVITY = 9.81  # m/s^2, for the wheels' traction limit
 MAX_LATENCY = 4  # control steps of command history kept for the episode's latency
@@ -171,10 +171,11 @@ class Actuator:
 
 
 class NavTask:
-    """Batched-MJX robot in randomised rooms. Subclasses define `reset`, `step`, `action_spec` and
-    `metric_names` (the env contract, `jaxnav.core.types`; `observation_size` is set here from the
-    task config, by `observation_size`), and may declare what evaluation reports besides its own
-    metrics (`eval_metrics`)."""
+    """Batched-MJX robot in randomised rooms. Subclasses define `step`, `action_spec` and
+    `metric_names` (with `reset`, the env contract, `jaxnav.core.types`; `observation_size` is set
+    here from the task config, by `observation_size`), the reset in two parts (`begin` and
+    `first_observation`), and may declare what evaluation reports besides its own metrics
+    (`eval_metrics`)."""
 
     eval_metrics: tuple[EvalMetric, ...] = ()
     """What evaluation reports for this task besides the metrics every task gets."""
@@ -220,6 +221,21 @@ class NavTask:
     def critic_size(self) -> int:
         """C, the task's inputs for a privileged critic in `state.info["critic"]` (0: none)."""
         return getattr(self.task, "critic_observations", 0)
+
+    def reset(self, key: jax.Array) -> EnvState:
+        """A new episode: `begin`'s, with its first observation (`first_observation`)."""
+        return self.first_observation(*self.begin(key))
+
+    def begin(self, key: jax.Array) -> tuple[EnvState, jax.Array]:
+        """(A new episode's state, its obs None; the key of its first observation): the reset but
+        for what the robot first sees. Training's draws (`jaxnav.wrappers.AutoReset`) make a
+        batch's observations apart from its rooms, which on the CPU costs less."""
+        raise NotImplementedError
+
+    def first_observation(self, state: EnvState, key: jax.Array) -> EnvState:
+        """`state` of `begin` with its first observation (`obs` and what makes it, such as the
+        goal task's memory), sensed with `key`."""
+        raise NotImplementedError
 
     def new_episode(self, key: jax.Array) -> tuple[SceneParams, Body]:
         """A fresh room, spawn, moving obstacles and parameters, and the physics state at the

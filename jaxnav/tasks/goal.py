@@ -270,8 +270,9 @@ class GoalEnv(NavTask):
         rooms = [(long, short) for short, long in [*halves, sampled]] + large
         return tuple(max(GRID_HALF, *(room[i] for room in rooms)) for i in (0, 1))
 
-    def reset(self, key: jax.Array) -> EnvState:
-        """A new episode: fresh room, spawn, goal and parameters drawn from the randomisation."""
+    def begin(self, key: jax.Array) -> tuple[EnvState, jax.Array]:
+        """A new episode (`NavTask.begin`): fresh room, spawn, goal and parameters drawn from the
+        randomisation."""
         key, k_scene, k_goal, k_obs = jax.random.split(key, 4)
         t, radius = self.task, self.robot.radius
         params = sample(k_scene, self.randomize, self.bank, radius)
@@ -291,18 +292,16 @@ class GoalEnv(NavTask):
             info["field"] = pack_field(field)  # [rows, cols] int16 steps
         params = self.with_movers(k_scene, params, goal)
         data = self.place(params)
-        command, f0, b0 = jnp.zeros(2), jnp.float32(0), jnp.bool_(False)
+        f0, b0 = jnp.float32(0), jnp.bool_(False)
         info["params"] = params
         here = self._to_go(info, data.qpos[:2])
         info["critic"] = self._critic_features(info, data.qpos[:3], here, jnp.int32(0))
         if self._memory is not None:
             s, m = self.sensor.num_sectors, self._memory.steps
             info["memory"] = (jnp.zeros((m, s, 2)), jnp.zeros((m, s), bool))
-        frame, info, recalled = self._observe(params, data, goal, command, k_obs, info)
-        return EnvState(
+        state = EnvState(
             data=data,
-            # the first frame stands in for the earlier ones
-            obs=jnp.concatenate([jnp.tile(frame, 1 + t.history), recalled]),
+            obs=None,
             reward=f0,
             done=b0,
             truncated=b0,
@@ -312,8 +311,17 @@ class GoalEnv(NavTask):
                 "path_length": f0,
                 **self.walker_hit(params, data, b0),
             },
-            info={**info, "actuator": Actuator.zero(), "command": command},
+            info={**info, "actuator": Actuator.zero(), "command": jnp.zeros(2)},
         )
+        return state, k_obs
+
+    def first_observation(self, state: EnvState, key: jax.Array) -> EnvState:
+        """The first frame, standing in for the earlier ones, and the memory holding it."""
+        info = state.info
+        args = (info["params"], state.data, info["goal"], info["command"], key, info)
+        frame, info, recalled = self._observe(*args)
+        obs = jnp.concatenate([jnp.tile(frame, 1 + self.task.history), recalled])
+        return state.replace(obs=obs, info=info)
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Hold `action` for one control period; end on success, collision or time."""
