@@ -20,7 +20,7 @@ from jaxnav.core.types import EnvState
 EPISODE = "episode"  # info key of the finished-episode sums: return, length and each metric
 RUNNING = "episode_running"  # info key of the sums of the episode in progress
 RESET_KEY = "reset_key"  # info key of AutoReset's PRNG key
-OBSERVED_APART = 2  # batches of a draw's first observations (`AutoReset._reset_all`)
+OBSERVED_APART = 2  # batches of a draw's first observations (`AutoReset._observed_apart`)
 
 
 class Wrapper:
@@ -137,17 +137,19 @@ class AutoReset(Wrapper):
         keys, k_reset = _split(keys)  # [N, 2] each
         first = self._pool_keys(k_reset)  # [G, P/G, 2]
         per_step = jax.vmap(lambda t: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, t)))(first))
-        return keys, self._resets(per_step(jnp.arange(steps)), block_axis=1)
+        return keys, self._resets(per_step(jnp.arange(steps)), block_axis=1, apart=True)
 
-    def _resets(self, keys: jax.Array, block_axis: int) -> EnvState:
+    def _resets(self, keys: jax.Array, block_axis: int, apart: bool = False) -> EnvState:
         """The env's resets of `keys` ([G, P/G, 2], or [steps, G, P/G, 2]: G at `block_axis`),
         leaves shaped like the keys. One vmap over all of a block's keys, so that the reset
         traces under one batching level, not one per axis; with G > 1 a vmap over the blocks
-        outside it, so that blocks sharded over devices stay where they are."""
+        outside it, so that blocks sharded over devices stay where they are. `apart`: the first
+        observations made after the rooms (`_observed_apart`; the draws ahead: a step's own few
+        draws would add a loop to every step, which costs a GPU 2 % of the env-only pace)."""
 
         def flat(k):  # [..., 2] -> [...]
-            lead = k.shape[:-1]
-            out = self._reset_all(k.reshape(-1, k.shape[-1]))
+            lead, k = k.shape[:-1], k.reshape(-1, k.shape[-1])
+            out = self._observed_apart(k) if apart else jax.vmap(self.env.reset)(k)
             return jax.tree_util.tree_map(lambda x: x.reshape(*lead, *x.shape[1:]), out)
 
         with self._on_devices():
@@ -155,12 +157,12 @@ class AutoReset(Wrapper):
                 return flat(keys)
             return jax.vmap(flat, in_axes=block_axis, out_axes=block_axis)(keys)
 
-    def _reset_all(self, keys: jax.Array) -> EnvState:
+    def _observed_apart(self, keys: jax.Array) -> EnvState:
         """The env's resets of `keys` [M, 2]. For a task whose reset comes in two parts (`begin`,
         `first_observation`: `jaxnav.tasks.base.NavTask`), the first observations are made in
         OBSERVED_APART batches by a loop, after every episode is drawn: XLA's CPU backend would
         otherwise draw each room again inside every ray of its first observation, and with the
-        rooms in memory the goal cpu preset's draws take 47-51 ms an update rather than 65-73.
+        rooms in memory the goal cpu preset's draws take 41-51 ms an update rather than 67-70.
         The values are the reset's to within float rounding (XLA fuses the two parts apart)."""
         env = self.env
         if not hasattr(env, "first_observation"):
