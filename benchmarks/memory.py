@@ -20,8 +20,8 @@ collision costing 30 rather than 10: `_aimed_all_c30`, a discount of 0.995: `_g9
 `--preset cpu` (the README's goal run, whose training wall time is its row's `train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
 collision margin (`cpu_preset_margin7`), with the memory too (`cpu_preset_memory_margin7`; with
-25 M steps: `_25m`; with 23 M steps, the cpu preset since: `_23m`) and with long halls in a tenth
-of its rooms (`cpu_preset_hall`).
+25 M steps: `_25m`; with 23 M steps, the cpu preset since: `_23m`; with 18, 16, 14 or 12 M:
+`_18m`, `_16m`, `_14m`, `_12m`) and with long halls in a tenth of its rooms (`cpu_preset_hall`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
@@ -171,8 +171,8 @@ VARIANTS["cpu_preset_memory_margin7"] = (
     "16",
     *VARIANTS["cpu_preset_margin7"][2:],
 )
-# ... with fewer steps (25 M, 23 M: the memory costs the 2-core CPU more a step).
-for _steps in (25, 23):
+# ... with fewer steps (25, 23, 18, 16, 14, 12 M: the memory costs the 2-core CPU more a step).
+for _steps in (25, 23, 18, 16, 14, 12):
     _flags = list(VARIANTS["cpu_preset_memory_margin7"])
     _flags[_flags.index("--total-steps") + 1] = f"{_steps}000000"
     VARIANTS[f"cpu_preset_memory_margin7_{_steps}m"] = tuple(_flags)

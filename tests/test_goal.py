@@ -674,7 +674,7 @@ def test_goal_runs_draw_fewer_new_episodes_ahead_unless_told():
     cpu = build_config("cpu", env="goal", overrides={"ppo": {"num_envs": 128}}).ppo
     # The preset's 4 minibatches of the smaller batch (128 x 32 steps).
     assert (cpu.num_envs, cpu.minibatch_size, cpu.num_epochs) == (128, 1024, 2)
-    assert cpu.total_steps == 23_000_000 and build_config("cpu").ppo.num_epochs == 4
+    assert cpu.total_steps == 16_000_000 and build_config("cpu").ppo.num_epochs == 4
     for name in ("cpu", "gpu", "paper"):  # the goal task's critic sees its own inputs too
         assert build_config(name, env="goal").ppo.privileged_critic
         assert not build_config(name, env="avoid").ppo.privileged_critic
