@@ -161,9 +161,10 @@ class AutoReset(Wrapper):
         """The env's resets of `keys` [M, 2]. For a task whose reset comes in two parts (`begin`,
         `first_observation`: `jaxnav.tasks.base.NavTask`), the first observations are made in
         OBSERVED_APART batches by a loop, after every episode is drawn: XLA's CPU backend would
-        otherwise draw each room again inside every ray of its first observation, and with the
-        rooms in memory the goal cpu preset's draws take 41-51 ms an update rather than 67-70.
-        The values are the reset's to within float rounding (XLA fuses the two parts apart)."""
+        otherwise draw each room again inside every ray of its first observation (the 2-core CPU:
+        avoid's draws 21 -> 9 ms an update, the goal task's ops 74 -> 63 ms of both threads'
+        time, `benchmarks/update_profile.py`). The values are the reset's to within float
+        rounding (XLA fuses the two parts apart)."""
         env = self.env
         if not hasattr(env, "first_observation"):
             return jax.vmap(env.reset)(keys)
