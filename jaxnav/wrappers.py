@@ -159,22 +159,22 @@ class AutoReset(Wrapper):
 
     def _observed_apart(self, keys: jax.Array) -> EnvState:
         """The env's resets of `keys` [M, 2]. For a task whose reset comes in two parts (`begin`,
-        `first_observation`: `jaxnav.tasks.base.NavTask`), the first observations are made in
+        `first_observation`: `jaxnav.tasks.base.NavTask.reset`), the first observations are made in
         OBSERVED_APART batches by a loop, after every episode is drawn: XLA's CPU backend would
         otherwise draw each room again inside every ray of its first observation (the 2-core CPU:
         avoid's draws 21 -> 9 ms an update, the goal task's ops 74 -> 63 ms of both threads'
         time, `benchmarks/update_profile.py`). The values are the reset's to within float
         rounding (XLA fuses the two parts apart)."""
         env = self.env
-        if not hasattr(env, "first_observation"):
+        if not hasattr(env, "first_observation"):  # a task with a reset of one part
             return jax.vmap(env.reset)(keys)
         states, obs_keys = jax.vmap(env.begin)(keys)
         m = keys.shape[0]
         parts = OBSERVED_APART if m % OBSERVED_APART == 0 else 1
-        apart = lambda x: x.reshape(parts, m // parts, *x.shape[1:])  # noqa: E731
+        in_parts = lambda x: x.reshape(parts, m // parts, *x.shape[1:])  # noqa: E731
         observed = jax.lax.map(
             lambda part: jax.vmap(env.first_observation)(*part),
-            jax.tree_util.tree_map(apart, (states, obs_keys)),
+            jax.tree_util.tree_map(in_parts, (states, obs_keys)),
         )
         return jax.tree_util.tree_map(lambda x: x.reshape(m, *x.shape[2:]), observed)
 

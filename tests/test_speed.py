@@ -299,7 +299,7 @@ def test_drawn_episodes_observed_apart_are_the_resets(task, mixed_env, monkeypat
     them: the observations in OBSERVED_APART batches after the rooms) is its reset: every drawn
     episode is its key's, its rooms, poses, goals and keys bit for bit, its first observation
     (and the goal task's memory of it) within float rounding. The goal task with its memory, as
-    the presets have it. Slow for goal: its draws compile (15 s on 2 cores)."""
+    the presets have it. Slow for goal: its env's reset and draws compile."""
     env = mixed_env
     if task == "goal":
         env = jaxnav.make_env("goal", randomize=TRAINING, memory_bins=16, max_steps=20)

@@ -174,8 +174,8 @@ class NavTask:
     """Batched-MJX robot in randomised rooms. Subclasses define `step`, `action_spec` and
     `metric_names` (with `reset`, the env contract, `jaxnav.core.types`; `observation_size` is set
     here from the task config, by `observation_size`), the reset in two parts (`begin` and
-    `first_observation`), and may declare what evaluation reports besides its own metrics
-    (`eval_metrics`)."""
+    `first_observation`, see `reset`) or `reset` itself, and may declare what evaluation reports
+    besides its own metrics (`eval_metrics`)."""
 
     eval_metrics: tuple[EvalMetric, ...] = ()
     """What evaluation reports for this task besides the metrics every task gets."""
@@ -223,19 +223,13 @@ class NavTask:
         return getattr(self.task, "critic_observations", 0)
 
     def reset(self, key: jax.Array) -> EnvState:
-        """A new episode: `begin`'s, with its first observation (`first_observation`)."""
+        """A new episode: `begin`'s, with its first observation (`first_observation`). A task
+        defines the two: `begin(key)` -> (the episode's state, its obs None; the key of its first
+        observation), and `first_observation(state, key)` -> the state with its obs (and what
+        makes it, such as the goal task's memory). Training's draws
+        (`jaxnav.wrappers.AutoReset`) then make a batch's observations apart from its rooms,
+        which costs the CPU less. A task may define `reset` itself instead."""
         return self.first_observation(*self.begin(key))
-
-    def begin(self, key: jax.Array) -> tuple[EnvState, jax.Array]:
-        """(A new episode's state, its obs None; the key of its first observation): the reset but
-        for what the robot first sees. Training's draws (`jaxnav.wrappers.AutoReset`) make a
-        batch's observations apart from its rooms, which on the CPU costs less."""
-        raise NotImplementedError
-
-    def first_observation(self, state: EnvState, key: jax.Array) -> EnvState:
-        """`state` of `begin` with its first observation (`obs` and what makes it, such as the
-        goal task's memory), sensed with `key`."""
-        raise NotImplementedError
 
     def new_episode(self, key: jax.Array) -> tuple[SceneParams, Body]:
         """A fresh room, spawn, moving obstacles and parameters, and the physics state at the
