@@ -20,8 +20,9 @@ collision costing 30 rather than 10: `_aimed_all_c30`, a discount of 0.995: `_g9
 `--preset cpu` (the README's goal run, whose training wall time is its row's `train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
 collision margin (`cpu_preset_margin7`), with the memory too (`cpu_preset_memory_margin7`; with
-25 M steps: `_25m`; with 23 M steps, the cpu preset since: `_23m`; with 18, 16, 14 or 12 M:
-`_18m`, `_16m`, `_14m`, `_12m`) and with long halls in a tenth of its rooms (`cpu_preset_hall`).
+25 M steps: `_25m`; with 23 M steps, the cpu preset until b5ebe30: `_23m`; with 18, 16 (the
+cpu preset since), 14 or 12 M: `_18m`, `_16m`, `_14m`, `_12m`) and with long halls in a tenth of
+its rooms (`cpu_preset_hall`).
 
     python benchmarks/memory.py --preset gpu --variants plain,memory,memory_dense \\
         --runs runs/memory --json benchmarks/results/memory_h100.json
