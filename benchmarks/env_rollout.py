@@ -1,19 +1,20 @@
 """Env-only throughput: random-policy rollouts of the training distribution of `python -m jaxnav.train`.
 
-    python benchmarks/env_rollout.py --num-envs 1024 --steps 100 --json benchmarks/results/env_rollout_cpu.json
+    python benchmarks/env_rollout.py --num-envs 1024 --steps 96 --json benchmarks/results/env_rollout_cpu.json
     python benchmarks/env_rollout.py --variants default,rows1,no_fidelity,pool_all ...
 
 Each variant is the default training env (5-row camera, sim-to-real ranges of randomize.FIDELITY,
-the auto-reset pool of the PPO default, drawn at every step; PPO draws a rollout's ahead of it, as
-`goal_ahead` does) with one thing changed, to time what each piece costs:
-`rows1`/`rows3` (a 1- or 3-row camera), `no_fidelity` (randomize.FIDELITY off), `families` (sampled
-rooms drawn from every room family), `pool_all` (a new episode drawn for every robot at every step),
-`wheeled` (the wheeled validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles
-per room, `RandomizeConfig.moving_count`); the `goal` task (`goal_families`: rooms of every family,
+the auto-reset pool of the PPO default, each 32 steps' new episodes drawn in one batch ahead of
+them as PPO's `reset_ahead` draws a rollout's) with one thing changed, to time what each piece
+costs: `per_step` (the new episodes drawn at every step instead, as every task trained before
+2026-11-30; `rows1_per_step` with a 1-row camera), `rows1`/`rows3` (a 1- or 3-row camera),
+`no_fidelity` (randomize.FIDELITY off), `families` (sampled rooms drawn from every room family),
+`pool_all` (a new episode drawn for every robot at every step), `wheeled` (the wheeled
+validation model, `SceneConfig.physics`), `movers` (0-3 moving obstacles per room,
+`RandomizeConfig.moving_count`); the `goal` task (`goal_families`: rooms of every family,
 `goal_history0`: no stacked frames, `goal_straight`: straight-line progress, no distance field,
-`goal_pool64`: new episodes drawn for 1/64 of the robots per step instead of 1/16, `goal_ahead`:
-the same drawn ahead, each 32 steps' in one batch as PPO's `reset_ahead` draws a rollout's);
-the speed levers: `full` (MJX's
+`goal_pool64`: new episodes drawn for 1/64 of the robots per step instead of 1/16, as the goal
+task trains); the speed levers: `full` (MJX's
 contact pass in every physics step, `SceneConfig.fast_contacts`, and the auto-reset's select in
 every row, `PPOConfig.reset_in_place` off, as by default), `contacts` (MJX's contact pass alone)
 and `in_place` (the auto-reset writing the finished rows only).
@@ -24,7 +25,7 @@ drive and camera add (`analytic_step`), the same batch of rooms and spawns.
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size.
 
-    python benchmarks/env_rollout.py --num-envs 65536 --steps 50 --repeats 2 --variants rows1,analytic
+    python benchmarks/env_rollout.py --num-envs 65536 --steps 64 --repeats 2 --variants rows1,analytic
 """
 
 from __future__ import annotations
@@ -48,11 +49,13 @@ from jaxnav.wrappers import AutoReset
 NO_FIDELITY = {k: getattr(jaxnav.core.randomize.RandomizeConfig(), k) for k in FIDELITY}
 VARIANTS = {
     "default": {},
+    "per_step": {"ahead": False},
     "rows1": {"sensor": SensorConfig(rows=1)},
+    "rows1_per_step": {"sensor": SensorConfig(rows=1), "ahead": False},
     "rows3": {"sensor": SensorConfig(rows=3)},
     "no_fidelity": {"randomize": dataclasses.replace(TRAINING, **NO_FIDELITY)},
     "families": {"randomize": dataclasses.replace(TRAINING, families="all")},
-    "pool_all": {"reset_share": 1.0},
+    "pool_all": {"reset_share": 1.0, "ahead": False},
     "wheeled": {"scene": SceneConfig(physics="wheeled")},
     "movers": {"randomize": dataclasses.replace(TRAINING, moving_count=(0, 3))},
     # The speed levers (benchmarks/throughput.py --variants has them too): the full MJX path, and
@@ -66,15 +69,14 @@ VARIANTS = {
     "goal_history0": {"task": "goal", "history": 0},
     "goal_straight": {"task": "goal", "progress": "straight"},
     "goal_pool64": {"task": "goal", "reset_share": 1 / 64},
-    "goal_ahead": {"task": "goal", "reset_share": 1 / 64, "ahead": True},
 }
-WINDOW = 32  # steps whose new episodes are drawn in one batch with "ahead" (a PPO rollout)
+WINDOW = 32  # steps whose new episodes are drawn in one batch ahead of them (a PPO rollout)
 
 
 def make(variant: str, num_envs: int):
     """(the training env of `variant`, auto-reset as PPO runs it; whether it draws ahead)."""
     kwargs = dict(VARIANTS[variant])
-    ahead = kwargs.pop("ahead", False)
+    ahead = kwargs.pop("ahead", PPOConfig().reset_ahead)
     ppo = PPOConfig(
         num_envs=num_envs,
         minibatch_size=num_envs,  # unused here; any size that divides a rollout
@@ -187,7 +189,7 @@ def _timed(rollout, state, num_envs, steps, repeats, variant) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--num-envs", default="1024", help="comma-separated batch sizes")
-    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--steps", type=int, default=96, help="a multiple of 32 where drawn ahead")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", help="write the results here")
     parser.add_argument(
@@ -212,12 +214,12 @@ def main() -> None:
         "rows": rows,
     }
     print(
-        f"{'variant':>12} {'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   "
+        f"{'variant':>14} {'robots':>8} {'steps':>6} {'compile s':>10} {'env-steps/s':>12}   "
         f"({result['device']})"
     )
     for r in rows:
         print(
-            f"{r['variant']:>12} {r['num_envs']:>8} {r['steps']:>6} {r['compile_s']:>10} "
+            f"{r['variant']:>14} {r['num_envs']:>8} {r['steps']:>6} {r['compile_s']:>10} "
             f"{r['env_steps_per_s']:>12,}"
         )
     if args.json:

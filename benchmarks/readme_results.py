@@ -43,7 +43,7 @@ SUITE = ("--suite", "benchmark", "--episodes", "20")  # how the README judges a 
 GATHERED = (
     (
         "env_rollout_h200_movers.json",
-        "python benchmarks/env_rollout.py --num-envs 65536 --steps 50 --repeats 2 "
+        "python benchmarks/env_rollout.py --num-envs 65536 --steps 64 --repeats 2 "
         "--variants default,movers",
         "env-only throughput, random policy, 65,536 robots",
     ),

@@ -14,6 +14,7 @@ from mujoco import mjx
 from stand_still import StandStillConfig, StandStillEnv
 
 import jaxnav
+from jaxnav.core import geometry
 from jaxnav.core.episode import sample
 from jaxnav.core.geometry import ray_cast, signed_distance
 from jaxnav.core.randomize import RandomizeConfig
@@ -180,6 +181,20 @@ def test_analytic_rays_agree_with_mjx_ray():
         np.testing.assert_array_equal(slot[seen], slot_mjx[seen])
         hits += int((slot[seen] >= 0).sum())
     assert hits > 500  # most rays above are not walls: the obstacles are really tested
+
+
+@pytest.mark.parametrize("backend", ["cpu", "gpu"])
+def test_a_rays_least_hit_is_argmins_on_either_backend(backend, monkeypatch):
+    """`geometry.least`, in the form each backend traces (the value read back at the index on
+    the CPU, a reduction of its own on a GPU): the least value and its first index, as
+    `x.min(-1)` and `jnp.argmin`, misses (inf) and ties included."""
+    monkeypatch.setattr(geometry.jax, "default_backend", lambda: backend)
+    rng = np.random.default_rng(3)
+    x = rng.choice([0.5, 1.0, 2.5, np.inf], size=(512, 13)).astype(np.float32)
+    x[:64] = np.inf  # rays that meet nothing
+    value, index = geometry.least(jnp.asarray(x))  # eager: each call takes its branch anew
+    np.testing.assert_array_equal(value, x.min(-1))
+    np.testing.assert_array_equal(index, np.argmin(x, -1))
 
 
 def test_wrappers_publish_finished_episode_sums(wrapped_mixed):
