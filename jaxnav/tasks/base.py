@@ -339,14 +339,16 @@ class NavTask:
         m = self.scene.physics_model(params)
         control = self._wheel_speeds if self.scene.wheeled else self._base_forces
 
-        def substep(d, _):
+        def substep(body, _):
+            d = body.into(self._data0)
             d = mjx.step(m, d.replace(ctrl=control(params, d, command)))
-            return d, self.touching(params, d)
+            return Body.of(d), self.touching(params, d)
 
-        # The touches as the scan's outputs, not its carry: under vmap a carry that starts
-        # unbatched and ends batched makes the scan batch its body twice.
-        data, touched = jax.lax.scan(substep, body.into(self._data0), None, self.scene.substeps)
-        return Body.of(data), touched.any()
+        # The scan carries Body alone, every leaf batched from the start, and the touches are its
+        # outputs: under vmap a carry that starts unbatched (mjx.Data's other fields, from
+        # `_data0`) and ends batched makes the scan batch its body twice.
+        body, touched = jax.lax.scan(substep, body, None, self.scene.substeps)
+        return body, touched.any()
 
     def _base_forces(self, params: SceneParams, d: mjx.Data, command: jax.Array) -> jax.Array:
         """Fast physics: [3] forces (x, y) and yaw torque that push the base towards the commanded
