@@ -73,10 +73,16 @@ VARIANTS = {
 WINDOW = 32  # steps whose new episodes are drawn in one batch ahead of them (a PPO rollout)
 
 
+def _ahead(variant: str) -> bool:
+    """Whether `variant` draws each WINDOW steps' new episodes ahead of them, as PPO does."""
+    return VARIANTS[variant].get("ahead", PPOConfig().reset_ahead)
+
+
 def make(variant: str, num_envs: int):
     """(the training env of `variant`, auto-reset as PPO runs it; whether it draws ahead)."""
     kwargs = dict(VARIANTS[variant])
-    ahead = kwargs.pop("ahead", PPOConfig().reset_ahead)
+    ahead = _ahead(variant)
+    kwargs.pop("ahead", None)
     ppo = PPOConfig(
         num_envs=num_envs,
         minibatch_size=num_envs,  # unused here; any size that divides a rollout
@@ -90,9 +96,7 @@ def make(variant: str, num_envs: int):
 def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -> dict:
     env, ahead = make(variant, num_envs)
     reset = jax.jit(env.reset)
-    window = WINDOW if ahead else steps
-    if steps % window:
-        raise SystemExit(f"--steps {steps}: must be a multiple of {WINDOW} for '{variant}'")
+    window = WINDOW if ahead else steps  # `main` checked that WINDOW divides steps
 
     @jax.jit
     def rollout(state, key):
@@ -200,6 +204,11 @@ def main() -> None:
     args = parser.parse_args()
     sizes = [int(n) for n in args.num_envs.split(",")]
     variants = args.variants.split(",")
+    for v in variants:  # every one checked before any is timed
+        if v != "analytic" and v not in VARIANTS:
+            parser.error(f"--variants: unknown '{v}' (known: {', '.join(VARIANTS)}, analytic)")
+        if v != "analytic" and _ahead(v) and args.steps % WINDOW:
+            parser.error(f"--steps {args.steps}: must be a multiple of {WINDOW} for '{v}'")
     rows = [
         measure_analytic(n, args.steps, args.repeats)
         if v == "analytic"
