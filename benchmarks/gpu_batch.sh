@@ -16,7 +16,7 @@ job 1 goal "python benchmarks/time_to_solve_goal.py --preset gpu --set randomize
 job 2 movers "python -m jaxnav.train --preset gpu --randomize.moving-count 0 3 \
   --out /tmp/avoid-movers --no-progress && python benchmarks/moving_obstacles.py --checkpoint \
   /tmp/avoid-movers --episodes 20 --json $out/moving_obstacles_avoid_movers_h200.json && \
-  python benchmarks/env_rollout.py --num-envs 65536 --steps 50 --repeats 2 \
+  python benchmarks/env_rollout.py --num-envs 65536 --steps 64 --repeats 2 \
   --variants default,movers --json $out/env_rollout_h200_movers.json"
 job 3 vs_brax "python benchmarks/vs_brax.py --preset gpu --num-envs 8192 --steps 52428800 \
   --eval-every 20 --trainers jaxnav,jaxnav-reset-all,brax --json $out/vs_brax_h200.json"
