@@ -16,8 +16,12 @@ training rather than half (`memory_crowd_fast_nr`, `lidar_crowd_fast_nr`), turni
 in training (half of them: `memory_crowd_fast_aimed`, all: `_aimed_all`; backing away too:
 `_aimed_back`, `_aimed_all_back`; all, twice the training: `_aimed_all_long`; all, with a
 collision costing 30 rather than 10: `_aimed_all_c30`, a discount of 0.995: `_g995`, both:
-`_c30_g995`; all, with continuous commands: `_aimed_all_cont`); and with
-`--preset cpu` (the README's goal run, whose training wall time is its row's `train_wall_s`) the
+`_c30_g995`; all, with continuous commands: `_aimed_all_cont`; all and none giving way:
+`_aimed_nr0`, with a stop action: `_aimed_nr0_stop`, and a discount of 0.995 too: `_stop_g995`;
+the same with walkers in half the rooms, `memory_crowd9_fast_aimed_nr0` (`_stop_g995`), or in
+every room, `crowd_only_fast_aimed_nr0` (`_stop`, `_stop_g995`, continuous commands: `_cont`));
+and with `--preset cpu` (the README's goal run, whose training wall time is its row's
+`train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
 collision margin (`cpu_preset_margin7`), with the memory too (`cpu_preset_memory_margin7`; with
 25 M steps: `_25m`; with 23 M steps, the cpu preset until b5ebe30: `_23m`; with 18, 16 (the
@@ -141,6 +145,36 @@ VARIANTS["memory_crowd_fast_aimed_all_c30"] = VARIANTS["memory_crowd_fast_aimed_
 VARIANTS["memory_crowd_fast_aimed_all_g995"] = VARIANTS["memory_crowd_fast_aimed_all"] + GAMMA_995
 VARIANTS["memory_crowd_fast_aimed_all_c30_g995"] = (
     VARIANTS["memory_crowd_fast_aimed_all_c30"] + GAMMA_995
+)
+# ... and every walker aimed across the robot's way and none giving way (CrowdNav's non-reactive
+# people: a robot that waits for them to pass reaches the goal, `crowdnav_foresight.py`), in
+# the crowd rooms of the mix (`_nr0`), in half the rooms (`crowd9`) or in every room
+# (`crowd_only`).
+AIMED_NR0 = ("--randomize.walkers", "aimed=1,reactive=0")
+VARIANTS["memory_crowd_fast_aimed_nr0"] = VARIANTS["memory_crowd_fast"] + AIMED_NR0
+VARIANTS["memory_crowd9_fast_aimed_nr0"] = (
+    ("--task.memory-bins", "16", "--randomize.families", "all,crowd:9")
+    + ("--task.forward-speed", "0.7")
+    + AIMED_NR0
+)
+VARIANTS["crowd_only_fast_aimed_nr0"] = (
+    ("--task.memory-bins", "16", "--randomize.families", "crowd")
+    + ("--task.forward-speed", "0.7")
+    + AIMED_NR0
+)
+# ... and with a fourth action that stands (stop): the robot waits facing the people it waits for.
+STOP = ("--task.actions", "discrete_stop")
+VARIANTS["crowd_only_fast_aimed_nr0_stop"] = VARIANTS["crowd_only_fast_aimed_nr0"] + STOP
+VARIANTS["crowd_only_fast_aimed_nr0_cont"] = VARIANTS["crowd_only_fast_aimed_nr0"] + CONTINUOUS
+VARIANTS["memory_crowd_fast_aimed_nr0_stop"] = VARIANTS["memory_crowd_fast_aimed_nr0"] + STOP
+VARIANTS["crowd_only_fast_aimed_nr0_stop_g995"] = VARIANTS["crowd_only_fast_aimed_nr0_stop"] + (
+    GAMMA_995
+)
+VARIANTS["memory_crowd_fast_aimed_nr0_stop_g995"] = VARIANTS["memory_crowd_fast_aimed_nr0_stop"] + (
+    GAMMA_995
+)
+VARIANTS["memory_crowd9_fast_aimed_nr0_stop_g995"] = (
+    VARIANTS["memory_crowd9_fast_aimed_nr0"] + STOP + GAMMA_995
 )
 # Every variant names its collision margin (none unless it says), so that its row does not
 # depend on the preset's default.
