@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import EXACT, XLA_CPU_CODE, traced_once
+from conftest import EXACT, XLA_CPU_CODE, benchmark_script, traced_once
 
 import jaxnav
 from jaxnav.core import crowd, motion
@@ -18,7 +18,7 @@ from jaxnav.core.geometry import signed_distance
 from jaxnav.core.randomize import make_bank
 from jaxnav.core.scene import SCENES_DIR
 from jaxnav.core.sensors import SensorConfig
-from jaxnav.evaluation import declared_values, pooled
+from jaxnav.evaluation import declared_values, eval_randomize, pooled
 from jaxnav.io.layouts import (
     Cylinder,
     LayoutError,
@@ -460,3 +460,35 @@ def test_goal_task_among_people():
         for _ in range(2):
             states = step_b(states, jnp.zeros(32, jnp.int32))
     assert set(states.metrics) == set(env.metric_names)
+
+
+@pytest.mark.slow
+def test_foresight_plans_wait_for_a_person_who_does_not_give_way():
+    """benchmarks/crowdnav_foresight.py in a room of one non-reactive person who crosses the
+    robot's straight way at 1 m/s just as a robot driving at once (0.5 m/s) gets there: the plan
+    that drives at once collides, the one that stands 4 s first reaches the goal, and a detour
+    that passes behind the person's start does too; the tallies read the same runs."""
+    from jaxnav.tasks.goal import GoalConfig
+
+    module = benchmark_script("crowdnav_foresight")
+    crosser = _walker((-3.0, -1.5), (3.5, -1.5), reactive=False, speed=1.0)
+    room = RoomLayout(
+        name="cross",
+        size=(8.0, 8.0),
+        robot_pos=(0.0, -3.0),
+        robot_yaw=float(np.pi / 2),
+        obstacles=(crosser,),
+        goal_pos=(0.0, 3.0),
+    )
+    task = GoalConfig(actions="continuous", max_steps=module.STEPS)
+    randomize = eval_randomize("layout", False)
+    env = jaxnav.make_env("goal", layouts=[room], task=task, randomize=randomize)
+    waits = np.array([0.0, 4.0, 0.0])
+    points = np.array([[np.nan, np.nan], [np.nan, np.nan], [-3.5, -2.5]])
+    run = module.make_run(env, waits, points, env.control_period, 0.5, 1.5)
+    success, collision, walker_hit = (np.asarray(x) for x in run(jax.random.PRNGKey(0)))
+    assert collision.tolist() == [True, False, False] and not walker_hit.any()
+    assert success.tolist() == [False, True, True]
+    (row,) = module.room_rows(success, collision, walker_hit, waits, points, ["cross"])
+    assert row["solved"] and row["least_wait_s"] == 0.0 and row["straight_wait_s"] == 4.0
+    assert module.summary([row])["straight_waits_ok_everywhere"] == [4.0]
