@@ -467,7 +467,8 @@ def test_foresight_plans_wait_for_a_person_who_does_not_give_way():
     """benchmarks/crowdnav_foresight.py in a room of one non-reactive person who crosses the
     robot's straight way at 1 m/s just as a robot driving at once (0.5 m/s) gets there: the plan
     that drives at once collides, the one that stands 4 s first reaches the goal, and a detour
-    that passes behind the person's start does too; the tallies read the same runs."""
+    that passes behind the person's start does too; the tallies read the same runs. Slow: it
+    compiles the goal env's 250-step scan (about 7 s on 2 cores)."""
     from jaxnav.tasks.goal import GoalConfig
 
     module = benchmark_script("crowdnav_foresight")
