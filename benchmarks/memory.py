@@ -19,7 +19,9 @@ collision costing 30 rather than 10: `_aimed_all_c30`, a discount of 0.995: `_g9
 `_c30_g995`; all, with continuous commands: `_aimed_all_cont`; all and none giving way:
 `_aimed_nr0`, with a stop action: `_aimed_nr0_stop`, and a discount of 0.995 too: `_stop_g995`;
 the same with walkers in half the rooms, `memory_crowd9_fast_aimed_nr0` (`_stop_g995`), or in
-every room, `crowd_only_fast_aimed_nr0` (`_stop`, `_stop_g995`, continuous commands: `_cont`));
+every room, `crowd_only_fast_aimed_nr0` (`_stop`, `_stop_g995`, continuous commands: `_cont`); and the gpu
+preset with the walkers of `_aimed_nr0` in a quarter of its rooms and the stop action, at 0.5 or
+0.7 m/s: `memory_hall_margin7_steps40_crowd_nr0_stop`, `_crowd_fast_nr0_stop`);
 and with `--preset cpu` (the README's goal run, whose training wall time is its row's
 `train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
@@ -200,6 +202,18 @@ VARIANTS["memory_hall_margin7_steps40"] = VARIANTS["memory_hall_margin7"] + (
     "--task.memory-steps",
     "40",
 )
+# ... the gpu preset (`_steps40`) with walkers in a quarter of its rooms, every one aimed and none
+# giving way, and the stop action: at the Kobuki's top speed (`_crowd_fast_nr0_stop`) or the
+# preset's 0.5 m/s (`_crowd_nr0_stop`).
+VARIANTS["memory_hall_margin7_steps40_crowd_nr0_stop"] = (
+    VARIANTS["memory_hall_margin7_steps40"]
+    + ("--randomize.families", GOAL_GPU_FAMILIES + ",crowd:3")
+    + AIMED_NR0
+    + STOP
+)
+VARIANTS["memory_hall_margin7_steps40_crowd_fast_nr0_stop"] = VARIANTS[
+    "memory_hall_margin7_steps40_crowd_nr0_stop"
+] + ("--task.forward-speed", "0.7")
 VARIANTS["cpu_preset_margin7"] = (*VARIANTS["cpu_preset"][:-3], MARGIN, "0.075", "0.075")
 VARIANTS["cpu_preset_memory_margin7"] = (
     "--task.memory-bins",
