@@ -49,16 +49,18 @@ def plans() -> tuple[np.ndarray, np.ndarray]:
     return waits, np.tile(np.asarray(points), (len(WAITS), 1))
 
 
-def make_run(env, waits, points, period: float, forward: float, turn: float):
+def make_run(env, waits, points):
     """A jitted `run(key) -> (success, collision, walker_hit)` [R * P] of every plan in every room
-    (episode e: room e // P, plan e % P)."""
+    (episode e: room e // P, plan e % P) of `env`, a goal task with continuous commands, whose
+    bounds are the plans' top speed and turn rate."""
     import jax
     import jax.numpy as jnp
 
     from jaxnav.core.xla import compiler_options
     from jaxnav.evaluation import first_state
 
-    n = len(waits)
+    n, period = len(waits), env.control_period
+    forward, turn = env.action_spec.high  # m/s, rad/s
     step = jax.vmap(env.step)
 
     def act(state, via, t):
@@ -185,7 +187,6 @@ def main() -> None:
         turn_rate=args.turn_rate,
         max_steps=STEPS,
     )
-    speeds = (args.forward_speed, args.turn_rate)
     key = jax.random.PRNGKey(args.seed)
     results = {}
     for kind in KINDS:
@@ -194,13 +195,12 @@ def main() -> None:
             "goal", layouts=layouts, task=task, randomize=eval_randomize("layout", args.stochastic)
         )
         start = time.perf_counter()
-        out = [
-            np.asarray(x) for x in make_run(env, waits, points, env.control_period, *speeds)(key)
-        ]
+        out = [np.asarray(x) for x in make_run(env, waits, points)(key)]
         seconds = time.perf_counter() - start
         rows = room_rows(*out, waits, points, [lay.name for lay in layouts])
-        env = make_env("goal", layouts=layouts, task=task, randomize=eval_randomize("layout"))
-        run = make_run(env, *blind_plans, env.control_period, *speeds)
+        if not args.stochastic:  # the blind plans run with the evaluation's stochastic robot
+            env = make_env("goal", layouts=layouts, task=task, randomize=eval_randomize("layout"))
+        run = make_run(env, *blind_plans)
         results[kind] = {
             **summary(rows),
             "plans_succeeding": float(out[0].mean()),

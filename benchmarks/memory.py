@@ -19,9 +19,9 @@ collision costing 30 rather than 10: `_aimed_all_c30`, a discount of 0.995: `_g9
 `_c30_g995`; all, with continuous commands: `_aimed_all_cont`; all and none giving way:
 `_aimed_nr0`, with a stop action: `_aimed_nr0_stop`, and a discount of 0.995 too: `_stop_g995`;
 the same with walkers in half the rooms, `memory_crowd9_fast_aimed_nr0` (`_stop_g995`), or in
-every room, `crowd_only_fast_aimed_nr0` (`_stop`, `_stop_g995`, continuous commands: `_cont`); and the gpu
-preset with the walkers of `_aimed_nr0` in a quarter of its rooms and the stop action, at 0.5 or
-0.7 m/s: `memory_hall_margin7_steps40_crowd_nr0_stop`, `_crowd_fast_nr0_stop`);
+every room, `crowd_only_fast_aimed_nr0` (`_stop`, `_stop_g995`, continuous commands: `_cont`);
+and the gpu preset with the walkers of `_aimed_nr0` in a quarter of its rooms and the stop
+action, at 0.5 or 0.7 m/s: `memory_hall_margin7_steps40_crowd_nr0_stop`, `_crowd_fast_nr0_stop`);
 and with `--preset cpu` (the README's goal run, whose training wall time is its row's
 `train_wall_s`) the
 cpu preset until 2026-11-29 (`cpu_preset`: no memory, no margin, 28 M steps), with a 7.5 cm
@@ -164,7 +164,7 @@ VARIANTS["crowd_only_fast_aimed_nr0"] = (
     + ("--task.forward-speed", "0.7")
     + AIMED_NR0
 )
-# ... and with a fourth action that stands (stop): the robot waits facing the people it waits for.
+# ... and with a fourth action that stands (stop), so that waiting need not turn the camera away.
 STOP = ("--task.actions", "discrete_stop")
 VARIANTS["crowd_only_fast_aimed_nr0_stop"] = VARIANTS["crowd_only_fast_aimed_nr0"] + STOP
 VARIANTS["crowd_only_fast_aimed_nr0_cont"] = VARIANTS["crowd_only_fast_aimed_nr0"] + CONTINUOUS

@@ -486,7 +486,7 @@ def test_foresight_plans_wait_for_a_person_who_does_not_give_way():
     env = jaxnav.make_env("goal", layouts=[room], task=task, randomize=randomize)
     waits = np.array([0.0, 4.0, 0.0])
     points = np.array([[np.nan, np.nan], [np.nan, np.nan], [-3.5, -2.5]])
-    run = module.make_run(env, waits, points, env.control_period, 0.5, 1.5)
+    run = module.make_run(env, waits, points)
     success, collision, walker_hit = (np.asarray(x) for x in run(jax.random.PRNGKey(0)))
     assert collision.tolist() == [True, False, False] and not walker_hit.any()
     assert success.tolist() == [False, True, True]

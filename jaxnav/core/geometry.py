@@ -132,8 +132,9 @@ def least(x):
     """([...] the least of `x` [..., K] along its last axis, [...] its first index, as
     `jnp.argmin`). On the CPU the value is read back at the index; on a GPU it is a reduction of
     its own beside the index's, which XLA fuses into one pass over `x` where the read-back was a
-    second pass (the rays' hits: one H200's env step 60.6 -> 64.5 M env-steps/s, PPO `avoid`
-    40.4 -> 42.0 M); on the 2-core CPU that form ran the env step 2-3x slower (docs/results.md)."""
+    second pass (the rays' hits: one H200's env step 64.6 -> 68.8 M env-steps/s, PPO `avoid`
+    40.4 -> 42.0 M); on the 2-core CPU that form ran the env step about 3x slower
+    (docs/results.md)."""
     first = jnp.argmin(x, -1)
     if jax.default_backend() == "cpu":
         return jnp.take_along_axis(x, first[..., None], -1)[..., 0], first
