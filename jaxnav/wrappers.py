@@ -10,12 +10,13 @@ stops each episode itself.
 from __future__ import annotations
 
 import contextlib
+import math
 
 import jax
 import jax.numpy as jnp
 
 from jaxnav.core import xla
-from jaxnav.core.types import EnvState
+from jaxnav.core.types import Banked, EnvState
 
 EPISODE = "episode"  # info key of the finished-episode sums: return, length and each metric
 RUNNING = "episode_running"  # info key of the sums of the episode in progress
@@ -94,6 +95,14 @@ class AutoReset(Wrapper):
     over the steps with the draws as its xs). The draws do not depend on the state, so the
     episodes come from the same distribution as the per-step draws, from other keys: one large
     batch instead of many small ones (PPO's default; docs/results.md has what it changes).
+
+    Banking: over such a window, `bank(state, fresh)` puts each of the task's `banked_info` arrays
+    (the goal task's geodesic field: most of its state) of the envs and of the new episodes in one
+    bank and leaves each env its row; `step(..., banks)` hands the task its arrays `Banked` and
+    selects the rows alone, and `unbank` gathers the arrays back. Without it, every step moves
+    every env's array through the select whether its episode ended or not. The same states bit
+    for bit (tested). With G > 1 nothing is banked: a bank of every block would be read across
+    the devices.
     """
 
     def __init__(
@@ -107,6 +116,7 @@ class AutoReset(Wrapper):
         if devices is not None and groups % len(devices):
             raise ValueError(f"AutoReset.groups: {groups} blocks over {len(devices)} devices")
         self.pool, self.in_place, self.groups, self.devices = pool, in_place, groups, devices
+        self.banked = tuple(getattr(env, "banked_info", ())) if groups == 1 else ()
 
     def _on_devices(self):
         """The context the resets trace in: `xla.on_devices(self.devices)` where given."""
@@ -138,6 +148,26 @@ class AutoReset(Wrapper):
         first = self._pool_keys(k_reset)  # [G, P/G, 2]
         per_step = jax.vmap(lambda t: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, t)))(first))
         return keys, self._resets(per_step(jnp.arange(steps)), block_axis=1, apart=True)
+
+    def bank(self, state: EnvState, fresh: EnvState) -> tuple[EnvState, EnvState, dict]:
+        """(`state` [N] and `fresh` [T, G, P/G] of `draw` with every banked array replaced by its
+        int32 row in the banks, the banks {key: [N + T x P, ...]}: the envs' arrays, then the new
+        episodes'), for the T steps `step(..., fresh[t], banks)` and then `unbank`. ({} where the
+        task banks nothing.)"""
+        if not self.banked:
+            return state, fresh, {}
+        n, lead = state.done.shape[0], fresh.done.shape  # N, [T, G, P/G]
+        banks, own, drawn = {}, {}, {}
+        for k in self.banked:
+            mine, new = state.info[k], fresh.info[k]
+            banks[k] = jnp.concatenate([mine, new.reshape(-1, *mine.shape[1:])])
+            own[k] = jnp.arange(n, dtype=jnp.int32)
+            drawn[k] = n + jnp.arange(math.prod(lead), dtype=jnp.int32).reshape(lead)
+        return _with_info(state, own), _with_info(fresh, drawn), banks
+
+    def unbank(self, state: EnvState, banks: dict) -> EnvState:
+        """`state` [N] of `bank`'s steps with each env's arrays gathered from `banks`."""
+        return _with_info(state, {k: bank[state.info[k]] for k, bank in banks.items()})
 
     def _resets(self, keys: jax.Array, block_axis: int, apart: bool = False) -> EnvState:
         """The env's resets of `keys` ([G, P/G, 2], or [steps, G, P/G, 2]: G at `block_axis`),
@@ -178,12 +208,23 @@ class AutoReset(Wrapper):
         )
         return jax.tree_util.tree_map(lambda x: x.reshape(m, *x.shape[2:]), observed)
 
-    def step(self, state: EnvState, action: jax.Array, fresh: EnvState | None = None) -> EnvState:
+    def step(
+        self, state: EnvState, action: jax.Array, fresh: EnvState | None = None, banks=None
+    ) -> EnvState:
         """One step of every env; `fresh` (leaves [G, P/G, ...], one step of `draw`) are the new
-        episodes, else this step draws its own."""
+        episodes, else this step draws its own. `banks`: `bank`'s, where `state` and `fresh`
+        hold rows of them."""
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
         info = {k: v for k, v in state.info.items() if k != RESET_KEY}
-        nxt = jax.vmap(self.env.step)(state.replace(info=info), action)
+        env_step = self.env.step
+        if banks:
+
+            def env_step(s: EnvState, a: jax.Array) -> EnvState:  # one env's, its arrays banked
+                lent = {k: Banked(bank, s.info[k]) for k, bank in banks.items()}
+                out = self.env.step(_with_info(s, lent), a)
+                return _with_info(out, {k: out.info[k].index for k in banks})
+
+        nxt = jax.vmap(env_step)(state.replace(info=info), action)
         g, total = self.groups, action.shape[0]
         pool = self.draws_per_block(total)
         if fresh is None:
@@ -203,6 +244,11 @@ class AutoReset(Wrapper):
         if EPISODE in nxt.info:
             info = {**info, EPISODE: nxt.info[EPISODE]}
         return nxt.replace(data=data, obs=obs, info={**info, RESET_KEY: keys})
+
+
+def _with_info(state: EnvState, values: dict) -> EnvState:
+    """`state` with `values` in its info."""
+    return state.replace(info={**state.info, **values})
 
 
 def with_reset_keys(state: EnvState, keys: jax.Array) -> EnvState:

@@ -23,6 +23,7 @@ from jaxnav.robot_side.policy import FrameStack
 from jaxnav.tasks.avoid import AvoidConfig
 from jaxnav.tasks.base import BACK_SHARE, velocity_actions
 from jaxnav.tasks.goal import spl_values
+from jaxnav.wrappers import EPISODE, AutoReset, EpisodeStats
 
 R = TURTLEBOT2I.radius
 
@@ -623,6 +624,35 @@ def test_one_flood_draws_the_goal_and_its_field(monkeypatch):
         col, row = np.asarray(goals._grid_cell(field.shape[1:], spawn[e], None))
         assert np.isfinite(field[e, row, col])
     assert np.linalg.norm(goal[:2] - spawn[:2], axis=-1).min() >= 1.5
+
+
+@pytest.mark.slow
+def test_banked_fields_step_as_selected_ones():
+    """The goal task's geodesic field banked over a window of drawn-ahead steps
+    (`AutoReset.bank`: the steps move each robot's row, not its field) gives the steps that
+    select the fields along: every reward, observation and critic input, and after `unbank`
+    the fields themselves, bit for bit, in rooms of every family with the presets' memory. Slow:
+    the goal task's draws and two windows of its steps compile."""
+    env = jaxnav.make_env("goal", randomize=TRAINING, memory_bins=16, max_steps=5)
+    assert env.banked_info == ("field",)
+    auto = AutoReset(EpisodeStats(env), 4)
+    n, steps = 16, 12
+
+    def run(state, fresh, banked: bool):
+        banks = {}
+        if banked:
+            state, fresh, banks = auto.bank(state, fresh)
+        actions = jax.random.randint(jax.random.PRNGKey(1), (steps, n), 0, 3)
+        step = lambda s, xs: (auto.step(s, xs[0], xs[1], banks),) * 2  # noqa: E731
+        state, states = jax.lax.scan(step, state, (actions, fresh))
+        return auto.unbank(state, banks), (states.reward, states.obs, states.info["critic"])
+
+    keys = jax.random.split(jax.random.PRNGKey(6), n)
+    drawn = jax.jit(lambda keys: auto.draw(auto.reset(keys), steps))(keys)
+    run = jax.jit(run, static_argnums=2)
+    (selected, seen), (banked, banked_seen) = run(*drawn, False), run(*drawn, True)
+    assert np.asarray(selected.info[EPISODE]["length"]).max() > 0  # episodes ended and restarted
+    chex.assert_trees_all_equal((selected, seen), (banked, banked_seen))
 
 
 def test_goal_runs_train_in_the_room_families_the_cpu_preset_weighted_to_the_hard_ones():

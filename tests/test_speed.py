@@ -13,7 +13,7 @@ from mujoco import mjx
 import jaxnav
 from jaxnav.core.randomize import TRAINING
 from jaxnav.core.scene import SceneConfig
-from jaxnav.core.types import EnvState
+from jaxnav.core.types import EnvState, window
 from jaxnav.wrappers import RESET_KEY, AutoReset, EpisodeStats
 
 ROBOTS, STEPS = 32, 60
@@ -347,6 +347,69 @@ def test_grouped_auto_reset_is_each_block_on_its_own(in_place, ahead):
     assert (ended > pool // 2).any() and ((ended > 0) & (ended <= pool // 2)).any()
     for a, *parts in zip(*(jax.tree_util.tree_leaves(t) for t in (both, *halves)), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.concatenate(parts, axis=1))
+
+
+class Ledger(Countdown):
+    """A Countdown whose episodes each draw a table [8] at their reset, which every step reads a
+    window of (`banked_info`): an array `AutoReset.bank` leaves in place."""
+
+    banked_info = ("table",)
+
+    def reset(self, key):
+        state = super().reset(key)
+        table = jax.random.normal(jax.random.fold_in(key, 1), (8,))
+        return state.replace(info={**state.info, "table": table})
+
+    def step(self, state, action):
+        nxt = super().step(state, action)
+        read = window(state.info["table"], (jnp.clip(nxt.info["left"], 0, 6),), (2,))
+        return nxt.replace(reward=nxt.reward + read.sum())
+
+
+def run_banked(env, keys, banked: bool, windows=3, steps=10):
+    """(states [windows x steps, N] with every banked array as the env's own, the state after
+    the last window) of `env` (an AutoReset of a Ledger) drawing every window's new episodes at
+    its start, its steps given the banks or selecting the arrays along."""
+    ones = jnp.ones(keys.shape[0])
+
+    def window_of_steps(state, _):
+        state, fresh = env.draw(state, steps)
+        banks = {}
+        if banked:
+            state, fresh, banks = env.bank(state, fresh)
+            assert state.info["table"].dtype == jnp.int32  # rows of the bank are what steps carry
+        step = lambda s, f: (env.step(s, ones, f, banks),) * 2  # noqa: E731
+        state, states = jax.lax.scan(step, state, fresh)
+        if banked:
+            states = states.replace(
+                info={**states.info, "table": banks["table"][states.info["table"]]}
+            )
+        return env.unbank(state, banks), states
+
+    last, states = jax.lax.scan(window_of_steps, env.reset(keys), None, windows)
+    return jax.tree_util.tree_map(lambda x: x.reshape(windows * steps, *x.shape[2:]), states), last
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_banked_arrays_step_as_selected_ones(in_place):
+    """Steps given `AutoReset.bank`'s banks, which move only each env's row of them, give every
+    state of the steps that select the arrays along with the rest, bit for bit: the arrays each
+    step reads (its reward), and after `unbank` the arrays themselves, in steps that end more
+    episodes than the pool holds and fewer. With blocks (G > 1) nothing is banked."""
+    n, pool = 64, 20  # 8-37 episodes end in a step
+    env = AutoReset(EpisodeStats(Ledger()), pool, in_place)
+    keys = jax.random.split(jax.random.PRNGKey(5), n)
+    run = jax.jit(run_banked, static_argnums=(0, 2))
+    (selected, last), (banked, banked_last) = run(env, keys, False), run(env, keys, True)
+    ended = np.asarray(selected.done).sum(1)  # [T]
+    assert (ended > pool).any() and ((ended > 0) & (ended <= pool)).any()
+    for a, b in zip(*(jax.tree_util.tree_leaves(x) for x in (selected, banked)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(*(jax.tree_util.tree_leaves(x) for x in (last, banked_last)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    grouped = AutoReset(EpisodeStats(Ledger()), pool, in_place, groups=2)
+    state = grouped.reset(keys)
+    assert grouped.bank(state, grouped.draw(state, 2)[1])[2] == {}
 
 
 @pytest.mark.parametrize(

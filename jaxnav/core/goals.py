@@ -41,7 +41,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from jaxnav.core import families, flood_kernel, xla
+from jaxnav.core import families, flood_kernel, types, xla
 from jaxnav.core import layout as lay
 from jaxnav.core.draws import Draws
 from jaxnav.core.geometry import planar_distance, signed_distance
@@ -456,14 +456,14 @@ def geodesics(field, centre, points, reach: float, room_half=None) -> jax.Array:
     a point's cells are those of the window between its cell -1 and +1, clipped to the grid, and
     a point within `reach` > 0 lies at most floor(reach / GRID_CELL + 1) cells from `centre`'s.
     The values of reading each point's nine cells on their own, to float32 rounding
-    (`tests/test_goal.py`). `field`: `goal_field`'s, or `pack_field`'s."""
+    (`tests/test_goal.py`). `field`: `goal_field`'s, or `pack_field`'s, as it is or `Banked`."""
     shape = field.shape  # rows, cols
     transposed = _transposed(shape, room_half)
     k = 1 + (int(np.floor(reach / GRID_CELL + 1)) if reach > 0 else 0)  # to a point's neighbour
     size = np.minimum(2 * k + 1, shape)  # [2] the window's rows, cols
     last = np.array(shape[::-1]) - 1  # [2] the last col, row
     start = jnp.clip(_grid_cell(shape, centre, transposed) - k, 0, last + 1 - size[::-1])
-    window = _unpack(jax.lax.dynamic_slice(field, (start[1], start[0]), tuple(size)))  # [h, w]
+    window = _unpack(types.window(field, (start[1], start[0]), tuple(size)))  # [h, w]
     half = _half_extents(shape)
     cols = start[0] + jnp.arange(size[1])  # [w]
     rows = start[1] + jnp.arange(size[0])  # [h]

@@ -97,6 +97,31 @@ class EnvState:
     info: dict[str, Any]  # the task's own traced state (episode parameters, step counter, key)
 
 
+@struct.dataclass
+class Banked:
+    """One robot's `bank[index]`, read where it lies. An auto-reset running a rollout keeps each
+    of a task's `banked_info` arrays (constant from an episode's reset to its end) in one bank for
+    the batch, the robots' own and the rollout's new episodes', and carries only each robot's row
+    of it, so that no step moves the arrays (`jaxnav.wrappers.AutoReset.bank`). A task reads such
+    an array only through `window`, which takes it banked or as it is."""
+
+    bank: jax.Array  # [M, ...] every robot's array and the new episodes' (one for the batch)
+    index: jax.Array  # [] int32: this robot's row of `bank`
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """The shape of one robot's array."""
+        return self.bank.shape[1:]
+
+
+def window(array, start, size) -> jax.Array:
+    """`jax.lax.dynamic_slice(array, start, size)` of an array or of a `Banked` one (read from
+    its bank: one slice of the bank, not the robot's whole row first)."""
+    if isinstance(array, Banked):
+        return jax.lax.dynamic_slice(array.bank, (array.index, *start), (1, *size))[0]
+    return jax.lax.dynamic_slice(array, tuple(start), tuple(size))
+
+
 class Env(Protocol):
     """What PPO, evaluation and export need from a task."""
 
@@ -107,6 +132,10 @@ class Env(Protocol):
     # C: inputs only a privileged critic sees, state.info["critic"] [C] (0: none; PPO reads 0 for an
     # env without the attribute). The actor, and so an exported policy, never sees them.
     critic_size: int
+    # Keys of `state.info` whose arrays stay the same from an episode's reset to its end and that
+    # the task reads only through `window` (optional: none). A training auto-reset may hand them
+    # to `step` as `Banked` and leaves them in place: `step` returns them as it got them.
+    banked_info: tuple[str, ...]
 
     def reset(self, key: jax.Array) -> EnvState: ...
 

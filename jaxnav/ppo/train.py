@@ -210,7 +210,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     g = block_count(cfg, devices)
     env = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place, g, devices_used)
     reset = lambda keys: shard(env.reset(keys))  # noqa: E731
-    step = lambda state, action, fresh: shard(env.step(state, action, fresh))  # noqa: E731
+    step = lambda state, action, fresh, banks: shard(env.step(state, action, fresh, banks))  # noqa: E731
     shard_draws = shard_envs(cfg.num_envs, devices, axis=1)  # [T, G, P/G, ...]: by block
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
     # The critic's own inputs [N, C] of a state, or None; the loss's inputs are (obs, those).
@@ -254,7 +254,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             extra = critic_in(env_state)
             logits, value = network.apply(ts.params, obs, extra)
             action = dist.sample(k_act, logits)  # [N] or [N, A]
-            nxt = step(env_state, action, fresh)
+            nxt = step(env_state, action, fresh, banks)
             tr = Transition(
                 env_state.obs,
                 obs,
@@ -270,14 +270,16 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
             return (nxt, key), tr
 
         env_state, fresh = ts.env_state, None  # fresh: the rollout's new episodes, drawn ahead
+        banks = {}  # the arrays the steps leave in place (`AutoReset.bank`)
         # Named in the program (profiles; tests check that no rollout op waits on another device).
         with jax.named_scope("rollout"):
             if cfg.reset_ahead:
                 keys, fresh = _draws(env_state.info[RESET_KEY]) if drawn is None else drawn
-                env_state = with_reset_keys(env_state, keys)
+                env_state, fresh, banks = env.bank(with_reset_keys(env_state, keys), fresh)
             (env_state, key), traj = jax.lax.scan(
                 _env_step, (env_state, ts.key), fresh, cfg.rollout_length
             )
+            env_state = shard(env.unbank(env_state, banks))
         return ts.replace(env_state=env_state, key=key), traj
 
     grad = fused_grad or loss_grad(cfg, network, dist)  # (grads, metrics) of a minibatch

@@ -259,6 +259,8 @@ class GoalEnv(NavTask):
             )
         self._command_scale = jnp.array([task.forward_speed, task.turn_rate])
         self._grid_extent = self._cover(bank)
+        # The geodesic's field, read by `geodesics` alone (`jaxnav.core.types.Banked`).
+        self.banked_info = ("field",) if task.progress == "geodesic" else ()
 
     def _cover(self, bank) -> tuple[float, float]:
         """Half extents (long, short) m of the traced goal grid: at least `GRID_HALF`, and every
