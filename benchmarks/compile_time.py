@@ -126,12 +126,13 @@ def piece_programs(env_name: str, preset: str) -> dict:
     }
     if cfg.reset_ahead:
         fresh = shape(lambda s: wrapped.draw(s, cfg.rollout_length)[1], ts.env_state)
+        state, fresh, banks = shape(wrapped.bank, ts.env_state, fresh)  # as the rollout banks
         one = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), fresh)
         programs["autoreset_draw"] = (
             lambda s: wrapped.draw(s, cfg.rollout_length),
             (ts.env_state,),
         )
-        programs["autoreset_step"] = (wrapped.step, (ts.env_state, action, one))
+        programs["autoreset_step"] = (wrapped.step, (state, action, one, banks))
     else:
         programs["autoreset_step"] = (wrapped.step, (ts.env_state, action))
     programs["init"] = (parts["init"], (key,))

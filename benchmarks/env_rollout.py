@@ -100,20 +100,22 @@ def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -
 
     @jax.jit
     def rollout(state, key):
-        def body(carry, xs):
-            state, total = carry
-            k, fresh = xs
-            action = jax.random.randint(k, (num_envs,), 0, env.action_spec.n)
-            state = env.step(state, action, fresh)
-            return (state, total + state.reward.sum()), None
-
         def run_window(carry, k):
             state, total = carry
-            fresh = None
-            if ahead:
-                state, fresh = env.draw(state, window)
+            fresh, banks = None, {}
+            if ahead:  # as a PPO rollout: its task's banked arrays left in place (AutoReset.bank)
+                state, fresh, banks = env.bank(*env.draw(state, window))
+
+            def body(carry, xs):
+                state, total = carry
+                k, fresh = xs
+                action = jax.random.randint(k, (num_envs,), 0, env.action_spec.n)
+                state = env.step(state, action, fresh, banks)
+                return (state, total + state.reward.sum()), None
+
             keys = jax.random.split(k, window)
-            return jax.lax.scan(body, (state, total), (keys, fresh))[0], None
+            state, total = jax.lax.scan(body, (state, total), (keys, fresh))[0]
+            return (env.unbank(state, banks), total), None
 
         (state, total), _ = jax.lax.scan(
             run_window, (state, jnp.float32(0)), jax.random.split(key, steps // window)
