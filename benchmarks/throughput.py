@@ -72,6 +72,8 @@ VARIANTS = {
     "xla_learner": {"ppo": {"fused_learner": False}},
     # Every room of the `crowd` family: 3-6 people walking (jaxnav.core.crowd) in each.
     "people": {"randomize": {"families": "crowd"}},
+    # Two robot blocks on one device, each drawing and banking its own (as two devices split them).
+    "groups2": {"ppo": {"groups": 2}},
 }
 
 

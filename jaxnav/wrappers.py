@@ -10,7 +10,6 @@ stops each episode itself.
 from __future__ import annotations
 
 import contextlib
-import math
 
 import jax
 import jax.numpy as jnp
@@ -100,9 +99,9 @@ class AutoReset(Wrapper):
     (the goal task's geodesic field: most of its state) of the envs and of the new episodes in one
     bank and leaves each env its row; `step(..., banks)` hands the task its arrays `Banked` and
     selects the rows alone, and `unbank` gathers the arrays back. Without it, every step moves
-    every env's array through the select whether its episode ended or not. The same states bit
-    for bit (tested). With G > 1 nothing is banked: a bank of every block would be read across
-    the devices.
+    every env's array through the select whether its episode ended or not. Each block has a bank
+    of its own, which its envs' steps read (a vmap over the blocks), so that blocks on devices
+    read their own. The same states bit for bit (tested).
     """
 
     def __init__(
@@ -116,7 +115,7 @@ class AutoReset(Wrapper):
         if devices is not None and groups % len(devices):
             raise ValueError(f"AutoReset.groups: {groups} blocks over {len(devices)} devices")
         self.pool, self.in_place, self.groups, self.devices = pool, in_place, groups, devices
-        self.banked = tuple(getattr(env, "banked_info", ())) if groups == 1 else ()
+        self.banked = tuple(getattr(env, "banked_info", ()))
 
     def _on_devices(self):
         """The context the resets trace in: `xla.on_devices(self.devices)` where given."""
@@ -151,23 +150,35 @@ class AutoReset(Wrapper):
 
     def bank(self, state: EnvState, fresh: EnvState) -> tuple[EnvState, EnvState, dict]:
         """(`state` [N] and `fresh` [T, G, P/G] of `draw` with every banked array replaced by its
-        int32 row in the banks, the banks {key: [N + T x P, ...]}: the envs' arrays, then the new
-        episodes'), for the T steps `step(..., fresh[t], banks)` and then `unbank`. ({} where the
-        task banks nothing.)"""
+        int32 row in its block's bank, the banks {key: [G, N/G + T x P/G, ...]}: each block's
+        envs' arrays, then its new episodes'), for the T steps `step(..., fresh[t], banks)` and
+        then `unbank`. ({} where the task banks nothing.) A block's bank lies where its envs do."""
         if not self.banked:
             return state, fresh, {}
-        n, lead = state.done.shape[0], fresh.done.shape  # N, [T, G, P/G]
-        banks, own, drawn = {}, {}, {}
-        for k in self.banked:
-            mine, new = state.info[k], fresh.info[k]
-            banks[k] = jnp.concatenate([mine, new.reshape(-1, *mine.shape[1:])])
-            own[k] = jnp.arange(n, dtype=jnp.int32)
-            drawn[k] = n + jnp.arange(math.prod(lead), dtype=jnp.int32).reshape(lead)
-        return _with_info(state, own), _with_info(fresh, drawn), banks
+        g, n, (t, _, p) = self.groups, state.done.shape[0], fresh.done.shape
+        local = n // g  # a block's envs
+
+        def join(mine, new):  # [N, ...], [T, G, P/G, ...] -> [G, N/G + T x P/G, ...]
+            new = jnp.swapaxes(new, 0, 1).reshape(g, t * p, *new.shape[3:])
+            return jnp.concatenate([mine.reshape(g, local, *mine.shape[1:]), new], 1)
+
+        banks = {k: join(state.info[k], fresh.info[k]) for k in self.banked}
+        own = jnp.tile(jnp.arange(local, dtype=jnp.int32), g)  # [N]
+        drawn = local + jnp.arange(t * p, dtype=jnp.int32).reshape(t, 1, p)
+        drawn = jnp.broadcast_to(drawn, (t, g, p))  # [T, G, P/G]
+        rows = lambda index: dict.fromkeys(self.banked, index)  # noqa: E731
+        return _with_info(state, rows(own)), _with_info(fresh, rows(drawn)), banks
 
     def unbank(self, state: EnvState, banks: dict) -> EnvState:
-        """`state` [N] of `bank`'s steps with each env's arrays gathered from `banks`."""
-        return _with_info(state, {k: bank[state.info[k]] for k, bank in banks.items()})
+        """`state` [N] of `bank`'s steps with each env's arrays gathered from its block's bank."""
+        g = self.groups
+        gather = jax.vmap(lambda bank, index: bank[index])  # a block's: [M, ...], [N/G]
+
+        def arrays(k):
+            bank, index = banks[k], state.info[k].reshape(g, -1)
+            return gather(bank, index).reshape(-1, *bank.shape[2:])
+
+        return _with_info(state, {k: arrays(k) for k in banks})
 
     def _resets(self, keys: jax.Array, block_axis: int, apart: bool = False) -> EnvState:
         """The env's resets of `keys` ([G, P/G, 2], or [steps, G, P/G, 2]: G at `block_axis`),
@@ -208,6 +219,27 @@ class AutoReset(Wrapper):
         )
         return jax.tree_util.tree_map(lambda x: x.reshape(m, *x.shape[2:]), observed)
 
+    def _stepped(self, state: EnvState, action: jax.Array, banks) -> EnvState:
+        """The env's step of every env [N]; with `banks` ({} or None: none), each env's banked
+        arrays handed to it `Banked` in its block's bank, and left as they were (its rows)."""
+        if not banks:
+            return jax.vmap(self.env.step)(state, action)
+
+        def block(bank: dict, s: EnvState, a: jax.Array) -> EnvState:  # a block's envs, its bank
+
+            def env_step(s: EnvState, a: jax.Array) -> EnvState:
+                lent = {k: Banked(bank[k], s.info[k]) for k in bank}
+                out = self.env.step(_with_info(s, lent), a)
+                return _with_info(out, {k: s.info[k] for k in bank})  # unchanged: its rows
+
+            return jax.vmap(env_step)(s, a)
+
+        g = self.groups
+        if g == 1:
+            return block({k: b[0] for k, b in banks.items()}, state, action)
+        nxt = jax.vmap(block)(banks, _blocks(state, g), _blocks(action, g))
+        return jax.tree_util.tree_map(lambda x: x.reshape(g * x.shape[1], *x.shape[2:]), nxt)
+
     def step(
         self, state: EnvState, action: jax.Array, fresh: EnvState | None = None, banks=None
     ) -> EnvState:
@@ -216,15 +248,7 @@ class AutoReset(Wrapper):
         hold rows of them."""
         keys, k_reset = _split(state.info[RESET_KEY])  # [N, 2] each
         info = {k: v for k, v in state.info.items() if k != RESET_KEY}
-        env_step = self.env.step
-        if banks:
-
-            def env_step(s: EnvState, a: jax.Array) -> EnvState:  # one env's, its arrays banked
-                lent = {k: Banked(bank, s.info[k]) for k, bank in banks.items()}
-                out = self.env.step(_with_info(s, lent), a)
-                return _with_info(out, {k: out.info[k].index for k in banks})
-
-        nxt = jax.vmap(env_step)(state.replace(info=info), action)
+        nxt = self._stepped(state.replace(info=info), action, banks)
         g, total = self.groups, action.shape[0]
         pool = self.draws_per_block(total)
         if fresh is None:

@@ -83,6 +83,24 @@ def test_the_flood_kernel_floods_each_devices_own_grids(tmp_path):
     assert even["reached"] > 0 and odd["reached"] > 0
 
 
+def test_banked_arrays_stay_on_each_devices_own_robots(tmp_path):
+    """With a block of robots on each of two devices, every block banks its own arrays
+    (`AutoReset.bank`): the steps give the select's rewards and states bit for bit, and no op of
+    the banked window waits for the other device."""
+    out = tmp_path / "banked.json"
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPTS / "banked_blocks.py"), str(out)],
+        env=cpu_env(2),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    got = json.loads(out.read_text())
+    assert got["devices"] == 2 and got["shards"] == 2
+    assert got["equal"] and got["ended"] > 0 and got["collectives"] == 0
+
+
 def test_training_resets_trace_with_the_devices_they_run_on():
     """`AutoReset(devices=...)` traces every reset (the first, a step's own, the drawn-ahead
     ones) inside `xla.on_devices`, so that the flood knows the devices its batch is split

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from conftest import XLA_CPU_CODE
 from mujoco import mjx
+from toy_envs import Countdown, Ledger
 
 import jaxnav
 from jaxnav.core.randomize import TRAINING
 from jaxnav.core.scene import SceneConfig
-from jaxnav.core.types import EnvState, window
 from jaxnav.wrappers import RESET_KEY, AutoReset, EpisodeStats
 
 ROBOTS, STEPS = 32, 60
@@ -179,32 +179,6 @@ def test_episodes_without_mjx_contacts_are_bit_identical(full_and_fast):
     assert not np.array_equal(full[0][after], fast[0][after])
 
 
-class Countdown:
-    """A toy env whose episodes last 1-6 steps, drawn per episode, so that in a batch some steps
-    end fewer episodes than the auto-reset pool holds and some more."""
-
-    metric_names = ()
-
-    def reset(self, key):
-        k_len, k_obs, key = jax.random.split(key, 3)
-        length = jax.random.randint(k_len, (), 1, 7)
-        obs = jax.random.normal(k_obs, (2,))
-        f0, b0 = jnp.float32(0), jnp.bool_(False)
-        info = {"left": length, "key": key}
-        return EnvState(data=obs, obs=obs, reward=f0, done=b0, truncated=b0, metrics={}, info=info)
-
-    def step(self, state, action):
-        left = state.info["left"] - 1
-        data = state.data + action
-        return state.replace(
-            data=data,
-            obs=2 * data,
-            reward=data.sum(),
-            done=left <= 0,
-            info={**state.info, "left": left},
-        )
-
-
 def test_in_place_auto_reset_is_the_select():
     """`AutoReset(in_place=True)` gives every leaf of the state of the select, bit for bit, in
     steps that end fewer episodes than the pool holds (the rows written) and more (the select)."""
@@ -349,23 +323,6 @@ def test_grouped_auto_reset_is_each_block_on_its_own(in_place, ahead):
         np.testing.assert_array_equal(np.asarray(a), np.concatenate(parts, axis=1))
 
 
-class Ledger(Countdown):
-    """A Countdown whose episodes each draw a table [8] at their reset, which every step reads a
-    window of (`banked_info`): an array `AutoReset.bank` leaves in place."""
-
-    banked_info = ("table",)
-
-    def reset(self, key):
-        state = super().reset(key)
-        table = jax.random.normal(jax.random.fold_in(key, 1), (8,))
-        return state.replace(info={**state.info, "table": table})
-
-    def step(self, state, action):
-        nxt = super().step(state, action)
-        read = window(state.info["table"], (jnp.clip(nxt.info["left"], 0, 6),), (2,))
-        return nxt.replace(reward=nxt.reward + read.sum())
-
-
 def run_banked(env, keys, banked: bool, windows=3, steps=10):
     """(states [windows x steps, N] with every banked array as the env's own, the state after
     the last window) of `env` (an AutoReset of a Ledger) drawing every window's new episodes at
@@ -381,23 +338,21 @@ def run_banked(env, keys, banked: bool, windows=3, steps=10):
         step = lambda s, f: (env.step(s, ones, f, banks),) * 2  # noqa: E731
         state, states = jax.lax.scan(step, state, fresh)
         if banked:
-            states = states.replace(
-                info={**states.info, "table": banks["table"][states.info["table"]]}
-            )
+            states = jax.vmap(lambda s: env.unbank(s, banks))(states)
         return env.unbank(state, banks), states
 
     last, states = jax.lax.scan(window_of_steps, env.reset(keys), None, windows)
     return jax.tree_util.tree_map(lambda x: x.reshape(windows * steps, *x.shape[2:]), states), last
 
 
-@pytest.mark.parametrize("in_place", [False, True])
-def test_banked_arrays_step_as_selected_ones(in_place):
+@pytest.mark.parametrize(("in_place", "groups"), [(False, 1), (True, 1), (False, 2)])
+def test_banked_arrays_step_as_selected_ones(in_place, groups):
     """Steps given `AutoReset.bank`'s banks, which move only each env's row of them, give every
     state of the steps that select the arrays along with the rest, bit for bit: the arrays each
     step reads (its reward), and after `unbank` the arrays themselves, in steps that end more
-    episodes than the pool holds and fewer. With blocks (G > 1) nothing is banked."""
+    episodes than the pool holds and fewer; with two blocks, each reading a bank of its own."""
     n, pool = 64, 20  # 8-37 episodes end in a step
-    env = AutoReset(EpisodeStats(Ledger()), pool, in_place)
+    env = AutoReset(EpisodeStats(Ledger()), pool, in_place, groups=groups)
     keys = jax.random.split(jax.random.PRNGKey(5), n)
     run = jax.jit(run_banked, static_argnums=(0, 2))
     (selected, last), (banked, banked_last) = run(env, keys, False), run(env, keys, True)
@@ -407,9 +362,9 @@ def test_banked_arrays_step_as_selected_ones(in_place):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     for a, b in zip(*(jax.tree_util.tree_leaves(x) for x in (last, banked_last)), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    grouped = AutoReset(EpisodeStats(Ledger()), pool, in_place, groups=2)
-    state = grouped.reset(keys)
-    assert grouped.bank(state, grouped.draw(state, 2)[1])[2] == {}
+    state = env.reset(keys)
+    bank = env.bank(state, env.draw(state, 2)[1])[2]["table"]
+    assert bank.shape == (groups, n // groups + 2 * pool // groups, 8)
 
 
 @pytest.mark.parametrize(
