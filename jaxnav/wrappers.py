@@ -176,7 +176,7 @@ class AutoReset(Wrapper):
 
         def arrays(k):
             bank, index = banks[k], state.info[k].reshape(g, -1)
-            return gather(bank, index).reshape(-1, *bank.shape[2:])
+            return gather(bank, index).reshape(index.size, *bank.shape[2:])
 
         return _with_info(state, {k: arrays(k) for k in banks})
 
