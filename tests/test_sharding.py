@@ -34,6 +34,19 @@ def train_on(devices: int, out: Path) -> dict:
     return dict(np.load(out))
 
 
+def run_script(name: str, out: Path) -> dict:
+    """The JSON that `tests/scripts/NAME OUT` writes, run on two forced host devices."""
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPTS / name), str(out)],
+        env=cpu_env(2),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(out.read_text())
+
+
 @pytest.mark.slow
 def test_two_devices_match_one(tmp_path):
     """Training sharded over two devices, as a run trains (init from the draws' and start's
@@ -66,16 +79,7 @@ def test_the_flood_kernel_floods_each_devices_own_grids(tmp_path):
     between devices (`xla.on_devices`, as training's resets trace) each floods its own part
     (`jax.shard_map`, no op waiting for another device), the same steps as the scans; a batch
     that does not split evenly takes the scans. Pallas' interpreter on two CPU devices here."""
-    out = tmp_path / "flood.json"
-    proc = subprocess.run(
-        [sys.executable, str(SCRIPTS / "split_flood.py"), str(out)],
-        env=cpu_env(2),
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    got = json.loads(out.read_text())
+    got = run_script("split_flood.py", tmp_path / "flood.json")
     assert got["devices"] == 2
     even, odd = got["even"], got["odd"]
     assert even["equal"] and even["kernel"] and even["split"] and even["collectives"] == 0
@@ -87,16 +91,7 @@ def test_banked_arrays_stay_on_each_devices_own_robots(tmp_path):
     """With a block of robots on each of two devices, every block banks its own arrays
     (`AutoReset.bank`): the steps give the select's rewards and states bit for bit, and no op of
     the banked window waits for the other device."""
-    out = tmp_path / "banked.json"
-    proc = subprocess.run(
-        [sys.executable, str(SCRIPTS / "banked_blocks.py"), str(out)],
-        env=cpu_env(2),
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    got = json.loads(out.read_text())
+    got = run_script("banked_blocks.py", tmp_path / "banked.json")
     assert got["devices"] == 2 and got["shards"] == 2
     assert got["equal"] and got["ended"] > 0 and got["collectives"] == 0
 
