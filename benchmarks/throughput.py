@@ -19,11 +19,11 @@ the best of `--repeats` runs of a jitted scan, after compiling it, with `block_u
 contact pass in every physics step, the auto-reset selecting in every row), `default` the
 defaults, `contacts` and `in_place` one lever each against them, `people` every room of the
 `crowd` family (its walkers' step in every env step), `groups2` two blocks of robots on one
-device (`--groups 2`: as two devices split them, each block drawing and banking its own). `--pieces` names the variants
-that also get the split; `--trace DIR` writes a JAX profiler trace of one PPO chunk of the first
-variant (open it in TensorBoard or Perfetto) and prints its top ops and, per accelerator, the
-chunk's span, busy time and time in cross-device ops (on several GPUs: how long each waited for
-the others).
+device (`--groups 2`: as two devices split them, each block drawing and banking its own).
+`--pieces` names the variants that also get the split; `--trace DIR` writes a JAX profiler
+trace of one PPO chunk of the first variant (open it in TensorBoard or Perfetto) and prints its
+top ops and, per accelerator, the chunk's span, busy time and time in cross-device ops (on
+several GPUs: how long each waited for the others).
 """
 
 from __future__ import annotations

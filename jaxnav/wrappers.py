@@ -277,7 +277,7 @@ def _with_info(state: EnvState, values: dict) -> EnvState:
 
 def with_reset_keys(state: EnvState, keys: jax.Array) -> EnvState:
     """`state` whose envs draw their next episodes from `keys` [N, 2]."""
-    return state.replace(info={**state.info, RESET_KEY: keys})
+    return _with_info(state, {RESET_KEY: keys})
 
 
 def _blocks(tree, g: int):

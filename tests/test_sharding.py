@@ -19,32 +19,23 @@ from jaxnav.ppo.train import block_count, shard_envs
 from jaxnav.wrappers import AutoReset
 
 SCRIPTS = Path(__file__).parent / "scripts"
-SCRIPT = SCRIPTS / "tiny_train.py"
 
 
-def train_on(devices: int, out: Path) -> dict:
+def run_script(name: str, out: Path, devices: int = 2) -> Path:
+    """OUT, written by `python tests/scripts/NAME OUT` on `devices` forced host devices."""
     proc = subprocess.run(
-        [sys.executable, str(SCRIPT), str(out)],
+        [sys.executable, str(SCRIPTS / name), str(out)],
         env=cpu_env(devices),  # compile-bound: quicker compiles, the same on both sides
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return dict(np.load(out))
+    return out
 
 
-def run_script(name: str, out: Path) -> dict:
-    """The JSON that `tests/scripts/NAME OUT` writes, run on two forced host devices."""
-    proc = subprocess.run(
-        [sys.executable, str(SCRIPTS / name), str(out)],
-        env=cpu_env(2),
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return json.loads(out.read_text())
+def train_on(devices: int, out: Path) -> dict:
+    return dict(np.load(run_script("tiny_train.py", out, devices)))
 
 
 @pytest.mark.slow
@@ -79,7 +70,7 @@ def test_the_flood_kernel_floods_each_devices_own_grids(tmp_path):
     between devices (`xla.on_devices`, as training's resets trace) each floods its own part
     (`jax.shard_map`, no op waiting for another device), the same steps as the scans; a batch
     that does not split evenly takes the scans. Pallas' interpreter on two CPU devices here."""
-    got = run_script("split_flood.py", tmp_path / "flood.json")
+    got = json.loads(run_script("split_flood.py", tmp_path / "flood.json").read_text())
     assert got["devices"] == 2
     even, odd = got["even"], got["odd"]
     assert even["equal"] and even["kernel"] and even["split"] and even["collectives"] == 0
@@ -91,7 +82,7 @@ def test_banked_arrays_stay_on_each_devices_own_robots(tmp_path):
     """With a block of robots on each of two devices, every block banks its own arrays
     (`AutoReset.bank`): the steps give the select's rewards and states bit for bit, and no op of
     the banked window waits for the other device."""
-    got = run_script("banked_blocks.py", tmp_path / "banked.json")
+    got = json.loads(run_script("banked_blocks.py", tmp_path / "banked.json").read_text())
     assert got["devices"] == 2 and got["shards"] == 2
     assert got["equal"] and got["ended"] > 0 and got["collectives"] == 0
 

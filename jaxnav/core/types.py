@@ -100,12 +100,12 @@ class EnvState:
 @struct.dataclass
 class Banked:
     """One robot's `bank[index]`, read where it lies. An auto-reset running a rollout keeps each
-    of a task's `banked_info` arrays (constant from an episode's reset to its end) in one bank for
-    the batch, the robots' own and the rollout's new episodes', and carries only each robot's row
-    of it, so that no step moves the arrays (`jaxnav.wrappers.AutoReset.bank`). A task reads such
-    an array only through `window`, which takes it banked or as it is."""
+    of a task's `banked_info` arrays (constant from an episode's reset to its end) in one bank a
+    block of robots, the block's own and its new episodes', and carries only each robot's row of
+    it, so that no step moves the arrays (`jaxnav.wrappers.AutoReset.bank`). A task reads such an
+    array only through `window`, which takes it banked or as it is."""
 
-    bank: jax.Array  # [M, ...] every robot's array and the new episodes' (one for the batch)
+    bank: jax.Array  # [M, ...] the robot's block's arrays and its new episodes'
     index: jax.Array  # [] int32: this robot's row of `bank`
 
     @property

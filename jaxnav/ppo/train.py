@@ -210,7 +210,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     g = block_count(cfg, devices)
     env = AutoReset(EpisodeStats(env), cfg.reset_pool, cfg.reset_in_place, g, devices_used)
     reset = lambda keys: shard(env.reset(keys))  # noqa: E731
-    step = lambda state, action, fresh, banks: shard(env.step(state, action, fresh, banks))  # noqa: E731
+    step = lambda *args: shard(env.step(*args))  # noqa: E731  (state, action, fresh, banks)
     shard_draws = shard_envs(cfg.num_envs, devices, axis=1)  # [T, G, P/G, ...]: by block
     norm = (lambda stats, obs: normalize(stats, obs)) if cfg.normalize_obs else (lambda s, o: o)
     # The critic's own inputs [N, C] of a state, or None; the loss's inputs are (obs, those).
