@@ -35,7 +35,7 @@ import numpy as np
 from jax import export
 
 from jaxnav.core.assets import scenes_dir
-from jaxnav.core.xla import compiler_options
+from jaxnav.core.xla import compiler_options, lowering
 from jaxnav.io import files
 
 FORMAT = 1
@@ -244,7 +244,8 @@ def program(trainer, run: str, name: str, args) -> Stored | None:
     if stored is not None:
         return stored
     try:
-        entry = _export(name, trainer.parts[name], args)
+        with lowering((trainer.programs or {}).get(name)):  # as its jitted program lowers
+            entry = _export(name, trainer.parts[name], args)
     except Exception as err:  # noqa: BLE001 (not exportable: jit traces it as before)
         line = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
         print(f"jaxnav: the {name} program is traced on every start ({line})", file=sys.stderr)

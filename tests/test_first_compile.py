@@ -252,6 +252,50 @@ def test_the_threefry_kernel_is_an_option_handed_to_the_lowering(monkeypatch):
     assert "threefry2x32_ffi" not in lowered[False] and "threefry2x32_ffi" in lowered[True]
 
 
+def test_programs_run_once_a_rollout_lower_with_the_threefry_kernel(tmp_path, monkeypatch):
+    """`xla.LoweredWith` lowers its program, and `jaxnav.programs` exports it, in its context
+    (on one GPU `make_train`'s draws, start and init: the threefry kernel), in the thread that
+    lowers only; lowered for CUDA in it, a reset calls the kernel. On the CPU `make_train`
+    leaves every program as it was."""
+    from jax._src.config import threefry_gpu_kernel_lowering as state
+
+    import jaxnav
+
+    class Fake:  # a jitted program that says how it was lowered or called
+        def lower(self, *args):
+            return state.value
+
+        __call__ = lower
+
+    kernel = lambda: xla.threefry_lowering(True)  # noqa: E731
+    program = xla.LoweredWith(Fake(), kernel)
+    assert program.lower() is True and program() is True and Fake().lower() is False
+    seen = []
+    export = programs._export
+    monkeypatch.setattr(programs, "_export", lambda *a: seen.append(state.value) or export(*a))
+    trainer = ppo_train.Trainer(
+        None, None, None, None, parts={"draws": lambda x: 2 * x, "start": lambda x: x + 1}
+    )
+    trainer = trainer._replace(
+        programs={"draws": xla.LoweredWith(jax.jit(lambda x: 2 * x), kernel), "start": None}
+    )
+    programs.use(tmp_path)
+    try:
+        x = np.arange(3.0, dtype=np.float32)
+        stored = {n: programs.program(trainer, "run", n, (x,)) for n in ("draws", "start")}
+    finally:
+        programs.use(None)
+    assert seen == [True, False] and state.value is False
+    np.testing.assert_array_equal(stored["draws"](x), 2 * x)
+    env = jaxnav.make_env("goal")
+    with xla.lowering(program):
+        assert "threefry2x32_ffi" in _lowered_for_cuda(env)
+    assert "threefry2x32_ffi" not in _lowered_for_cuda(env)
+    config = tiny_config()
+    trainer = ppo_train.make_train(config.ppo, train_module.make_run_env(config))
+    assert not any(isinstance(p, xla.LoweredWith) for p in trainer.programs.values())
+
+
 @pytest.mark.parametrize("task, most", [("avoid", 6), ("goal", 8)])
 def test_a_reset_lowered_for_a_gpu_holds_few_hashes(task, most):
     """Lowered for CUDA with threefry inlined (JAX's default), a reset holds a handful of threefry

@@ -15,7 +15,10 @@ GPU"). A user's own `--xla_gpu_deterministic_ops` in `XLA_FLAGS` is kept.
 On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,
 `PPOConfig.threefry_kernel`). jaxnav's resets draw their numbers in blocks (`jaxnav.core.draws`),
-so few calls are left to inline.
+so few calls are left to inline. The programs that run once a rollout or once a run (the draws
+of new episodes, init) hold most of them, and XLA's fusion passes spend seconds on their unrolled
+rounds; on one GPU those programs lower with the kernel (`threefry_lowering`, `LoweredWith`),
+since they run as fast either way and compile in about half the time.
 
 `pow2` rounds a size up as a Pallas (Triton) block's sides must be, for jaxnav's GPU kernels.
 `spanned` names the devices a batch being traced is split between (`on_devices`), for the kernels
@@ -72,6 +75,39 @@ def threefry_kernel(on: bool, backend: str | None = None) -> None:
     their setting is left as it is (it is part of every jit's cache key)."""
     if (backend or jax.default_backend()) == "gpu":
         jax.config.update(THREEFRY_KERNEL, bool(on))
+
+
+def threefry_lowering(kernel: bool):
+    """A context: programs lowered in it, in this thread, call jax.random's threefry as JAX's CUDA
+    kernel (`kernel`) or inline its rounds, whatever `threefry_kernel` set for the process (a
+    GPU's lowering only; the same bits either way). A JAX without the setting lowers as it
+    would."""
+    try:
+        from jax._src.config import threefry_gpu_kernel_lowering as state
+    except ImportError:
+        return contextlib.nullcontext()
+    return state(bool(kernel))
+
+
+class LoweredWith:
+    """A jitted program lowered (by `lower`, or by the call that compiles it) in `context()`,
+    which `jaxnav.programs` also exports it in (`lowering`)."""
+
+    def __init__(self, jitted, context):
+        self.jitted, self.context = jitted, context
+
+    def lower(self, *args):
+        with self.context():
+            return self.jitted.lower(*args)
+
+    def __call__(self, *args):
+        with self.context():
+            return self.jitted(*args)
+
+
+def lowering(program):
+    """The context `program` lowers in: a `LoweredWith`'s, else one that changes nothing."""
+    return getattr(program, "context", contextlib.nullcontext)()
 
 
 @contextlib.contextmanager
