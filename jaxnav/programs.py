@@ -141,7 +141,7 @@ class Stored:
         call.__name__ = call.__qualname__ = f"stored_{name}"
         ends = np.cumsum([0] + [arg.num_leaves for arg in in_tree.children()])  # per argument
         donated = tuple(i for a in donate for i in range(ends[a], ends[a + 1]))
-        options = compiler_options(jax.devices()[0].platform)
+        options = compiler_options(jax.devices()[0].platform, name)
         self._jitted = jax.jit(call, donate_argnums=donated, compiler_options=options)
 
     def _leaves(self, args) -> list:

@@ -90,8 +90,8 @@ def optimised(monkeypatch):
     flags = os.environ.get("XLA_FLAGS", "").split()
     monkeypatch.setenv("XLA_FLAGS", " ".join(f for f in flags if xla.OPTION not in f))
 
-    def options(backend=None):  # jaxnav's, and on the CPU XLA's own code
-        own = xla.compiler_options(backend)
+    def options(backend=None, program=None):  # jaxnav's, and on the CPU XLA's own code
+        own = xla.compiler_options(backend, program)
         return {**own, **XLA_CPU_CODE} if (backend or jax.default_backend()) == "cpu" else own
 
     for module in (train, programs, evaluation):

@@ -48,7 +48,7 @@ def trained(out, monkeypatch, ahead: bool, store=None, flags=()) -> tuple[dict, 
     # As outside the tests, whose XLA_FLAGS set LLVM's level: the programs take jaxnav's options,
     # here at the session's level (-O0), so that these eight tiny runs compile as quickly as the
     # rest of the suite's programs.
-    options = lambda platform: {xla.OPTION: 0}  # noqa: E731
+    options = lambda *args: {xla.OPTION: 0}  # noqa: E731
     monkeypatch.setattr(ppo_train, "compiler_options", options)
     monkeypatch.setattr(programs, "compiler_options", options)
     programs.use(store)
@@ -186,27 +186,36 @@ def test_each_program_compiles_while_the_next_is_traced(monkeypatch):
 
 def test_programs_compile_with_jaxnav_options(monkeypatch):
     """jaxnav's programs take `core.xla`'s options: LLVM at -O2 on the CPU, deterministic ops on
-    a GPU where the config asks; other backends, and a user's own setting in XLA_FLAGS, keep
-    XLA's defaults."""
+    a GPU where the config asks, and there no autotuning for the programs that run once a
+    rollout or a run (the draws, start, init); other backends, and a user's own setting in
+    XLA_FLAGS, keep XLA's defaults."""
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     monkeypatch.setattr(xla, "_deterministic", False)
+    untuned = {xla.AUTOTUNE: 0}
     assert xla.compiler_options("cpu") == {xla.OPTION: xla.CPU_OPT_LEVEL}
-    assert xla.compiler_options("gpu") is None
+    assert xla.compiler_options("cpu", "rollout") == {xla.OPTION: xla.CPU_OPT_LEVEL}
+    for name in (None, "rollout", "learn"):
+        assert xla.compiler_options("gpu", name) is None
+    assert set(xla.UNTUNED) == {"draws", "start", "init"}
+    for name in xla.UNTUNED:
+        assert xla.compiler_options("gpu", name) == untuned
     xla.deterministic(True)
     for gpu in ("gpu", "cuda", "rocm"):
         assert xla.compiler_options(gpu) == {xla.DETERMINISTIC: True}
-    assert xla.compiler_options("tpu") is None
-    monkeypatch.setenv("XLA_FLAGS", f"--{xla.OPTION}=3")
+        assert xla.compiler_options(gpu, "draws") == {xla.DETERMINISTIC: True, **untuned}
+    assert xla.compiler_options("tpu") is None and xla.compiler_options("tpu", "draws") is None
+    monkeypatch.setenv("XLA_FLAGS", f"--{xla.OPTION}=3 --{xla.AUTOTUNE}=4")
     assert xla.compiler_options("cpu") is None
-    assert xla.compiler_options("gpu") == {xla.DETERMINISTIC: True}
+    assert xla.compiler_options("gpu", "start") == {xla.DETERMINISTIC: True}
     monkeypatch.setenv("XLA_FLAGS", f"--{xla.DETERMINISTIC}=false")
     assert xla.compiler_options("gpu") is None
+    assert xla.compiler_options("gpu", "init") == untuned
 
 
 def test_the_trainer_hands_its_options_to_xla(monkeypatch):
     """The options reach XLA's compile of the trainer's programs: an option XLA does not know
     fails the compile, naming it."""
-    monkeypatch.setattr(ppo_train, "compiler_options", lambda platform: {"xla_no_such_one": 1})
+    monkeypatch.setattr(ppo_train, "compiler_options", lambda *args: {"xla_no_such_one": 1})
     config = tiny_config()
     trainer = ppo_train.make_train(config.ppo, train_module.make_run_env(config))
     with pytest.raises(Exception, match="xla_no_such_one"):

@@ -12,6 +12,11 @@ programs with `xla_gpu_deterministic_ops` (`PPOConfig.deterministic`, off by def
 then trains to the same bits on one machine, slower (docs/results.md, "One seed, one policy, on a
 GPU"). A user's own `--xla_gpu_deterministic_ops` in `XLA_FLAGS` is kept.
 
+That timing (autotuning) takes seconds of a GPU's compile, and the programs that run once a
+rollout or once a run (`UNTUNED`: the draws, start, init) compile without it. The rollout's
+kernels gain from it (at 65,536 robots PPO trained 9-11 % slower with the rollout untimed;
+docs/results.md). A user's own `--xla_gpu_autotune_level` is kept.
+
 On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,
 `PPOConfig.threefry_kernel`). jaxnav's resets draw their numbers in blocks (`jaxnav.core.draws`),
@@ -36,6 +41,8 @@ import jax
 CPU_OPT_LEVEL = 2  # LLVM's optimisation level for jaxnav's CPU programs (XLA's own default: 3)
 OPTION = "xla_backend_optimization_level"
 DETERMINISTIC = "xla_gpu_deterministic_ops"  # XLA's option for the same bits every run
+AUTOTUNE = "xla_gpu_autotune_level"  # XLA's option: 0 times no kernels (its default: 4)
+UNTUNED = ("draws", "start", "init")  # run once a rollout or a run: not worth timing (the module)
 GPUS = ("gpu", "cuda", "rocm")  # the names a GPU backend or platform goes by
 _deterministic = False  # set by `deterministic`
 _tracing = threading.local()  # `.devices`: set by `on_devices` in the thread that traces
@@ -46,16 +53,22 @@ def pow2(n: int, least: int = 1) -> int:
     return max(least, 1 << max(n - 1, 0).bit_length())
 
 
-def compiler_options(backend: str | None = None) -> dict[str, int | bool] | None:
+def compiler_options(
+    backend: str | None = None, program: str | None = None
+) -> dict[str, int | bool] | None:
     """The options for a program on `backend` (default: JAX's default backend), or None for
-    XLA's defaults: on the CPU `CPU_OPT_LEVEL`, on a GPU `DETERMINISTIC` where `deterministic`
-    turned it on, each unless `XLA_FLAGS` sets it itself."""
+    XLA's defaults: on the CPU `CPU_OPT_LEVEL`; on a GPU `DETERMINISTIC` where `deterministic`
+    turned it on, and no autotuning (`AUTOTUNE` 0) for a trainer's program named in `UNTUNED`
+    (`program`: its name in `ppo.train.Trainer.programs`); each unless `XLA_FLAGS` sets it."""
     backend, flags = backend or jax.default_backend(), os.environ.get("XLA_FLAGS", "")
+    options = {}
     if backend == "cpu" and OPTION not in flags:
-        return {OPTION: CPU_OPT_LEVEL}
+        options[OPTION] = CPU_OPT_LEVEL
     if backend in GPUS and _deterministic and DETERMINISTIC not in flags:
-        return {DETERMINISTIC: True}
-    return None
+        options[DETERMINISTIC] = True
+    if backend in GPUS and program in UNTUNED and AUTOTUNE not in flags:
+        options[AUTOTUNE] = 0
+    return options or None
 
 
 def deterministic(on: bool) -> None:

@@ -395,11 +395,13 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
 
     platform = devices_used[0].platform
     deterministic(cfg.deterministic)
-    options = compiler_options(platform)
     # On one device only: XLA cannot split the kernel's call over the devices the robots are
     # sharded over, and several GPUs are not measured with it.
     threefry_kernel(cfg.threefry_kernel and len(devices_used) == 1, platform)
-    jit = lambda fn, **kw: jax.jit(fn, compiler_options=options, **kw)  # noqa: E731
+
+    def jit(fn, name: str | None = None, **kw):  # with the options of the program `name`
+        return jax.jit(fn, compiler_options=compiler_options(platform, name), **kw)
+
     laid = layouts(devices_used, cfg.reset_ahead, calls)
     keys_of = jax.jit(first_keys, **laid.get("keys", {}))  # a few ops: XLA's own options
 
@@ -472,7 +474,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         "draws": _draws,
         "start": start,
     }
-    pin = lambda fn, name, **kw: jit(fn, **laid.get(name, {}), **kw)  # noqa: E731
+    pin = lambda fn, name, **kw: jit(fn, name, **laid.get(name, {}), **kw)  # noqa: E731
     first = (
         {"draws": pin(_draws, "draws"), "start": pin(start, "start")}
         if cfg.reset_ahead
