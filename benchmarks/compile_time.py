@@ -29,7 +29,8 @@ back.
 
 `--xla-log` (a GPU): the chunk's programs lowered and compiled as above, in a subprocess with
 XLA's compile log on: XLA's own seconds in the chunk's HLO passes, in the autotuning of its matrix
-products (one of those passes), in code generation and in its IR emission (`xla_log`).
+products (one of those passes), in code generation and in its IR emission (`xla_log`), and each
+program's slowest HLO passes (`pass_seconds`).
 
 `--xla-flags A,B,...`: per task and per `XLA_FLAGS` value (an empty one: jaxnav's own compiler
 options, `jaxnav.core.xla`), `python -m jaxnav.train --no-compile-cache` for `--chunks` chunks: the
@@ -341,22 +342,46 @@ def flag_runs(
 # XLA's own timers for the chunk's modules (`jit__rollout`, `jit__learn` and `jit__draws`),
 # from its log on a GPU: regex -> key, summed over them.
 CHUNK_MODULES = r"jit_(?:_draws|_rollout|_learn)"
+PROGRAMS = r"jit_(?:_draws|_rollout|_learn|start|init)"  # every program of a run
 XLA_TIMERS = {
     "hlo_passes_s": rf"RunHloPasses for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",
     "backend_s": rf"GpuCompiler::RunBackend for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",
     "ir_emission_s": rf"IR emission for {CHUNK_MODULES} time: ([\d.]+) (ms|s|min)",
 }
-UNITS = {"ms": 1e-3, "s": 1.0, "min": 60.0}
+UNITS = {"us": 1e-6, "ms": 1e-3, "s": 1.0, "min": 60.0}
+PIPELINE = re.compile(r"Running HLO pass pipeline on module (\S+): ")
+STARTS = re.compile(r"\]\s+HLO pass (\S+)$")
+PASS = re.compile(r"HLO pass: (\S+) time: ([\d.]+) (us|ms|s|min) ")
+
+
+def pass_seconds(log: str, top: int = 6) -> dict:
+    """{module: {pass: seconds}}: the `top` slowest HLO passes of each module XLA compiled, summed
+    over their runs, from its log with `TF_CPP_VMODULE=hlo_pass_pipeline=1`. A pass belongs to
+    the module whose pipeline it started in (its time comes at its end, after the modules that
+    an autotuning pass compiles inside it); a pass that runs a pipeline holds that one's time."""
+    seconds, module, started = {}, None, {}
+    for line in log.splitlines():
+        if found := PIPELINE.search(line):
+            module = found.group(1)
+        elif found := STARTS.search(line):
+            started.setdefault(found.group(1), []).append(module)
+        elif (found := PASS.search(line)) and started.get(found.group(1)):
+            name, value, unit = found.groups()
+            passes = seconds.setdefault(started[name].pop(), {})
+            passes[name] = passes.get(name, 0.0) + float(value) * UNITS[unit]
+    slowest = lambda passes: sorted(passes.items(), key=lambda kv: -kv[1])[:top]  # noqa: E731
+    return {m: {n: round(v, 2) for n, v in slowest(p)} for m, p in seconds.items() if m}
 
 
 def xla_log(env: str, preset: str) -> dict:
     """`split` in a subprocess with XLA's compile log on (a GPU's timers and pass statistics):
     its seconds, XLA's time in the chunk's HLO passes, in code generation and in its IR emission,
-    and the autotuning of its matrix products (the largest "config-assigner" pass in the log)."""
+    the autotuning of its matrix products (the largest "config-assigner" pass in the log), and
+    each program's slowest passes (`passes`: `pass_seconds`)."""
     code = f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import compile_time as c; "
     code += "print('SPLIT', json.dumps(c.split(sys.argv[1], sys.argv[2])))"
     environ = {**os.environ, "TF_CPP_MIN_LOG_LEVEL": "0"}
-    environ["TF_CPP_VMODULE"] = "gpu_compiler=2,compile_module_to_llvm_ir=2"
+    environ["TF_CPP_VMODULE"] = "gpu_compiler=2,compile_module_to_llvm_ir=2,hlo_pass_pipeline=1"
     environ["XLA_FLAGS"] = "--xla_gpu_print_compilation_stats=true"
     proc = subprocess.run(
         [sys.executable, "-c", code, env, preset], capture_output=True, text=True, env=environ
@@ -368,6 +393,8 @@ def xla_log(env: str, preset: str) -> dict:
             out[key] = round(sum(float(v) * UNITS[unit] for v, unit in hits), 2)
     tuned = [float(x) for x in re.findall(r"\] config-assigner, \d+, ([\d.]+)", proc.stderr, re.I)]
     out["autotune_s"] = round(max(tuned) / 1000, 2) if tuned else None
+    passes = pass_seconds(proc.stderr)
+    out["passes"] = {m: p for m, p in passes.items() if re.fullmatch(PROGRAMS, m)}
     return out
 
 

@@ -8,7 +8,7 @@ import re
 import jax
 import numpy as np
 import pytest
-from conftest import TINY_FLAGS
+from conftest import TINY_FLAGS, benchmark_script
 
 import jaxnav.cli.train as train_cli
 from jaxnav import programs
@@ -332,3 +332,31 @@ def test_the_config_asks_for_deterministic_ops(monkeypatch):
     assert xla.compiler_options("gpu") == {xla.DETERMINISTIC: True}
     ppo_train.make_train(config.ppo, env)
     assert xla.compiler_options("gpu") is None
+
+
+def test_the_compile_log_names_each_programs_slowest_passes():
+    """`benchmarks/compile_time.py --xla-log` sums each HLO pass of XLA's log into the module
+    whose pipeline it started in: an autotuning pass's time comes after the modules it compiled
+    inside it, and still counts for its own module; units as XLA prints them."""
+    compile_time = benchmark_script("compile_time")
+    log = """\
+I1201 06:07:17.1 495 hlo_pass_pipeline.cc:302] Running HLO pass pipeline on module jit__draws: fusion
+I1201 06:07:17.2 495 hlo_pass_pipeline.cc:211]   HLO pass priority-fusion
+I1201 06:07:20.7 495 hlo_pass_pipeline.cc:206] HLO pass: priority-fusion time: 3.49 s (3490000 us)
+I1201 06:07:20.8 495 hlo_pass_pipeline.cc:211]   HLO pass config-assigner
+I1201 06:07:20.9 495 hlo_pass_pipeline.cc:302] Running HLO pass pipeline on module fusion_7: opt
+I1201 06:07:20.9 495 hlo_pass_pipeline.cc:211]   HLO pass algsimp
+I1201 06:07:20.9 495 hlo_pass_pipeline.cc:206] HLO pass: algsimp time: 250 us (250 us)
+I1201 06:07:21.8 495 hlo_pass_pipeline.cc:206] HLO pass: config-assigner time: 1.04 s (1040000 us)
+I1201 06:07:21.9 495 hlo_pass_pipeline.cc:302] Running HLO pass pipeline on module jit__learn: x
+I1201 06:07:21.9 495 hlo_pass_pipeline.cc:211]   HLO pass algsimp
+I1201 06:07:21.9 495 hlo_pass_pipeline.cc:206] HLO pass: algsimp time: 20 ms (20000 us)
+I1201 06:07:21.9 495 hlo_pass_pipeline.cc:211]   HLO pass algsimp
+I1201 06:07:21.9 495 hlo_pass_pipeline.cc:206] HLO pass: algsimp time: 30 ms (30000 us)
+"""
+    assert compile_time.pass_seconds(log) == {
+        "jit__draws": {"priority-fusion": 3.49, "config-assigner": 1.04},
+        "fusion_7": {"algsimp": 0.0},
+        "jit__learn": {"algsimp": 0.05},
+    }
+    assert compile_time.pass_seconds(log, top=1)["jit__draws"] == {"priority-fusion": 3.49}

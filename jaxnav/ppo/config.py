@@ -77,11 +77,12 @@ class PPOConfig:
     a GPU waits for (and several GPUs agree on); off, PPO runs faster and compiles sooner on one
     GPU and on two, and the same on a CPU (docs/results.md, "What was decided and why")."""
     threefry_kernel: bool = False
-    """On one GPU, call jax.random's threefry as JAX's CUDA kernel instead of inlining its rounds
-    (`jaxnav.core.xla.threefry_kernel`, set by `make_train` for the process): the same random
-    bits in a smaller program. Since the resets draw their numbers in blocks
-    (`jaxnav.core.draws`), inlined is faster for both tasks: the kernel's calls cannot fuse with
-    the step around them (docs/results.md, "What was decided and why")."""
+    """On one GPU, call jax.random's threefry as JAX's CUDA kernel in every program instead of
+    inlining its rounds in the rollout and the learner (`jaxnav.core.xla.threefry_kernel`, set by
+    `make_train` for the process; the draws, start and init call the kernel on one GPU either
+    way): the same random bits in a smaller program. Inlined, the rollout is faster for both
+    tasks: the kernel's calls cannot fuse with the step around them (docs/results.md, "What was
+    decided and why")."""
     deterministic: bool = False
     """On a GPU, compile with XLA's deterministic ops (`jaxnav.core.xla.deterministic`, set by
     `make_train` for the process), so that one seed trains to the same bits on one machine; off,
