@@ -21,9 +21,10 @@ On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,
 `PPOConfig.threefry_kernel`). jaxnav's resets draw their numbers in blocks (`jaxnav.core.draws`),
 so few calls are left to inline. The programs that run once a rollout or once a run (the draws
-of new episodes, init) hold most of them, and XLA's fusion passes spend seconds on their unrolled
-rounds; on one GPU those programs lower with the kernel (`threefry_lowering`, `LoweredWith`),
-since they run as fast either way and compile in about half the time.
+of new episodes, init) hold most of them, and XLA's fusion pass spends seconds on their unrolled
+rounds; on one GPU those programs lower with the kernel (`threefry_lowering`, `LoweredWith`):
+they run as fast either way, and the goal task's draws compiled in 10.4-11.4 s rather than
+15.9-16.6 s beside the other programs (docs/results.md).
 
 `pow2` rounds a size up as a Pallas (Triton) block's sides must be, for jaxnav's GPU kernels.
 `spanned` names the devices a batch being traced is split between (`on_devices`), for the kernels
