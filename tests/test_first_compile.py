@@ -263,9 +263,9 @@ def test_the_threefry_kernel_is_an_option_handed_to_the_lowering(monkeypatch):
 
 def test_programs_run_once_a_rollout_lower_with_the_threefry_kernel(tmp_path, monkeypatch):
     """`xla.LoweredWith` lowers its program, and `jaxnav.programs` exports it, in its context
-    (on one GPU `make_train`'s draws, start and init: the threefry kernel), in the thread that
-    lowers only; lowered for CUDA in it, a reset calls the kernel. On the CPU `make_train`
-    leaves every program as it was."""
+    (on one GPU `make_train`'s draws, start and init: the threefry kernel), and only while it
+    lowers; lowered for CUDA in it, a reset calls the kernel. On the CPU `make_train` leaves
+    every program as it was."""
     from jax._src.config import threefry_gpu_kernel_lowering as state
 
     import jaxnav

@@ -480,8 +480,10 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         if cfg.reset_ahead
         else {"init": pin(init, "init")}
     )
-    if platform in GPUS and len(devices_used) == 1:  # run once a rollout or a run: threefry as
-        kernel = functools.partial(threefry_lowering, True)  # the kernel compiles sooner (xla.py)
+    # These run once a rollout or once a run: on one GPU, threefry as JAX's kernel compiles them
+    # sooner and runs as fast (`jaxnav.core.xla`).
+    if platform in GPUS and len(devices_used) == 1:
+        kernel = functools.partial(threefry_lowering, True)
         first = {name: LoweredWith(program, kernel) for name, program in first.items()}
     # Both take the train state and reuse its buffers: the robots' and the learner's.
     steps = {
