@@ -263,9 +263,9 @@ def test_the_threefry_kernel_is_an_option_handed_to_the_lowering(monkeypatch):
 
 def test_programs_run_once_a_rollout_lower_with_the_threefry_kernel(tmp_path, monkeypatch):
     """`xla.LoweredWith` lowers its program, and `jaxnav.programs` exports it, in its context
-    (on one GPU `make_train`'s draws, start and init: the threefry kernel), and only while it
-    lowers; lowered for CUDA in it, a reset calls the kernel. On the CPU `make_train` leaves
-    every program as it was."""
+    (`xla.run_once`, on one GPU only: `make_train`'s draws, start and init with the threefry
+    kernel), and only while it lowers; lowered for CUDA in it, a reset calls the kernel. On the
+    CPU `make_train` leaves every program as it was."""
     from jax._src.config import threefry_gpu_kernel_lowering as state
 
     import jaxnav
@@ -303,6 +303,12 @@ def test_programs_run_once_a_rollout_lower_with_the_threefry_kernel(tmp_path, mo
     config = tiny_config()
     trainer = ppo_train.make_train(config.ppo, train_module.make_run_env(config))
     assert not any(isinstance(p, xla.LoweredWith) for p in trainer.programs.values())
+    once = {"draws": Fake(), "start": Fake()}
+    for platform, devices in (("cpu", 1), ("gpu", 2), ("tpu", 1)):
+        assert xla.run_once(once, platform, devices) is once
+    for gpu in ("gpu", "cuda"):
+        wrapped = xla.run_once(once, gpu, 1)
+        assert set(wrapped) == set(once) and all(p.lower() is True for p in wrapped.values())
 
 
 @pytest.mark.parametrize("task, most", [("avoid", 6), ("goal", 8)])

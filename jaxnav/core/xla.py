@@ -22,7 +22,7 @@ On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `PPOConfig.threefry_kernel`). jaxnav's resets draw their numbers in blocks (`jaxnav.core.draws`),
 so few calls are left to inline. The programs that run once a rollout or once a run (the draws
 of new episodes, init) hold most of them, and XLA's fusion pass spends seconds on their unrolled
-rounds; on one GPU those programs lower with the kernel (`threefry_lowering`, `LoweredWith`):
+rounds; on one GPU those programs lower with the kernel (`run_once`, `threefry_lowering`):
 they run as fast either way, and the goal task's draws compiled in 10.4-11.4 s rather than
 15.9-16.6 s beside the other programs (docs/results.md).
 
@@ -34,6 +34,7 @@ that take one device's batch at a time (the goal flood's), which then run on eac
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import threading
 
@@ -117,6 +118,17 @@ class LoweredWith:
     def __call__(self, *args):
         with self.context():
             return self.jitted(*args)
+
+
+def run_once(programs: dict, platform: str, devices: int) -> dict:
+    """`programs` (a trainer's that run once a rollout or once a run), each lowered with
+    threefry as JAX's kernel (`LoweredWith`, `threefry_lowering`) on one GPU, where they compile
+    sooner and run as fast; as they are elsewhere (several devices: XLA cannot split the
+    kernel's call over the devices the robots are sharded over)."""
+    if platform not in GPUS or devices != 1:
+        return programs
+    kernel = functools.partial(threefry_lowering, True)
+    return {name: LoweredWith(program, kernel) for name, program in programs.items()}
 
 
 def lowering(program):

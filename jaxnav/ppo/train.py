@@ -10,7 +10,6 @@ everything in one jitted call.
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -22,14 +21,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.core.draws import hashed_permutation
 from jaxnav.core.types import ContinuousActions
-from jaxnav.core.xla import (
-    GPUS,
-    LoweredWith,
-    compiler_options,
-    deterministic,
-    threefry_kernel,
-    threefry_lowering,
-)
+from jaxnav.core.xla import compiler_options, deterministic, run_once, threefry_kernel
 from jaxnav.ppo import fused
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
@@ -480,11 +472,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
         if cfg.reset_ahead
         else {"init": pin(init, "init")}
     )
-    # These run once a rollout or once a run: on one GPU, threefry as JAX's kernel compiles them
-    # sooner and runs as fast (`jaxnav.core.xla`).
-    if platform in GPUS and len(devices_used) == 1:
-        kernel = functools.partial(threefry_lowering, True)
-        first = {name: LoweredWith(program, kernel) for name, program in first.items()}
+    first = run_once(first, platform, len(devices_used))  # on one GPU: threefry as the kernel
     # Both take the train state and reuse its buffers: the robots' and the learner's.
     steps = {
         "rollout": pin(_rollout, "rollout", donate_argnums=0),
