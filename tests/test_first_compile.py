@@ -264,8 +264,9 @@ def test_the_threefry_kernel_is_an_option_handed_to_the_lowering(monkeypatch):
 def test_programs_run_once_a_rollout_lower_with_the_threefry_kernel(tmp_path, monkeypatch):
     """`xla.LoweredWith` lowers its program, and `jaxnav.programs` exports it, in its context
     (`xla.run_once`, on one GPU only: `make_train`'s draws, start and init with the threefry
-    kernel), and only while it lowers; lowered for CUDA in it, a reset calls the kernel. On the
-    CPU `make_train` leaves every program as it was."""
+    kernel), and only while it lowers; lowered for CUDA in it, a reset calls the kernel; traced
+    inside another program, it gives its shapes. On the CPU `make_train` leaves every program as
+    it was."""
     from jax._src.config import threefry_gpu_kernel_lowering as state
 
     import jaxnav
@@ -301,8 +302,18 @@ def test_programs_run_once_a_rollout_lower_with_the_threefry_kernel(tmp_path, mo
         assert "threefry2x32_ffi" in _lowered_for_cuda(env)
     assert "threefry2x32_ffi" not in _lowered_for_cuda(env)
     config = tiny_config()
-    trainer = ppo_train.make_train(config.ppo, train_module.make_run_env(config))
+    env = train_module.make_run_env(config)
+    monkeypatch.setenv("XLA_FLAGS", "")  # each program jitted with jaxnav's options
+    trainer = ppo_train.make_train(config.ppo, env)
     assert not any(isinstance(p, xla.LoweredWith) for p in trainer.programs.values())
+    # Wrapped as on one GPU, with the program store off, a run still traces each program on the
+    # shapes of those before it (`Trainer.arguments`: `jax.eval_shape` of a jit with options).
+    once = xla.run_once({n: trainer.programs[n] for n in ("draws", "start")}, "gpu", 1)
+    key = jax.random.PRNGKey(0)
+    found, ts, _ = FIND(trainer.with_programs(**once), config, env, key, ahead=False)
+    assert isinstance(found.programs["draws"], xla.LoweredWith)
+    want = trainer.arguments("state", trainer.programs, key)
+    assert jax.tree_util.tree_leaves(ts) == jax.tree_util.tree_leaves(want)
     once = {"draws": Fake(), "start": Fake()}
     for platform, devices in (("cpu", 1), ("gpu", 2), ("tpu", 1)):
         assert xla.run_once(once, platform, devices) is once

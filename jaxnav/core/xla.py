@@ -117,6 +117,11 @@ class LoweredWith:
 
     def __call__(self, *args):
         with self.context():
+            if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args)):
+                # Inside another trace (`jax.eval_shape`, as `Trainer.arguments` calls it): the
+                # function itself, as `jaxnav.programs.Stored` does; XLA's options belong to a
+                # top-level jit only.
+                return self.jitted.__wrapped__(*args)
             return self.jitted(*args)
 
 
