@@ -251,8 +251,11 @@ def verify(
     size = saved.observation_size
     obs = rng.uniform(0.0, 1.25 * sensor.range_max, (n, size)).astype(np.float32)
     exported = exported_logits(out, fmt)(obs)
-    # What load_policy's greedy act reads (a continuous actor's means, without its log-stds).
-    reference = np.asarray(jax.jit(saved.logits)(obs))[:, : exported.shape[-1]]
+    # What load_policy's greedy act reads (a continuous actor's means, without its log-stds), in
+    # float32 throughout as the robot computes it: a GPU's matrix products round their inputs to
+    # TF32 by default, which put the logits 1e-2 off on an H200.
+    with jax.default_matmul_precision("highest"):
+        reference = np.asarray(jax.jit(saved.logits)(obs))[:, : exported.shape[-1]]
     diff = float(np.max(np.abs(exported - reference)))
     return diff, int(np.sum(exported.argmax(-1) == reference.argmax(-1)))
 

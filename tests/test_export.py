@@ -49,9 +49,10 @@ def make_run(root: Path, ppo, seed: int, task: AvoidConfig = AvoidConfig()):
     ts = TrainState(params, (), stats, (), jax.random.PRNGKey(0), jnp.int32(3))
     checkpoint.save(root, ts, RunConfig(ppo=ppo, task=task), {})
 
-    def reference_logits(obs):
+    def reference_logits(obs):  # in float32 throughout (a GPU's default rounds to TF32)
         x = normalize(stats, obs) if ppo.normalize_obs else obs
-        return np.asarray(network.apply(params, x)[0])
+        with jax.default_matmul_precision("highest"):
+            return np.asarray(network.apply(params, x)[0])
 
     return root, reference_logits
 
@@ -114,6 +115,29 @@ def test_numpy_export_matches_jax(run, tmp_path):
     assert policy.sensor.floor_margin == 0.02 and policy.sensor.camera_pitch == 0.0
     # The default task's speeds: 0.5 m/s forward, 1.5 rad/s turning in place.
     np.testing.assert_array_equal(policy.commands, [[0.5, 0.0], [0.0, 1.5], [0.0, -1.5]])
+
+
+def test_the_check_runs_jax_in_float32(one_run, tmp_path, monkeypatch):
+    """The export's check computes JAX's logits at float32's full precision, as the robot side
+    does, not at a GPU's default (TF32 inputs: logits 1e-2 off on an H200, every export refused)."""
+    from jaxnav import runs as runs_module
+
+    seen = []
+
+    def read_policy(path):  # whose logits say the precision they are traced at
+        saved = runs_module.read_policy(path)
+        logits = saved.logits
+
+        def traced(obs):
+            seen.append(jax.config.values["jax_default_matmul_precision"])
+            return logits(obs)
+
+        object.__setattr__(saved, "logits", traced)
+        return saved
+
+    monkeypatch.setattr(export, "read_policy", read_policy)
+    export.export(one_run[0], "numpy", tmp_path / "policy.npz")
+    assert seen and set(seen) == {"highest"}, seen
 
 
 def test_an_avoid_policy_with_stacked_frames_exports_its_history(tmp_path):
