@@ -14,6 +14,7 @@ lowered StableHLO, characters of the optimised HLO).
 Per task: in this process, each of a run's programs (`Trainer.programs`: the draws, start, rollout
 and learner, or init, the rollout and the learner with `--reset-ahead false`)
 lowered (tracing: `jax.stages` `.lower`) and compiled (`.compile`) on its own, in turn, with the
+process's CPU seconds in its compile (`compile_cpu_s`: XLA spreads one compile over cores), the
 size of its HLO text, and the sums over the chunk's (all but init and start); then `python -m
 jaxnav.train` run twice in subprocesses with one fresh cache folder (`XDG_CACHE_HOME`), each with a
 budget of one chunk: the seconds to its "compiled and ran the first chunk" line, to the start of
@@ -76,13 +77,14 @@ def split(env: str, preset: str) -> dict:
         tick = time.perf_counter()
         lowered = program.lower(*trainer.arguments(name, trainer.programs, key))
         lower = time.perf_counter() - tick
-        tick = time.perf_counter()
+        tick, cpu = time.perf_counter(), time.process_time()
         lowered.compile()
-        compiled = time.perf_counter() - tick
+        compiled, cpu = time.perf_counter() - tick, time.process_time() - cpu
         out["programs"][name] = {"lower_s": round(lower, 1), "compile_s": round(compiled, 1)}
+        out["programs"][name]["compile_cpu_s"] = round(cpu, 1)  # the process's cores' seconds
         out["programs"][name]["hlo_chars"] = len(lowered.as_text())
     chunk = [p for name, p in out["programs"].items() if name not in ("init", "start")]
-    for field in ("lower_s", "compile_s", "hlo_chars"):  # summed over the chunk's programs
+    for field in ("lower_s", "compile_s", "compile_cpu_s", "hlo_chars"):  # the chunk's, summed
         out[field] = round(sum(p[field] for p in chunk), 1)
     return out
 
@@ -491,14 +493,15 @@ def main() -> None:
         },
     )
     head = (
-        f"{'env':<6} {'lower':>6} {'compile':>8} {'HLO kchars':>10} {'cold 1st':>9} "
+        f"{'env':<6} {'lower':>6} {'compile':>8} {'cpu':>6} {'HLO kchars':>10} {'cold 1st':>9} "
         f"{'compiled':>9} {'warm 1st':>9} {'compiled':>9}"
     )
     print(head)
     for env, r in rows.items():
         cold, warm = r["cold"], r["warm"]
         print(
-            f"{env:<6} {r['lower_s']:>6} {r['compile_s']:>8} {r['hlo_chars'] // 1000:>10} "
+            f"{env:<6} {r['lower_s']:>6} {r['compile_s']:>8} {r['compile_cpu_s']:>6} "
+            f"{r['hlo_chars'] // 1000:>10} "
             f"{cold['first_chunk_s']!s:>9} {cold['compiled_s']!s:>9} "
             f"{warm['first_chunk_s']!s:>9} {warm['compiled_s']!s:>9}"
         )
