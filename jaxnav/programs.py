@@ -35,7 +35,7 @@ import numpy as np
 from jax import export
 
 from jaxnav.core.assets import scenes_dir
-from jaxnav.core.xla import compiler_options, lowering
+from jaxnav.core.xla import compiler_options, lowering, traced
 from jaxnav.io import files
 
 FORMAT = 1
@@ -152,10 +152,8 @@ class Stored:
 
     def __call__(self, *args):
         leaves = self._leaves(args)
-        # Inside another trace (`jax.eval_shape`), a call of the stored program, as a jitted
-        # function would be; XLA's options belong to a top-level jit only.
-        traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
-        out = (self.exported.call if traced else self._jitted)(*leaves)
+        # Inside another trace, a call of the stored program, as a jitted function would be.
+        out = (self.exported.call if traced(leaves) else self._jitted)(*leaves)
         return jax.tree_util.tree_unflatten(self.out_tree, out)
 
     def lower(self, *args):

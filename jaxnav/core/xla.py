@@ -104,6 +104,14 @@ def threefry_lowering(kernel: bool):
     return state(bool(kernel))
 
 
+def traced(args) -> bool:
+    """Whether a program is called with `args` inside another trace (`jax.eval_shape`, a jit
+    around it): some leaf is a tracer. There a jitted program with XLA's options cannot be
+    called, as they belong to a top-level jit only; its function is traced in place instead
+    (`LoweredWith`, `jaxnav.programs.Stored`)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+
+
 class LoweredWith:
     """A jitted program lowered (by `lower`, or by the call that compiles it) in `context()`,
     which `jaxnav.programs` also exports it in (`lowering`)."""
@@ -117,10 +125,7 @@ class LoweredWith:
 
     def __call__(self, *args):
         with self.context():
-            if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args)):
-                # Inside another trace (`jax.eval_shape`, as `Trainer.arguments` calls it): the
-                # function itself, as `jaxnav.programs.Stored` does; XLA's options belong to a
-                # top-level jit only.
+            if traced(args):  # e.g. `jax.eval_shape`, as `Trainer.arguments` calls it
                 return self.jitted.__wrapped__(*args)
             return self.jitted(*args)
 
