@@ -283,16 +283,19 @@ def _waited(waited, bold, stood, dt: float):
 
 
 def _apart(pos, new, radius, walking):
-    """[C] bool: the walkers whose step from `pos` to `new` [C, 2] comes within touch of another
-    walker's position before or after its own step ([C] `radius`; closer than they were, so
-    people who touch may still part). Those stand instead: whoever still moves keeps clear of
-    where each of the others stands or goes, so no one steps into another."""
+    """[C] bool: the walkers whose step from `pos` to `new` [C, 2] comes within touch ([C]
+    `radius`; closer than they were, so people who touch may still part) of where another
+    walker stands, or of where one in an earlier slot goes. Those stand instead. Whoever still
+    moves keeps clear of where everyone stands and of where the earlier ones go, and a later
+    one that stands instead stays where it stood: no one steps into another, and of two whose
+    steps clash one still moves (both standing, they would choose the same steps again)."""
     reach = radius[:, None] + radius[None, :]  # [C, C]
     now = jnp.linalg.norm(pos[:, None] - pos[None], axis=-1)  # [C, C]
+    earlier = jnp.tri(pos.shape[0], k=-1, dtype=bool)  # [C, C]: slot j before slot i
     near = jnp.zeros(pos.shape[0], bool)
-    for there in (pos, new):  # the others before their step, and after it
+    for there, heed in ((pos, walking[None, :]), (new, walking[None, :] & earlier)):
         gap = jnp.linalg.norm(new[:, None] - there[None], axis=-1)  # [C, C]
-        near |= ((gap < reach) & (gap < now) & walking[None, :]).any(-1)
+        near |= ((gap < reach) & (gap < now) & heed).any(-1)
     return near
 
 
