@@ -486,9 +486,13 @@ def test_fused_gradient_matches_jax_grad(case):
         jax.random.normal(k[7], (rows,)),
         jax.random.normal(k[8], (rows,)),
     )
-    want, want_m = loss_grad(cfg, net, dist)(params, batch)  # the trainer's jax.grad of ppo_loss
+    # Both in float32 throughout (on a GPU JAX's default rounds the products' inputs to TF32).
+    float32 = jax.default_matmul_precision("highest")
+    with float32:
+        want, want_m = loss_grad(cfg, net, dist)(params, batch)  # the trainer's jax.grad
     grad = fused.make(cfg, net, dist, jax.devices(), (8, 8 + c), interpret=True)
-    got, got_m = jax.jit(grad)(params, batch)
+    with float32:
+        got, got_m = jax.jit(grad)(params, batch)
     assert 0.2 < float(want_m["clip_fraction"]) < 0.8  # both sides of the clip are exercised
     assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(want)
     for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
@@ -502,7 +506,8 @@ def test_fused_gradient_matches_jax_grad(case):
     if c:
         split = functools.partial(grad.func, **grad.keywords, axis=("envs", 2))
         halves = jax.tree_util.tree_map(lambda x: x.reshape(2, rows // 2, *x.shape[1:]), batch)
-        got2, got2_m = jax.jit(jax.vmap(split, (None, 0), axis_name="envs"))(params, halves)
+        with float32:
+            got2, got2_m = jax.jit(jax.vmap(split, (None, 0), axis_name="envs"))(params, halves)
         leaves = zip(*map(jax.tree_util.tree_leaves, (got2, want)), strict=True)
         for g, w in leaves:
             np.testing.assert_allclose(g[0], g[1])  # both devices hold the whole gradient
@@ -510,7 +515,7 @@ def test_fused_gradient_matches_jax_grad(case):
         for name, w in want_m.items():
             np.testing.assert_allclose(got2_m[name][0], w, rtol=2e-5, atol=1e-6)
     # Where it does not apply, the trainer keeps jax.grad: not a GPU, or a layer over MAX_WIDTH.
-    assert fused.make(cfg, net, dist, jax.devices(), (8, 8 + c)) is None
+    assert fused.make(cfg, net, dist, jax.devices("cpu"), (8, 8 + c)) is None
     assert fused.make(cfg, net, dist, jax.devices(), (200, 200), interpret=True) is None
 
 

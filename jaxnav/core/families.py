@@ -324,7 +324,8 @@ def furniture(key, nb: int, nc: int, radius: float) -> SceneParams:
     unit = jnp.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])  # [4, 2]
     local = unit[None] * (table[:, None] + 0.35)  # [c, 4, 2]
     rot = jnp.stack([jnp.cos(yaw), -jnp.sin(yaw), jnp.sin(yaw), jnp.cos(yaw)], -1).reshape(c, 2, 2)
-    chairs = centre[:, None] + jnp.einsum("cij,ckj->cki", rot, local)  # [c, 4, 2]
+    turned = jnp.einsum("cij,ckj->cki", rot, local, precision="highest")  # float32 on a GPU too
+    chairs = centre[:, None] + turned  # [c, 4, 2]
     chair_on = d.bernoulli(0.7, (c, 4))
     used = jnp.arange(c) < count  # [c]
     boxes = Boxes(

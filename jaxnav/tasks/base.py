@@ -335,7 +335,12 @@ class NavTask:
     def drive(self, params: SceneParams, body: Body, command: jax.Array):
         """Holds `command` [2] (forward m/s, yaw rad/s, as `actuate` passes it) for one period of
         the scene's physics steps from `body`. Returns the new Body and whether the bumper touched
-        anything after any of them."""
+        anything after any of them. MuJoCo's matrix products run in float32 on every platform (on
+        a GPU JAX's default rounds their inputs to TF32, and the step costs the same either way)."""
+        with jax.default_matmul_precision("highest"):
+            return self._drive(params, body, command)
+
+    def _drive(self, params: SceneParams, body: Body, command: jax.Array):
         m = self.scene.physics_model(params)
         control = self._wheel_speeds if self.scene.wheeled else self._base_forces
 
