@@ -182,6 +182,29 @@ def test_people_meeting_from_every_side_never_stand_for_good():
     assert np.linalg.norm(vel, axis=-1).max() <= 1.4 + 1e-5
 
 
+def test_of_two_walkers_whose_steps_clash_the_earlier_slot_steps():
+    """`_apart`: a step that comes within touch of where another stands is never taken; of two
+    steps that clash, the walker in the later slot stands and the earlier one steps, so the
+    next step does not start from the same standstill."""
+    pos = jnp.array([[0.0, 0.0], [0.8, 0.0], [3.0, 0.0], [0.0, 2.0]])  # [C, 2]
+    new = jnp.array([[0.1, 0.0], [0.65, 0.0], [3.2, 0.0], [0.0, 2.1]])  # 0 and 1 clash
+    radius, walking = jnp.full(4, 0.3), jnp.array([True, True, True, True])
+    np.testing.assert_array_equal(crowd._apart(pos, new, radius, walking), [0, 1, 0, 0])
+    # Slot order decides, not position: swapped slots, the other one steps.
+    order = jnp.array([1, 0, 2, 3])
+    np.testing.assert_array_equal(
+        crowd._apart(pos[order], new[order], radius, walking), [0, 1, 0, 0]
+    )
+    # Stepping to within touch of where another stands now: stopped, the first slot too.
+    np.testing.assert_array_equal(
+        crowd._apart(pos, new.at[0].set([2.5, 0.0]), radius, walking), [1, 0, 0, 0]
+    )
+    # Whoever still steps keeps clear of everyone's new place.
+    moved = jnp.where(crowd._apart(pos, new, radius, walking)[:, None], pos, new)
+    gap = jnp.linalg.norm(moved[:, None] - moved[None], axis=-1) + 10 * jnp.eye(4)
+    assert float(gap.min()) >= 0.6
+
+
 def test_walker_motion_parsing_round_trip_and_errors():
     room = {
         "room": {"size": [6, 4]},
