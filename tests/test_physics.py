@@ -150,9 +150,9 @@ def test_the_simulation_s_matrix_products_are_float32():
     the same wheeled physics then differed between two programs by 4e-4 within 30 steps. Every
     product of the env's step and reset asks for the highest precision."""
     env = jaxnav.make_env("goal")  # its reset draws the room families, tables and chairs too
-    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    reset, state = jax.make_jaxpr(env.reset, return_shape=True)(jax.random.PRNGKey(0))
     highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
-    step = _products(jax.make_jaxpr(env.step)(state, jnp.int32(0)).jaxpr)
-    reset = _products(jax.make_jaxpr(env.reset)(jax.random.PRNGKey(0)).jaxpr)
+    step = _products(jax.make_jaxpr(env.step)(state, jnp.int32(0)).jaxpr)  # traced, not compiled
+    reset = _products(reset.jaxpr)
     assert len(step) > 10 and reset  # MuJoCo's step has products, and the tables' chairs
     assert set(step + reset) == {highest}
