@@ -162,7 +162,7 @@ def test_people_meeting_from_every_side_never_stand_for_good():
     # stood 5 s or more in 60 s, one for 39 s. Without the slots' order in `_apart`, two bold
     # people whose steps clash both stand, choose the same steps again, and stand until
     # something else moves: 3 people of these rooms stood 1.9-2.6 s (on a GPU's rounding, one
-    # 2.0 s).
+    # of the first 256 rooms' 2.0 s).
     layouts = _crossings(1024, seed=0)
     pos, vel = (np.asarray(x) for x in _walk(_params(layouts), None, steps=600))  # [T, K, C, 2]
     n = max(len(lay.cylinders) for lay in layouts)

@@ -19,7 +19,8 @@ walker that has stood for the other people (not for the robot) for PATIENCE s tu
 BOLD s: it heeds the others only as far as not touching them, and stands no more where it can
 move, so it slips past them or steps aside and the meeting dissolves. (The robot is heeded as
 before.) And whatever the candidates' costs, a walker whose step would take it into another
-person, where that one stands or goes, stands instead (`_apart`).
+person, where that one stands or where one in an earlier slot goes, stands instead (`_apart`):
+of two whose steps clash one still moves, so they do not stand and pick the same steps again.
 
 The state is traced data (`Walkers`, in `SceneParams.motion.walkers`; None where nobody walks),
 so new walkers never recompile. `add_walkers` draws the sampler's walkers at the reset
