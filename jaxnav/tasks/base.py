@@ -337,10 +337,6 @@ class NavTask:
         the scene's physics steps from `body`. Returns the new Body and whether the bumper touched
         anything after any of them. MuJoCo's matrix products run in float32 on every platform (on
         a GPU JAX's default rounds their inputs to TF32, and the step costs the same either way)."""
-        with jax.default_matmul_precision("highest"):
-            return self._drive(params, body, command)
-
-    def _drive(self, params: SceneParams, body: Body, command: jax.Array):
         m = self.scene.physics_model(params)
         control = self._wheel_speeds if self.scene.wheeled else self._base_forces
 
@@ -352,7 +348,8 @@ class NavTask:
         # The scan carries Body alone, every leaf batched from the start, and the touches are its
         # outputs: under vmap a carry that starts unbatched (mjx.Data's other fields, from
         # `_data0`) and ends batched makes the scan batch its body twice.
-        body, touched = jax.lax.scan(substep, body, None, self.scene.substeps)
+        with jax.default_matmul_precision("highest"):
+            body, touched = jax.lax.scan(substep, body, None, self.scene.substeps)
         return body, touched.any()
 
     def _base_forces(self, params: SceneParams, d: mjx.Data, command: jax.Array) -> jax.Array:
