@@ -191,7 +191,6 @@ def test_programs_compile_with_jaxnav_options(monkeypatch):
     XLA_FLAGS, keep XLA's defaults."""
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     monkeypatch.setattr(xla, "_deterministic", False)
-    monkeypatch.setattr(xla, "_fixed_learner", False)
     untuned = {xla.AUTOTUNE: 0}
     assert xla.compiler_options("cpu") == {xla.OPTION: xla.CPU_OPT_LEVEL}
     assert xla.compiler_options("cpu", "rollout") == {xla.OPTION: xla.CPU_OPT_LEVEL}
@@ -211,44 +210,6 @@ def test_programs_compile_with_jaxnav_options(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", f"--{xla.DETERMINISTIC}=false")
     assert xla.compiler_options("gpu") is None
     assert xla.compiler_options("gpu", "init") == untuned
-
-
-class _Device:
-    """A device as `core.xla.tileable` reads it."""
-
-    def __init__(self, capability=None):
-        if capability is not None:
-            self.compute_capability = capability
-
-
-def test_the_goal_learner_on_one_gpu_takes_one_tiling(monkeypatch):
-    """On one CUDA GPU of compute capability 8.0 or later, `jax.grad`'s learner (the goal task's:
-    no fused kernel) compiles without XLA's timing of its kernels, with `LEARNER_TILING` for its
-    matrix products, and its network sums each weight gradient over blocks of rows;
-    `learner_autotune`, other devices and a user's own XLA_FLAGS keep XLA's timing."""
-    monkeypatch.delenv("XLA_FLAGS", raising=False)
-    monkeypatch.setattr(xla, "_deterministic", False)
-    monkeypatch.setattr(xla, "_fixed_learner", False)
-    assert xla.tileable(_Device("9.0")) and xla.tileable(_Device("8.0"))
-    assert not any(map(xla.tileable, (_Device("7.5"), _Device(), _Device("gfx90a"))))
-    assert not xla.tileable(jax.devices("cpu")[0])
-    config = train_module.build_config("cpu", env="goal")
-    env = train_module.make_run_env(config)
-    assert ppo_train.make_train(config.ppo, env).network.row_blocks == 1  # this CPU
-    monkeypatch.setattr(ppo_train, "tileable", lambda device: True)  # as on such a GPU
-    trainer = ppo_train.make_train(config.ppo, env)
-    assert trainer.network.row_blocks == ppo_train.ROW_BLOCKS
-    fixed = {xla.AUTOTUNE: 0, xla.TILING: xla.LEARNER_TILING}
-    assert xla.compiler_options("gpu", "learn") == fixed
-    assert xla.compiler_options("gpu", "rollout") is None
-    assert xla.compiler_options("cpu", "learn") == {xla.OPTION: xla.CPU_OPT_LEVEL}
-    for flag in (f"--{xla.AUTOTUNE}=4", f"--{xla.TILING}=block_m:16"):
-        monkeypatch.setenv("XLA_FLAGS", flag)
-        assert xla.compiler_options("gpu", "learn") is None
-    monkeypatch.delenv("XLA_FLAGS")
-    timed = dataclasses.replace(config.ppo, learner_autotune=True)
-    assert ppo_train.make_train(timed, env).network.row_blocks == 1
-    assert xla.compiler_options("gpu", "learn") is None
 
 
 def test_the_trainer_hands_its_options_to_xla(monkeypatch):

@@ -234,40 +234,6 @@ def test_network_shapes_and_separate_trunks():
     assert float(jnp.max(jnp.abs(logits))) < 0.1
 
 
-@pytest.mark.parametrize("rows", [(2048,), (16, 64), (300,)])
-def test_blocked_layers_are_flax_dense_layers(rows):
-    """`row_blocks` (a GPU's learner without timed kernels) changes how the weight gradients are
-    summed, nothing else: the same parameters from the same key, the same outputs bit for bit,
-    the gradient to float32 rounding against a float64 one, whichever blocks the rows make."""
-    from jaxnav.ppo.networks import row_blocks
-
-    assert [row_blocks(n, 64) for n in (2048, 1024, 300, 16384, 524288)] == [8, 4, 1, 64, 64]
-    assert row_blocks(2048, 4) == 4 and row_blocks(1000, 64) == 2
-    plain = ActorCritic(3, hidden=(32, 32), critic_output="linear", critic_inputs=4)
-    blocked = plain.clone(row_blocks=64)
-    k = jax.random.split(jax.random.key(0), 3)
-    obs, extra = jax.random.normal(k[0], (*rows, 12)), jax.random.normal(k[1], (*rows, 4))
-    params = plain.init(k[2], obs, extra)
-    assert jax.tree.all(jax.tree.map(jnp.array_equal, params, blocked.init(k[2], obs, extra)))
-    outputs = plain.apply(params, obs, extra), blocked.apply(params, obs, extra)
-    for a, b in zip(*outputs, strict=True):
-        assert jnp.array_equal(a, b)
-
-    def loss(net, p, o, e):
-        logits, value = net.apply(p, o, e)
-        return jnp.sum(jnp.sin(logits)) + jnp.sum(value**2)
-
-    grad = jax.grad(functools.partial(loss, blocked))
-    assert "custom_vjp" in str(jax.make_jaxpr(grad)(params, obs, extra))  # the blocked layers
-    got = grad(params, obs, extra)
-    with jax.enable_x64(True):
-        wide = jax.tree.map(lambda x: x.astype(jnp.float64), (params, obs, extra))
-        want = jax.tree.map(np.asarray, jax.grad(functools.partial(loss, plain))(*wide))
-    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
-        assert w.dtype == np.float64
-        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-5 * np.abs(w).max())
-
-
 def test_privileged_critic_inputs_reach_the_value_only():
     """With critic inputs C the critic's first layer takes D + C; the actor's logits do not
     depend on them (acting may leave them out), the value does."""

@@ -26,15 +26,6 @@ rounds; on one GPU those programs lower with the kernel (`run_once`, `threefry_l
 they run as fast either way, and the goal task's draws compiled in 10.4-11.4 s rather than
 15.9-16.6 s beside the other programs (docs/results.md).
 
-On one GPU the goal task's learner (`jax.grad`'s, where the fused kernel does not apply) compiles
-without that timing too (`fixed_learner`): its matrix products take one tiling,
-`LEARNER_TILING`, and its weight gradients sum their products over blocks of rows
-(`jaxnav.ppo.networks.BlockedDense`), which XLA's untimed tiling would leave to a few programs
-over hundreds of thousands of rows. Its timing slowed the rollout's compile beside it by 3-6 s;
-PPO trains 10 % slower than with timed kernels (`PPOConfig.learner_autotune` restores them;
-docs/results.md). A user's own `--xla_gpu_autotune_level` or `--xla_gpu_override_gemm_autotuner`
-is kept.
-
 `pow2` rounds a size up as a Pallas (Triton) block's sides must be, for jaxnav's GPU kernels.
 `spanned` names the devices a batch being traced is split between (`on_devices`), for the kernels
 that take one device's batch at a time (the goal flood's), which then run on each device's part.
@@ -54,15 +45,8 @@ OPTION = "xla_backend_optimization_level"
 DETERMINISTIC = "xla_gpu_deterministic_ops"  # XLA's option for the same bits every run
 AUTOTUNE = "xla_gpu_autotune_level"  # XLA's option: 0 times no kernels (its default: 4)
 UNTUNED = ("draws", "start", "init")  # run once a rollout or a run: not worth timing (the module)
-TILING = "xla_gpu_override_gemm_autotuner"  # XLA's option: one tiling for every matrix product
-# The fastest of five tilings for the goal learner at 65,536 robots on one H200 (PPO 16.3 M
-# env-steps/s; 64 x 64 x 32 tiles 11.5 M, XLA's untimed choice 8.4 M; docs/results.md).
-LEARNER_TILING = (
-    "block_m: 32 block_n: 64 block_k: 64 split_k: 1 num_stages: 3 num_warps: 4 num_ctas: 1"
-)
 GPUS = ("gpu", "cuda", "rocm")  # the names a GPU backend or platform goes by
 _deterministic = False  # set by `deterministic`
-_fixed_learner = False  # set by `fixed_learner`
 _tracing = threading.local()  # `.devices`: set by `on_devices` in the thread that traces
 
 
@@ -76,9 +60,8 @@ def compiler_options(
 ) -> dict[str, int | bool] | None:
     """The options for a program on `backend` (default: JAX's default backend), or None for
     XLA's defaults: on the CPU `CPU_OPT_LEVEL`; on a GPU `DETERMINISTIC` where `deterministic`
-    turned it on, no autotuning (`AUTOTUNE` 0) for a trainer's program named in `UNTUNED`
-    (`program`: its name in `ppo.train.Trainer.programs`), and for the learner where
-    `fixed_learner` turned it on, with `LEARNER_TILING`; each unless `XLA_FLAGS` sets it."""
+    turned it on, and no autotuning (`AUTOTUNE` 0) for a trainer's program named in `UNTUNED`
+    (`program`: its name in `ppo.train.Trainer.programs`); each unless `XLA_FLAGS` sets it."""
     backend, flags = backend or jax.default_backend(), os.environ.get("XLA_FLAGS", "")
     options = {}
     if backend == "cpu" and OPTION not in flags:
@@ -87,27 +70,7 @@ def compiler_options(
         options[DETERMINISTIC] = True
     if backend in GPUS and program in UNTUNED and AUTOTUNE not in flags:
         options[AUTOTUNE] = 0
-    untimed = AUTOTUNE not in flags and TILING not in flags
-    if backend in GPUS and program == "learn" and _fixed_learner and untimed:
-        options.update({AUTOTUNE: 0, TILING: LEARNER_TILING})
     return options or None
-
-
-def tileable(device) -> bool:
-    """Whether `LEARNER_TILING` suits `device`: a CUDA GPU of compute capability 8.0 or later,
-    where XLA's matrix products are Triton's."""
-    try:
-        return float(getattr(device, "compute_capability", 0)) >= 8.0
-    except (TypeError, ValueError):
-        return False
-
-
-def fixed_learner(on: bool) -> None:
-    """The learner (`program` "learn") compiled from now on in this process on a GPU without
-    XLA's timing of its kernels, with `LEARNER_TILING` for its matrix products (`on`), or as
-    XLA's defaults have it (set by `make_train`: see the module)."""
-    global _fixed_learner
-    _fixed_learner = bool(on)
 
 
 def deterministic(on: bool) -> None:

@@ -94,12 +94,6 @@ class PPOConfig:
     loss, the gradient to the GPU's TF32 rounding) where it applies: a categorical actor whose
     inputs and layers are at most 64 wide, each GPU's rows of a minibatch at least 16,384 and a
     multiple of 64; False: XLA's kernels of `jax.grad`."""
-    learner_autotune: bool = False
-    """On one GPU, have XLA time candidate kernels for the learner's matrix products, as it does
-    for the rollout's, where the fused kernel does not apply (the goal task); off, they take one
-    tiling and the weight gradients sum blocks of rows (`jaxnav.core.xla.fixed_learner`): the
-    learner compiles without the timing that slowed the rollout's compile beside it, and trains
-    somewhat slower (docs/results.md, "What was decided and why")."""
     groups: int = 0
     """Independent blocks the robots are split into (0: one per device). Each block draws its own
     new episodes (`jaxnav.wrappers.AutoReset`) and each minibatch takes the same share of every

@@ -4,15 +4,13 @@ The paper's networks are MLPs with two dense layers of 64 units and LeakyReLU. T
 ends in 3 units with softmax (forward / left / right); the critic ends in one unit with tanh.
 """
 
-import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from jax import lax
 
 # The paper does not give LeakyReLU's negative slope; 0.01 is the common default
 # (PyTorch, flax).
@@ -23,87 +21,23 @@ CRITIC_OUTPUTS = ("tanh", "linear")
 INIT_LOG_STD = -0.5
 
 
-BLOCK_ROWS = 256  # the fewest rows of a block of `blocked_dense`'s weight gradient
-
-
-def row_blocks(rows: int, most: int) -> int:
-    """The blocks a weight gradient over `rows` rows sums: the most, a power of two up to `most`,
-    that split `rows` evenly into blocks of at least BLOCK_ROWS rows (1: one product)."""
-    blocks = 1
-    while blocks * 2 <= most and rows % (blocks * 2) == 0 and rows // (blocks * 2) >= BLOCK_ROWS:
-        blocks *= 2
-    return blocks
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
-def blocked_dense(x: jax.Array, kernel: jax.Array, bias: jax.Array, blocks: int) -> jax.Array:
-    """x [..., I] @ kernel [I, O] + bias [O], as flax's Dense computes it; its kernel gradient
-    sums the products of up to `blocks` blocks of rows (`row_blocks`), each its own batch of one
-    batched product, where one product over every row would run as few programs as the kernel
-    has tiles."""
-    return jnp.dot(x, kernel) + bias
-
-
-def _blocked_forward(x, kernel, bias, blocks):
-    return blocked_dense(x, kernel, bias, blocks), (x, kernel)
-
-
-def _blocked_backward(blocks, saved, grad):
-    x, kernel = saved
-    rows_x, rows_g = x.reshape(-1, x.shape[-1]), grad.reshape(-1, grad.shape[-1])  # [R, I], [R, O]
-    s = row_blocks(rows_x.shape[0], blocks)
-    parts = lax.dot_general(  # [S, I, O]: each block's rows
-        rows_x.reshape(s, -1, x.shape[-1]),
-        rows_g.reshape(s, -1, grad.shape[-1]),
-        (((1,), (1,)), ((0,), (0,))),
-    )
-    return jnp.dot(grad, kernel.T), parts.sum(0), rows_g.sum(0)
-
-
-blocked_dense.defvjp(_blocked_forward, _blocked_backward)
-
-
-class BlockedDense(nn.Module):
-    """flax's Dense (the same parameters, initialised alike) computed by `blocked_dense`."""
-
-    features: int
-    blocks: int  # the most blocks of rows its kernel gradient sums
-    kernel_init: Callable = nn.initializers.lecun_normal()
-    bias_init: Callable = nn.initializers.zeros
-
-    @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
-        """x [..., I] -> [..., features]."""
-        kernel = self.param("kernel", self.kernel_init, (x.shape[-1], self.features))
-        bias = self.param("bias", self.bias_init, (self.features,))
-        return blocked_dense(x, kernel, bias, self.blocks)
-
-
 class MLP(nn.Module):
     """Dense + LeakyReLU layers, then a linear output layer of `out_size` units."""
 
     hidden: Sequence[int]
     out_size: int
     out_scale: float  # orthogonal-init gain of the output layer
-    row_blocks: int = 1  # > 1: `BlockedDense` layers of at most so many blocks (`ActorCritic`)
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         """Maps x [..., D] to [..., out_size]."""
-        for i, width in enumerate(self.hidden):
+        ortho = jax.nn.initializers.orthogonal
+        zeros = jax.nn.initializers.zeros
+        for width in self.hidden:
             # sqrt(2) gain keeps activations' scale roughly constant through ReLU-like layers.
-            x = self._dense(width, np.sqrt(2.0), i)(x)
+            x = nn.Dense(width, kernel_init=ortho(np.sqrt(2.0)), bias_init=zeros)(x)
             x = nn.leaky_relu(x, negative_slope=LEAKY_SLOPE)
-        return self._dense(self.out_size, self.out_scale, len(self.hidden))(x)
-
-    def _dense(self, width: int, gain: float, index: int) -> nn.Module:
-        """Layer `index` (named as flax names it): `width` units, orthogonal init of `gain`."""
-        init = dict(
-            kernel_init=jax.nn.initializers.orthogonal(gain), bias_init=nn.initializers.zeros
-        )
-        if self.row_blocks > 1:
-            return BlockedDense(width, self.row_blocks, **init, name=f"Dense_{index}")
-        return nn.Dense(width, **init, name=f"Dense_{index}")
+        return nn.Dense(self.out_size, kernel_init=ortho(self.out_scale), bias_init=zeros)(x)
 
 
 class ActorCritic(nn.Module):
@@ -136,7 +70,6 @@ class ActorCritic(nn.Module):
     value_scale: float = 1.0  # 1.0 is the paper's (plain tanh)
     continuous: bool = False  # A Gaussian's means and log-stds instead of A logits
     critic_inputs: int = 0  # C, inputs only the critic sees (a privileged critic)
-    row_blocks: int = 1  # > 1: layers whose weight gradients sum blocks of rows (`BlockedDense`)
 
     @nn.compact
     def __call__(self, obs: jax.Array, critic_obs: jax.Array | None = None):
@@ -146,8 +79,7 @@ class ActorCritic(nn.Module):
                 f"critic_output must be one of {CRITIC_OUTPUTS}, got {self.critic_output!r}"
             )
         # Small policy-head gain: near-uniform initial policy, so early exploration is broad.
-        blocks = self.row_blocks
-        logits = MLP(self.hidden, self.action_size, 0.01, blocks, name="actor")(obs)  # [..., A]
+        logits = MLP(self.hidden, self.action_size, 0.01, name="actor")(obs)  # [..., A]
         if self.continuous:
             init = jax.nn.initializers.constant(INIT_LOG_STD)
             log_std = self.param("log_std", init, (self.action_size,))  # [A]
@@ -156,7 +88,7 @@ class ActorCritic(nn.Module):
             if critic_obs is None:
                 critic_obs = jnp.zeros((*obs.shape[:-1], self.critic_inputs), obs.dtype)
             obs = jnp.concatenate([obs, critic_obs], -1)  # [..., D + C]
-        value = MLP(self.hidden, 1, 1.0, blocks, name="critic")(obs)[..., 0]  # [...]
+        value = MLP(self.hidden, 1, 1.0, name="critic")(obs)[..., 0]  # [...]
         if self.critic_output == "tanh":
             value = self.value_scale * jnp.tanh(value)
         return logits, value

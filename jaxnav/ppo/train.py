@@ -21,24 +21,13 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.core.draws import hashed_permutation
 from jaxnav.core.types import ContinuousActions
-from jaxnav.core.xla import (
-    compiler_options,
-    deterministic,
-    fixed_learner,
-    run_once,
-    threefry_kernel,
-    tileable,
-)
+from jaxnav.core.xla import compiler_options, deterministic, run_once, threefry_kernel
 from jaxnav.ppo import fused
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
 from jaxnav.ppo.losses import Batch, compute_gae, ppo_loss
 from jaxnav.ppo.networks import ActorCritic, RunningStats, init_stats, normalize, update_stats
 from jaxnav.wrappers import EPISODE, RESET_KEY, AutoReset, EpisodeStats, with_reset_keys
-
-# The most blocks of rows the weight gradients of a learner without timed kernels sum
-# (`networks.BlockedDense`): 64 and 512 trained the goal task alike on one H200.
-ROW_BLOCKS = 64
 
 
 @struct.dataclass
@@ -119,13 +108,10 @@ def critic_inputs(cfg: PPOConfig, env) -> int:
     return size if cfg.privileged_critic else 0
 
 
-def make_network(
-    cfg: PPOConfig, action_spec, critic_inputs: int = 0, row_blocks: int = 1
-) -> ActorCritic:
+def make_network(cfg: PPOConfig, action_spec, critic_inputs: int = 0) -> ActorCritic:
     """The actor-critic for an env's `action_spec`: logits for a table of commands, a Gaussian's
     means and log-stds for continuous commands (`jaxnav.ppo.distributions`). `critic_inputs`: C,
-    what only the critic sees (`critic_inputs`: 0 unless `cfg.privileged_critic`); `row_blocks`:
-    see `ActorCritic` (the same function and parameters either way)."""
+    what only the critic sees (`critic_inputs`: 0 unless `cfg.privileged_critic`)."""
     continuous = isinstance(action_spec, ContinuousActions)
     size = action_spec.size if continuous else make_distribution(action_spec).out_size
     return ActorCritic(
@@ -134,7 +120,6 @@ def make_network(
         critic_output=cfg.critic_output,
         continuous=continuous,
         critic_inputs=critic_inputs,
-        row_blocks=row_blocks,
     )
 
 
@@ -220,12 +205,6 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
     devices_used = list(devices or jax.devices())
     inputs = (env.observation_size, env.observation_size + extra)
     fused_grad = fused.make(cfg, network, dist, devices_used, inputs)  # None: jax.grad's
-    # jax.grad's learner on one GPU: no timed kernels (`core.xla.fixed_learner`).
-    fixed = not (fused_grad or cfg.learner_autotune) and len(devices_used) == 1
-    fixed = fixed and tileable(devices_used[0])
-    fixed_learner(fixed)
-    if fixed:
-        network = make_network(cfg, env.action_spec, extra, ROW_BLOCKS)
     optimizer = make_optimizer(cfg)
     shard = shard_envs(cfg.num_envs, devices)
     g = block_count(cfg, devices)
