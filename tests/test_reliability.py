@@ -332,9 +332,10 @@ def test_an_interrupt_ends_the_children_a_library_started():
 @pytest.mark.slow
 def test_sigint_while_compiling_exits_at_once_and_removes_the_folder(tmp_path):
     """SIGINT while the first chunk compiles: the process ends at once and its new folder goes.
-    Slow: a training process, signalled mid-compile (the process boundary is what is tested)."""
+    Slow: a training process, signalled mid-compile (the process boundary is what is tested);
+    without the compilation cache, whose programs other tests' tiny runs may have kept."""
     out = tmp_path / "run"
-    proc = _launch(out)
+    proc = _launch(out, "--no-compile-cache")
     for line in proc.stdout:
         if line.startswith("jaxnav: compiling"):
             break
