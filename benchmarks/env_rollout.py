@@ -23,7 +23,10 @@ and `in_place` (the auto-reset writing the finished rows only).
 drive and camera add (`analytic_step`), the same batch of rooms and spawns.
 
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
-and prints env-steps/s per variant and batch size.
+and prints env-steps/s per variant and batch size. `--trace DIR` then runs each timed rollout once
+more under JAX's profiler (into DIR/VARIANT-ROBOTS) and adds to its row the ops a step (on a GPU
+its kernels) and those that took the most time (`throughput.trace_summary`); on a GPU, set
+XLA_FLAGS to `--xla_gpu_enable_command_buffer=` so that each kernel runs, and is named, on its own.
 
     python benchmarks/env_rollout.py --num-envs 65536 --steps 64 --repeats 2 --variants rows1,analytic
 """
@@ -37,6 +40,7 @@ import time
 import jax
 import jax.numpy as jnp
 from report import run_info, write_json
+from throughput import op_events, trace_summary
 
 import jaxnav
 from jaxnav.core.geometry import signed_distance
@@ -93,7 +97,9 @@ def make(variant: str, num_envs: int):
     return AutoReset(env, pool=ppo.reset_pool, in_place=ppo.reset_in_place), ahead
 
 
-def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -> dict:
+def measure(
+    num_envs: int, steps: int, repeats: int, variant: str = "default", trace: str | None = None
+) -> dict:
     env, ahead = make(variant, num_envs)
     reset = jax.jit(env.reset)
     window = WINDOW if ahead else steps  # `main` checked that WINDOW divides steps
@@ -123,7 +129,7 @@ def measure(num_envs: int, steps: int, repeats: int, variant: str = "default") -
         return state, total
 
     state = jax.block_until_ready(reset(jax.random.split(jax.random.PRNGKey(0), num_envs)))
-    return _timed(rollout, state, num_envs, steps, repeats, variant)
+    return _timed(rollout, state, num_envs, steps, repeats, variant, trace)
 
 
 def analytic_step(env, state, action):
@@ -149,7 +155,7 @@ def analytic_step(env, state, action):
     return (qpos, jnp.where(done, 0, steps + 1), sectors, params), reward
 
 
-def measure_analytic(num_envs: int, steps: int, repeats: int) -> dict:
+def measure_analytic(num_envs: int, steps: int, repeats: int, trace: str | None = None) -> dict:
     """`analytic`: `analytic_step` in the rooms and spawns of the `rows1` env's resets."""
     env = jaxnav.make_env("avoid", **VARIANTS["rows1"])
     first = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), num_envs))
@@ -168,12 +174,12 @@ def measure_analytic(num_envs: int, steps: int, repeats: int) -> dict:
 
         return jax.lax.scan(body, (state, jnp.float32(0)), jax.random.split(key, steps))[0]
 
-    return _timed(rollout, state, num_envs, steps, repeats, "analytic")
+    return _timed(rollout, state, num_envs, steps, repeats, "analytic", trace)
 
 
-def _timed(rollout, state, num_envs, steps, repeats, variant) -> dict:
+def _timed(rollout, state, num_envs, steps, repeats, variant, trace=None) -> dict:
     """Compiles and runs `rollout` (state, key) -> (state, total) once, then times `repeats`
-    runs: the best one's env-steps/s."""
+    runs: the best one's env-steps/s; with `trace` (a folder), one more run profiled."""
     tick = time.perf_counter()
     state, _ = jax.block_until_ready(rollout(state, jax.random.PRNGKey(1)))
     compile_s = time.perf_counter() - tick
@@ -182,7 +188,7 @@ def _timed(rollout, state, num_envs, steps, repeats, variant) -> dict:
         tick = time.perf_counter()
         state, _ = jax.block_until_ready(rollout(state, jax.random.PRNGKey(2 + i)))
         best = min(best, time.perf_counter() - tick)
-    return {
+    row = {
         "num_envs": num_envs,
         "variant": variant,
         "steps": steps,
@@ -190,6 +196,13 @@ def _timed(rollout, state, num_envs, steps, repeats, variant) -> dict:
         "seconds": round(best, 4),
         "env_steps_per_s": round(num_envs * steps / best),
     }
+    if trace:
+        folder = f"{trace}/{variant}-{num_envs}"
+        with jax.profiler.trace(folder):
+            jax.block_until_ready(rollout(state, jax.random.PRNGKey(2 + repeats)))
+        row["ops_per_step"] = round(len(op_events(folder)) / steps, 1)
+        row["trace_top"] = trace_summary(folder)
+    return row
 
 
 def main() -> None:
@@ -198,6 +211,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=96, help="a multiple of 32 where drawn ahead")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--trace", help="profile each timed rollout once more into this folder")
     parser.add_argument(
         "--variants",
         default="default",
@@ -212,9 +226,9 @@ def main() -> None:
         if v != "analytic" and _ahead(v) and args.steps % WINDOW:
             parser.error(f"--steps {args.steps}: must be a multiple of {WINDOW} for '{v}'")
     rows = [
-        measure_analytic(n, args.steps, args.repeats)
+        measure_analytic(n, args.steps, args.repeats, args.trace)
         if v == "analytic"
-        else measure(n, args.steps, args.repeats, v)
+        else measure(n, args.steps, args.repeats, v, args.trace)
         for v in variants
         for n in sizes
     ]
@@ -233,6 +247,12 @@ def main() -> None:
             f"{r['variant']:>14} {r['num_envs']:>8} {r['steps']:>6} {r['compile_s']:>10} "
             f"{r['env_steps_per_s']:>12,}"
         )
+    for r in (r for r in rows if "trace_top" in r):
+        print(
+            f"\n{r['variant']}, {r['num_envs']} robots: {r['ops_per_step']} ops a step; the most time:"
+        )
+        for op in r["trace_top"]:
+            print(f"{op['ms']:>10.2f} ms {op['calls']:>7} x  {op['op'][:90]}")
     if args.json:
         write_json(args.json, result)
 

@@ -203,15 +203,22 @@ def trace_events(folder: str) -> tuple[list[dict], dict]:
     return timed, procs
 
 
-def trace_summary(folder: str, top: int = 15) -> list[dict]:
-    """The ops of a profiler trace that took the most time in total: on an accelerator its
-    device ops, on the CPU the host's (Python frames left out)."""
+def op_events(folder: str) -> list[dict]:
+    """The ops of a profiler trace: on an accelerator its device ops, on the CPU the host's
+    (Python frames left out)."""
     events, procs = trace_events(folder)
     device = {p for p, name in procs.items() if "/device:" in name}
+    return [
+        e
+        for e in events
+        if not e["name"].startswith("$") and not (device and e.get("pid") not in device)
+    ]
+
+
+def trace_summary(folder: str, top: int = 15) -> list[dict]:
+    """The ops of a profiler trace (`op_events`) that took the most time in total."""
     total, calls = collections.Counter(), collections.Counter()
-    for e in events:
-        if e["name"].startswith("$") or (device and e.get("pid") not in device):
-            continue
+    for e in op_events(folder):
         total[e["name"]] += e["dur"]
         calls[e["name"]] += 1
     return [

@@ -228,3 +228,19 @@ def test_trace_device_time_on_a_hand_made_trace(tmp_path):
     assert rows == [
         {"device": "/device:GPU:0", "span_ms": 12.0, "busy_ms": 12.0, "collective_ms": 5.0}
     ]
+    assert len(throughput.op_events(str(tmp_path))) == 6  # the device's ops, not the host's
+    top = throughput.trace_summary(str(tmp_path), top=2)
+    assert top == [
+        {"op": "a_long_op_that_starts_early", "ms": 11.5, "calls": 1},
+        {"op": "ncclDevKernel_AllReduce_Sum_f32", "ms": 4.5, "calls": 2},
+    ]
+
+
+def test_env_rollout_profiles_each_timed_rollout(tmp_path):
+    """benchmarks/env_rollout.py's `--trace`: each timed rollout run once more under JAX's
+    profiler, its row given the ops a step and the ops that took the most time."""
+    env_rollout = benchmark_script("env_rollout")
+    row = env_rollout.measure_analytic(8, 4, 1, trace=str(tmp_path))
+    assert (tmp_path / "analytic-8").is_dir() and row["ops_per_step"] > 0
+    assert row["trace_top"] and all(op["ms"] >= 0 and op["calls"] >= 1 for op in row["trace_top"])
+    assert "trace_top" not in env_rollout.measure_analytic(8, 4, 1)
