@@ -40,7 +40,7 @@ import time
 import jax
 import jax.numpy as jnp
 from report import run_info, write_json
-from throughput import op_events, trace_summary
+from throughput import op_events, print_top, trace_summary
 
 import jaxnav
 from jaxnav.core.geometry import signed_distance
@@ -251,8 +251,7 @@ def main() -> None:
         print(
             f"\n{r['variant']}, {r['num_envs']} robots: {r['ops_per_step']} ops a step; the most time:"
         )
-        for op in r["trace_top"]:
-            print(f"{op['ms']:>10.2f} ms {op['calls']:>7} x  {op['op'][:90]}")
+        print_top(r["trace_top"])
     if args.json:
         write_json(args.json, result)
 

@@ -248,6 +248,12 @@ def _covered(spans: list[tuple[float, float]]) -> float:
     return total
 
 
+def print_top(ops: list[dict]) -> None:
+    """One line per op of `trace_summary`: its total ms, its calls and its name."""
+    for r in ops:
+        print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
+
+
 def device_time(folder: str) -> list[dict]:
     """Per accelerator of a trace: the span from its first op's start to its last op's end, the
     time some op ran (busy) and the time some cross-device op ran (NCCL kernels and XLA's
@@ -371,8 +377,7 @@ def main() -> None:
         result["trace_top"] = trace_summary(args.trace)
         result["trace_devices"] = device_time(args.trace)
         print(f"\nprofile of one PPO chunk of '{variants[0]}' (top ops, total ms; {args.trace}):")
-        for r in result["trace_top"]:
-            print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
+        print_top(result["trace_top"])
         for r in result["trace_devices"]:
             print(
                 f"{r['device']}: span {r['span_ms']} ms, busy {r['busy_ms']} ms, "
