@@ -25,8 +25,9 @@ drive and camera add (`analytic_step`), the same batch of rooms and spawns.
 Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after compiling it once,
 and prints env-steps/s per variant and batch size. `--trace DIR` then runs each timed rollout once
 more under JAX's profiler (into DIR/VARIANT-ROBOTS) and adds to its row the ops a step (on a GPU
-its kernels) and those that took the most time (`throughput.trace_summary`); on a GPU, set
-XLA_FLAGS to `--xla_gpu_enable_command_buffer=` so that each kernel runs, and is named, on its own.
+its kernels), what MJX's step takes of them (`mjx_share`) and those that took the most time
+(`throughput.trace_summary`); on a GPU, set XLA_FLAGS to `--xla_gpu_enable_command_buffer=` so
+that each kernel runs, and is named, on its own.
 
     python benchmarks/env_rollout.py --num-envs 65536 --steps 64 --repeats 2 --variants rows1,analytic
 """
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import time
 
 import jax
@@ -198,11 +200,39 @@ def _timed(rollout, state, num_envs, steps, repeats, variant, trace=None) -> dic
     }
     if trace:
         folder = f"{trace}/{variant}-{num_envs}"
+        key = jax.random.PRNGKey(2 + repeats)
         with jax.profiler.trace(folder):
-            jax.block_until_ready(rollout(state, jax.random.PRNGKey(2 + repeats)))
+            jax.block_until_ready(rollout(state, key))
         row["ops_per_step"] = round(len(op_events(folder)) / steps, 1)
         row["trace_top"] = trace_summary(folder)
+        row["trace_mjx"] = mjx_share(folder, rollout.lower(state, key).compile().as_text(), steps)
     return row
+
+
+# An instruction of XLA's optimised program and the op it came from (its metadata's op_name).
+_INSTRUCTION = re.compile(r'^\s*(?:ROOT\s+)?%?([\w.\-]+) = .*?metadata=\{op_name="([^"]*)"', re.M)
+_MJX_STEP = re.compile(r"(^|/)step/(forward|euler)/")  # MJX's named scopes inside `mjx.step`
+
+
+def _kernel(name: str) -> str:
+    """An op's name as profiles and programs both write it ("loop_add_fusion_1")."""
+    return name.replace(".", "_").replace("-", "_")
+
+
+def mjx_share(folder: str, program: str, steps: int) -> dict:
+    """What MJX's step takes of a profiled rollout (`folder`) of `steps` steps: its ops a step
+    and their microseconds a step, beside all ops' (`op_events`: on a GPU its kernels; on the
+    CPU the host's events, which nest, so their sum overlaps). Each op is looked up in the
+    rollout's optimised `program` (HLO text) and is MJX's where its op came from inside
+    `mjx.step`."""
+    origin = {_kernel(n): op for n, op in _INSTRUCTION.findall(program)}
+    events = op_events(folder)
+    mjx = [e for e in events if _MJX_STEP.search(origin.get(_kernel(e["name"]), ""))]
+    return {
+        "ops_per_step": round(len(mjx) / steps, 1),
+        "us_per_step": round(sum(e["dur"] for e in mjx) / steps, 1),
+        "all_us_per_step": round(sum(e["dur"] for e in events) / steps, 1),
+    }
 
 
 def main() -> None:
@@ -248,8 +278,11 @@ def main() -> None:
             f"{r['env_steps_per_s']:>12,}"
         )
     for r in (r for r in rows if "trace_top" in r):
+        mjx = r["trace_mjx"]
         print(
-            f"\n{r['variant']}, {r['num_envs']} robots: {r['ops_per_step']} ops a step; the most time:"
+            f"\n{r['variant']}, {r['num_envs']} robots: {r['ops_per_step']} ops a step "
+            f"({mjx['all_us_per_step']} us), MJX's step {mjx['ops_per_step']} of them "
+            f"({mjx['us_per_step']} us); the most time:"
         )
         print_top(r["trace_top"])
     if args.json:

@@ -244,3 +244,41 @@ def test_env_rollout_profiles_each_timed_rollout(tmp_path):
     assert (tmp_path / "analytic-8").is_dir() and row["ops_per_step"] > 0
     assert row["trace_top"] and all(op["ms"] >= 0 and op["calls"] >= 1 for op in row["trace_top"])
     assert "trace_top" not in env_rollout.measure_analytic(8, 4, 1)
+    assert row["trace_mjx"]["ops_per_step"] == 0  # the bound has no MJX
+
+
+def test_env_rollout_mjx_share_on_a_hand_made_trace(tmp_path):
+    """`env_rollout.mjx_share`: a profile's kernels looked up in the program's HLO by name
+    (its dots and dashes written as underscores), MJX's where their op came from inside
+    `mjx.step`, counted and timed a step."""
+    import gzip
+    import json
+
+    env_rollout = benchmark_script("env_rollout")
+    program = "\n".join(
+        [
+            '  %loop_add_fusion.1 = f32[8]{0} fusion(%p), metadata={op_name="jit(rollout)/'
+            'while/body/vmap()/step/forward/fwd_position/add"}',
+            '  ROOT wrapped_gather = f32[8]{0} gather(%p), metadata={op_name="vmap()/step/'
+            'euler/_advance/gather"}',
+            '  %input_reduce-fusion = f32[8]{0} fusion(%q), metadata={op_name="vmap()/reduce_min"}',
+            '  %loop_mul_fusion = f32[8]{0} fusion(%q), metadata={op_name="vmap()/mystep/'
+            'forward/mul"}',
+        ]
+    )
+    op = lambda name, dur: {"ph": "X", "pid": 1, "name": name, "ts": 0, "dur": dur}  # noqa: E731
+    events = [{"name": "process_name", "ph": "M", "pid": 1, "args": {"name": "/device:GPU:0"}}]
+    for _ in range(2):  # two steps
+        events += [
+            op("loop_add_fusion_1", 3.0),
+            op("wrapped_gather", 1.0),
+            op("input_reduce_fusion", 10.0),
+            op("loop_mul_fusion", 4.0),  # a scope named like MJX's, but not its step
+            op("MemcpyD2D", 2.0),  # in no program
+        ]
+    folder = tmp_path / "plugins" / "profile"
+    folder.mkdir(parents=True)
+    with gzip.open(folder / "x.trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    share = env_rollout.mjx_share(str(tmp_path), program, steps=2)
+    assert share == {"ops_per_step": 2.0, "us_per_step": 4.0, "all_us_per_step": 20.0}
