@@ -16,6 +16,7 @@ from jaxnav import training as train_module
 from jaxnav.core import xla
 from jaxnav.io import checkpoint, runlog
 from jaxnav.ppo import train as ppo_train
+from jaxnav.tasks import registry
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # an XLA compile or a cache load
 TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"  # a trace, named by its function
@@ -341,6 +342,32 @@ def test_a_reset_lowered_for_a_gpu_holds_few_hashes(task, most):
         jax.config.update(xla.THREEFRY_KERNEL, before)
     hashes = text.count("call @threefry2x32")
     assert 0 < hashes <= most, hashes
+
+
+def test_the_config_turns_the_fusion_autotuner_off(monkeypatch):
+    """`PPOConfig.fusion_autotune` off has every GPU program compiled without XLA timing its
+    fusions' kernels, as `make_train` builds the trainer, and back on; a user's own setting in
+    XLA_FLAGS is kept; the CPU's options are as they were; the goal task turns it off, `avoid`
+    keeps XLA's default."""
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.setattr(xla, "_deterministic", False)
+    monkeypatch.setattr(xla, "_fusion_autotune", True)
+    config = tiny_config()
+    env = train_module.make_run_env(config)
+    ppo_train.make_train(dataclasses.replace(config.ppo, fusion_autotune=False), env)
+    off = {xla.FUSION_AUTOTUNE: False}
+    assert xla.compiler_options("gpu") == off and xla.compiler_options("gpu", "learn") == off
+    assert xla.compiler_options("gpu", "draws") == {**off, xla.AUTOTUNE: 0}
+    assert xla.compiler_options("cpu") == {xla.OPTION: xla.CPU_OPT_LEVEL}
+    monkeypatch.setenv("XLA_FLAGS", f"--{xla.FUSION_AUTOTUNE}=true")
+    assert xla.compiler_options("gpu") is None
+    monkeypatch.delenv("XLA_FLAGS")
+    ppo_train.make_train(config.ppo, env)
+    assert xla.compiler_options("gpu") is None
+    assert not registry.task_defaults("goal")["ppo"]["fusion_autotune"]
+    assert "fusion_autotune" not in registry.task_defaults("avoid").get("ppo", {})
+    # XLA knows the option (an unknown one fails the compile: the test below).
+    assert jax.jit(lambda x: x + 1, compiler_options=off)(1) == 2
 
 
 def test_the_config_asks_for_deterministic_ops(monkeypatch):

@@ -17,6 +17,12 @@ rollout or once a run (`UNTUNED`: the draws, start, init) compile without it. Th
 kernels gain from it (at 65,536 robots PPO trained 9-11 % slower with the rollout untimed;
 docs/results.md). A user's own `--xla_gpu_autotune_level` is kept.
 
+XLA also times the Triton and its own kernels of some fusions (reductions, softmaxes) against
+each other. `fusion_autotune` off has it not do so (`PPOConfig.fusion_autotune`, off for the goal
+task, set by `make_train`): on one H200 the goal task then started 2 s sooner and its gpu preset
+trained at 99 % of the pace, while `avoid` started no sooner and trained 1.6 % slower
+(docs/results.md). A user's own `--xla_gpu_experimental_enable_fusion_autotuner` is kept.
+
 On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,
 `PPOConfig.threefry_kernel`). jaxnav's resets draw their numbers in blocks (`jaxnav.core.draws`),
@@ -45,8 +51,10 @@ OPTION = "xla_backend_optimization_level"
 DETERMINISTIC = "xla_gpu_deterministic_ops"  # XLA's option for the same bits every run
 AUTOTUNE = "xla_gpu_autotune_level"  # XLA's option: 0 times no kernels (its default: 4)
 UNTUNED = ("draws", "start", "init")  # run once a rollout or a run: not worth timing (the module)
+FUSION_AUTOTUNE = "xla_gpu_experimental_enable_fusion_autotuner"  # XLA's: fusions' kernels timed
 GPUS = ("gpu", "cuda", "rocm")  # the names a GPU backend or platform goes by
 _deterministic = False  # set by `deterministic`
+_fusion_autotune = True  # set by `fusion_autotune`
 _tracing = threading.local()  # `.devices`: set by `on_devices` in the thread that traces
 
 
@@ -60,14 +68,17 @@ def compiler_options(
 ) -> dict[str, int | bool] | None:
     """The options for a program on `backend` (default: JAX's default backend), or None for
     XLA's defaults: on the CPU `CPU_OPT_LEVEL`; on a GPU `DETERMINISTIC` where `deterministic`
-    turned it on, and no autotuning (`AUTOTUNE` 0) for a trainer's program named in `UNTUNED`
-    (`program`: its name in `ppo.train.Trainer.programs`); each unless `XLA_FLAGS` sets it."""
+    turned it on, `FUSION_AUTOTUNE` off where `fusion_autotune` turned it off, and no autotuning
+    (`AUTOTUNE` 0) for a trainer's program named in `UNTUNED` (`program`: its name in
+    `ppo.train.Trainer.programs`); each unless `XLA_FLAGS` sets it."""
     backend, flags = backend or jax.default_backend(), os.environ.get("XLA_FLAGS", "")
     options = {}
     if backend == "cpu" and OPTION not in flags:
         options[OPTION] = CPU_OPT_LEVEL
     if backend in GPUS and _deterministic and DETERMINISTIC not in flags:
         options[DETERMINISTIC] = True
+    if backend in GPUS and not _fusion_autotune and FUSION_AUTOTUNE not in flags:
+        options[FUSION_AUTOTUNE] = False
     if backend in GPUS and program in UNTUNED and AUTOTUNE not in flags:
         options[AUTOTUNE] = 0
     return options or None
@@ -78,6 +89,13 @@ def deterministic(on: bool) -> None:
     (`on`) or as XLA's defaults have them (`PPOConfig.deterministic`, set by `make_train`)."""
     global _deterministic
     _deterministic = bool(on)
+
+
+def fusion_autotune(on: bool) -> None:
+    """jaxnav's GPU programs compiled from now on in this process with XLA timing its fusions'
+    kernels (`on`, XLA's default) or not (`PPOConfig.fusion_autotune`, set by `make_train`)."""
+    global _fusion_autotune
+    _fusion_autotune = bool(on)
 
 
 THREEFRY_KERNEL = "jax_threefry_gpu_kernel_lowering"

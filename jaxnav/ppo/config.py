@@ -89,6 +89,12 @@ class PPOConfig:
     XLA times its kernels per process and some sums add in the order threads finish, so two runs
     of a seed differ. On one H200 the goal task's PPO runs at 13.0 M env-steps/s with it against
     16.0 M (docs/results.md, "One seed, one policy, on a GPU"). The CPU's programs are always so."""
+    fusion_autotune: bool = True
+    """On a GPU, XLA times the Triton and its own kernels of some fusions (reductions, softmaxes)
+    as it compiles (`jaxnav.core.xla.fusion_autotune`, set by `make_train` for the process); the
+    goal task turns it off: on one H200 it then started 2 s sooner (17.4 and 19.2 s against 19.5
+    and 21.2 s) and its gpu preset trained at 99 % of the pace, while `avoid` started no sooner
+    and trained 1.6 % slower (docs/results.md). No effect on the CPU."""
     fused_learner: bool = True
     """On GPUs, compute each minibatch's gradient as one kernel (`jaxnav.ppo.fused`: the same
     loss, the gradient to the GPU's TF32 rounding) where it applies: a categorical actor whose

@@ -21,7 +21,13 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxnav.core.draws import hashed_permutation
 from jaxnav.core.types import ContinuousActions
-from jaxnav.core.xla import compiler_options, deterministic, run_once, threefry_kernel
+from jaxnav.core.xla import (
+    compiler_options,
+    deterministic,
+    fusion_autotune,
+    run_once,
+    threefry_kernel,
+)
 from jaxnav.ppo import fused
 from jaxnav.ppo.config import PPOConfig
 from jaxnav.ppo.distributions import make_distribution
@@ -387,6 +393,7 @@ def make_train(cfg: PPOConfig, env, devices=None) -> Trainer:
 
     platform = devices_used[0].platform
     deterministic(cfg.deterministic)
+    fusion_autotune(cfg.fusion_autotune)
     # On one device only: XLA cannot split the kernel's call over the devices the robots are
     # sharded over, and several GPUs are not measured with it.
     threefry_kernel(cfg.threefry_kernel and len(devices_used) == 1, platform)
