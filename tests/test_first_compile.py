@@ -192,6 +192,7 @@ def test_programs_compile_with_jaxnav_options(monkeypatch):
     XLA_FLAGS, keep XLA's defaults."""
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     monkeypatch.setattr(xla, "_deterministic", False)
+    monkeypatch.setattr(xla, "_fusion_autotune", True)  # as the goal task's trainers leave it
     untuned = {xla.AUTOTUNE: 0}
     assert xla.compiler_options("cpu") == {xla.OPTION: xla.CPU_OPT_LEVEL}
     assert xla.compiler_options("cpu", "rollout") == {xla.OPTION: xla.CPU_OPT_LEVEL}
@@ -374,6 +375,7 @@ def test_the_config_asks_for_deterministic_ops(monkeypatch):
     """`PPOConfig.deterministic` sets the process's GPU option as `make_train` builds the trainer,
     on and back off."""
     monkeypatch.setattr(xla, "_deterministic", False)
+    monkeypatch.setattr(xla, "_fusion_autotune", True)
     config = tiny_config()
     env = train_module.make_run_env(config)
     ppo_train.make_train(dataclasses.replace(config.ppo, deterministic=True), env)
