@@ -203,9 +203,10 @@ def _timed(rollout, state, num_envs, steps, repeats, variant, trace=None) -> dic
         key = jax.random.PRNGKey(2 + repeats)
         with jax.profiler.trace(folder):
             jax.block_until_ready(rollout(state, key))
-        row["ops_per_step"] = round(len(op_events(folder)) / steps, 1)
+        events = op_events(folder)
+        row["ops_per_step"] = round(len(events) / steps, 1)
         row["trace_top"] = trace_summary(folder)
-        row["trace_mjx"] = mjx_share(folder, rollout.lower(state, key).compile().as_text(), steps)
+        row["trace_mjx"] = mjx_share(events, rollout.lower(state, key).compile().as_text(), steps)
     return row
 
 
@@ -219,14 +220,13 @@ def _kernel(name: str) -> str:
     return name.replace(".", "_").replace("-", "_")
 
 
-def mjx_share(folder: str, program: str, steps: int) -> dict:
-    """What MJX's step takes of a profiled rollout (`folder`) of `steps` steps: its ops a step
-    and their microseconds a step, beside all ops' (`op_events`: on a GPU its kernels; on the
-    CPU the host's events, which nest, so their sum overlaps). Each op is looked up in the
-    rollout's optimised `program` (HLO text) and is MJX's where its op came from inside
+def mjx_share(events: list[dict], program: str, steps: int) -> dict:
+    """What MJX's step takes of a profiled rollout of `steps` steps (`events`: its trace's
+    `op_events`, on a GPU its kernels; on the CPU the host's events, which nest, so their sum
+    overlaps): its ops a step and their microseconds a step, beside all ops'. Each op is looked
+    up in the rollout's optimised `program` (HLO text) and is MJX's where its op came from inside
     `mjx.step`."""
     origin = {_kernel(n): op for n, op in _INSTRUCTION.findall(program)}
-    events = op_events(folder)
     mjx = [e for e in events if _MJX_STEP.search(origin.get(_kernel(e["name"]), ""))]
     return {
         "ops_per_step": round(len(mjx) / steps, 1),

@@ -280,5 +280,6 @@ def test_env_rollout_mjx_share_on_a_hand_made_trace(tmp_path):
     folder.mkdir(parents=True)
     with gzip.open(folder / "x.trace.json.gz", "wt") as f:
         json.dump({"traceEvents": events}, f)
-    share = env_rollout.mjx_share(str(tmp_path), program, steps=2)
+    events = benchmark_script("throughput").op_events(str(tmp_path))
+    share = env_rollout.mjx_share(events, program, steps=2)
     assert share == {"ops_per_step": 2.0, "us_per_step": 4.0, "all_us_per_step": 20.0}
