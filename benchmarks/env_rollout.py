@@ -264,7 +264,7 @@ def main() -> None:
     ]
     result = {
         **run_info("device"),
-        "cpus": jax.local_device_count(),
+        "devices": jax.local_device_count(),
         **run_info("python", "date", "jax"),
         "rows": rows,
     }
