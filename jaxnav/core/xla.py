@@ -19,9 +19,9 @@ docs/results.md). A user's own `--xla_gpu_autotune_level` is kept.
 
 XLA also times the Triton and its own kernels of some fusions (reductions, softmaxes) against
 each other. `fusion_autotune` off has it not do so (`PPOConfig.fusion_autotune`, off for the goal
-task, set by `make_train`): on two H200 hosts the goal task then started about 1 s sooner and its
-gpu preset trained at 98-99 % of the pace, while `avoid` started no sooner and trained 1.6 % slower
-(docs/results.md). A user's own `--xla_gpu_experimental_enable_fusion_autotuner` is kept.
+task, set by `make_train`): the goal task then started 2 s sooner on one H200 host and no sooner on
+another, and its gpu preset trained 1-2 % slower; `avoid` started no sooner and trained 1.6 %
+slower (docs/results.md). A user's own `--xla_gpu_experimental_enable_fusion_autotuner` is kept.
 
 On a GPU, JAX inlines every jax.random call as the unrolled rounds of threefry:
 `threefry_kernel` has them call JAX's CUDA kernel instead (the same bits; off by default,

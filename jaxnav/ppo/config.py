@@ -92,9 +92,9 @@ class PPOConfig:
     fusion_autotune: bool = True
     """On a GPU, XLA times the Triton and its own kernels of some fusions (reductions, softmaxes)
     as it compiles (`jaxnav.core.xla.fusion_autotune`, set by `make_train` for the process); the
-    goal task turns it off: on two H200 hosts it then started about 1 s sooner (17.4-19.9 s
-    against 18.7-21.2 s) and its gpu preset trained at 98-99 % of the pace, while `avoid` started
-    no sooner and trained 1.6 % slower (docs/results.md). No effect on the CPU."""
+    goal task turns it off: on one H200 host it then started 2 s sooner, on another no sooner,
+    and its gpu preset trained 1-2 % slower, while `avoid` started no sooner and trained 1.6 %
+    slower (docs/results.md). No effect on the CPU."""
     fused_learner: bool = True
     """On GPUs, compute each minibatch's gradient as one kernel (`jaxnav.ppo.fused`: the same
     loss, the gradient to the GPU's TF32 rounding) where it applies: a categorical actor whose

@@ -18,8 +18,8 @@ GOAL_GPU_FAMILIES = "all,long_hall:1"
 GOAL = {
     "defaults": {
         # Short episodes whose resets flood the room: fewer new episodes per step. On a GPU its
-        # programs compile without timing their fusions' kernels: started about 1 s sooner on
-        # two H200 hosts, at 98-99 % of the gpu preset's pace (`PPOConfig.fusion_autotune`).
+        # programs compile without timing their fusions' kernels: started 2 s sooner on one H200
+        # host and no sooner on another, 1-2 % slower (`PPOConfig.fusion_autotune`).
         "ppo": {"reset_share": 1 / 64, "privileged_critic": True, "fusion_autotune": False},
         "randomize": {"families": "all"},
     },
