@@ -233,10 +233,12 @@ def _lowered_for_cuda(env) -> str:
     return export.export(jax.jit(jax.vmap(env.reset)), platforms=["cuda"])(keys).mlir_module()
 
 
+@pytest.mark.slow
 def test_the_threefry_kernel_is_an_option_handed_to_the_lowering(monkeypatch):
     """No preset sets `threefry_kernel`; `make_train` hands the setting on;
     `core.xla.threefry_kernel` sets JAX's lowering on a GPU only: lowered for CUDA, the goal
-    reset then calls JAX's threefry kernel where it inlined the rounds."""
+    reset then calls JAX's threefry kernel where it inlined the rounds. Slow: about 7 s on 2
+    cores, the goal task's trainer built and its reset lowered twice."""
     import jaxnav
 
     build = train_module.build_config
@@ -263,12 +265,13 @@ def test_the_threefry_kernel_is_an_option_handed_to_the_lowering(monkeypatch):
     assert "threefry2x32_ffi" not in lowered[False] and "threefry2x32_ffi" in lowered[True]
 
 
+@pytest.mark.slow
 def test_programs_run_once_a_rollout_lower_with_the_threefry_kernel(tmp_path, monkeypatch):
     """`xla.LoweredWith` lowers its program, and `jaxnav.programs` exports it, in its context
     (`xla.run_once`, on one GPU only: `make_train`'s draws, start and init with the threefry
     kernel), and only while it lowers; lowered for CUDA in it, a reset calls the kernel; traced
     inside another program, it gives its shapes. `make_train` wraps its draws and start on one GPU
-    only."""
+    only. Slow: about 9 s on 2 cores, a trainer built and a reset lowered for CUDA."""
     from jax._src.config import threefry_gpu_kernel_lowering as state
 
     import jaxnav

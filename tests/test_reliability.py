@@ -372,7 +372,10 @@ def test_rows_past_the_checkpoint_are_dropped_whatever_they_hold(fake, tmp_path,
     assert rows(tmp_path / "run") == list(range(1, 9))
 
 
+@pytest.mark.slow
 def test_a_metrics_log_over_16_mib_resumes(tmp_path):
+    """A metrics log larger than 16 MiB is read back up to a row and resumed from it. Slow:
+    about 10 s on 2 cores, its 130,000 rows written and read back twice."""
     fields = runlog.columns(("collision",))
     ints = ("update", "env_steps", "steps_per_second")
     many = [{k: (i if k in ints else 0.123456789 * i) for k in fields} for i in range(1, 130_001)]

@@ -78,10 +78,12 @@ def test_the_flood_kernel_floods_each_devices_own_grids(tmp_path):
     assert even["reached"] > 0 and odd["reached"] > 0
 
 
+@pytest.mark.slow
 def test_banked_arrays_stay_on_each_devices_own_robots(tmp_path):
     """With a block of robots on each of two devices, every block banks its own arrays
     (`AutoReset.bank`): the steps give the select's rewards and states bit for bit, and no op of
-    the banked window waits for the other device."""
+    the banked window waits for the other device. Slow: about 8 s on 2 cores, a process of two
+    devices compiling both windows."""
     got = json.loads(run_script("banked_blocks.py", tmp_path / "banked.json").read_text())
     assert got["devices"] == 2 and got["shards"] == 2
     assert got["equal"] and got["ended"] > 0 and got["collectives"] == 0

@@ -98,10 +98,12 @@ def test_fast_physics_steps_the_robot_alone():
     assert contacts.data_model.ngeom == room.ngeom
 
 
+@pytest.mark.slow
 def test_sparse_mass_matrix_on_a_gpu_steps_as_the_dense_one():
     """On a GPU the fast physics factors its mass matrix sparsely (no batched Cholesky call), on
     the CPU densely, as MJX chooses; under MJX a robot driven for 200 steps ends in the same
-    place either way, to float32 rounding. The wheeled model keeps its MJCF's own choice."""
+    place either way, to float32 rounding. The wheeled model keeps its MJCF's own choice. Slow:
+    about 7 s on 2 cores, two MJX models compiled and driven."""
     cfg, sparse_bit = SceneConfig(), mujoco.mjtJacobian.mjJAC_SPARSE
     on_gpu = jax.default_backend() == "gpu"
     for build in (jaxnav.core.scene.build_robot_model, jaxnav.core.scene.build_mj_model):
@@ -267,13 +269,15 @@ def test_each_drawn_episode_is_the_reset_of_its_own_key(groups):
     assert jax.tree_util.tree_leaves(fresh)[0].shape[:3] == (steps, groups, pool // groups)
 
 
-@pytest.mark.parametrize("task", ["avoid", pytest.param("goal", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("task", ["avoid", "goal"])
+@pytest.mark.slow
 def test_drawn_episodes_observed_apart_are_the_resets(task, mixed_env, monkeypatch):
     """A task's reset in two parts (`begin`, then `first_observation`, as AutoReset's draws make
     them: the observations in OBSERVED_APART batches after the rooms) is its reset: every drawn
     episode is its key's, its rooms, poses, goals and keys bit for bit, its first observation
     (and the goal task's memory of it) within float rounding. The goal task with its memory, as
-    the presets have it. Slow for goal: its env's reset and draws compile."""
+    the presets have it. Slow: the draws and steps compile twice, about 9 s for `avoid` on 2
+    cores, and the goal task's env's reset and draws more."""
     env = mixed_env
     if task == "goal":
         env = jaxnav.make_env("goal", randomize=TRAINING, memory_bins=16, max_steps=20)
@@ -345,12 +349,20 @@ def run_banked(env, keys, banked: bool, windows=3, steps=10):
     return jax.tree_util.tree_map(lambda x: x.reshape(windows * steps, *x.shape[2:]), states), last
 
 
-@pytest.mark.parametrize(("in_place", "groups"), [(False, 1), (True, 1), (False, 2)])
+@pytest.mark.parametrize(
+    ("in_place", "groups"),
+    [
+        (False, 1),
+        pytest.param(True, 1, marks=pytest.mark.slow),
+        pytest.param(False, 2, marks=pytest.mark.slow),
+    ],
+)
 def test_banked_arrays_step_as_selected_ones(in_place, groups):
     """Steps given `AutoReset.bank`'s banks, which move only each env's row of them, give every
     state of the steps that select the arrays along with the rest, bit for bit: the arrays each
     step reads (its reward), and after `unbank` the arrays themselves, in steps that end more
-    episodes than the pool holds and fewer; with two blocks, each reading a bank of its own."""
+    episodes than the pool holds and fewer; with two blocks, each reading a bank of its own. Slow
+    but for the first: 5-7 s each on 2 cores, both windows compiled."""
     n, pool = 64, 20  # 8-37 episodes end in a step
     env = AutoReset(EpisodeStats(Ledger()), pool, in_place, groups=groups)
     keys = jax.random.split(jax.random.PRNGKey(5), n)
@@ -369,18 +381,20 @@ def test_banked_arrays_step_as_selected_ones(in_place, groups):
 
 @pytest.mark.parametrize(
     "scene",
-    [{}, pytest.param({"physics": "wheeled"}, marks=pytest.mark.slow)],
+    [{}, {"physics": "wheeled"}],
     ids=["fast", "wheeled"],
 )
+@pytest.mark.slow
 def test_the_carried_body_steps_as_the_whole_mjx_data(scene):
     """An env carries `Body` (MuJoCo's integration state and the solver's warm start) from one
     control step to the next, not the whole mjx.Data, and its reset places the robot without
     MuJoCo's kinematics (`NavTask.place`): driven for 30 steps among obstacles, the robot's poses
     and velocities are bit for bit those of mjx.Data carried whole from a posed start (every
     derived field from the step before; the wheeled model's contacts and solver included); on a
-    GPU, which fuses the two programs' sums in orders of their own, within 1e-4 relative. The
-    wheeled case is slow, 25 s on 2 cores: its model's contacts and solver compile twice. Both
-    programs scan its 20 physics steps a control step (unrolled, they took 128 s)."""
+    GPU, which fuses the two programs' sums in orders of their own, within 1e-4 relative. Slow:
+    two MJX programs compile, 12 s on 2 cores for the fast model, 25 s for the wheeled one, whose
+    contacts and solver compile twice. Both programs scan its 20 physics steps a control step
+    (unrolled, they took 128 s)."""
     from jaxnav.core.types import Body
 
     env = jaxnav.make_env("avoid", scene=SceneConfig(**scene))
