@@ -26,7 +26,7 @@ Times a jitted `lax.scan` of `--steps` batched steps (auto-reset included) after
 and prints env-steps/s per variant and batch size. `--trace DIR` then runs each timed rollout once
 more under JAX's profiler (into DIR/VARIANT-ROBOTS) and adds to its row the ops a step (on a GPU
 its kernels), what MJX's step takes of them (`mjx_share`) and those that took the most time
-(`throughput.trace_summary`); on a GPU, set XLA_FLAGS to `--xla_gpu_enable_command_buffer=` so
+(`throughput.top_ops`); on a GPU, set XLA_FLAGS to `--xla_gpu_enable_command_buffer=` so
 that each kernel runs, and is named, on its own.
 
     python benchmarks/env_rollout.py --num-envs 65536 --steps 64 --repeats 2 --variants rows1,analytic
@@ -42,7 +42,7 @@ import time
 import jax
 import jax.numpy as jnp
 from report import run_info, write_json
-from throughput import op_events, print_top, trace_summary
+from throughput import op_events, print_top, top_ops
 
 import jaxnav
 from jaxnav.core.geometry import signed_distance
@@ -205,7 +205,7 @@ def _timed(rollout, state, num_envs, steps, repeats, variant, trace=None) -> dic
             jax.block_until_ready(rollout(state, key))
         events = op_events(folder)
         row["ops_per_step"] = round(len(events) / steps, 1)
-        row["trace_top"] = trace_summary(folder)
+        row["trace_top"] = top_ops(events)
         row["trace_mjx"] = mjx_share(events, rollout.lower(state, key).compile().as_text(), steps)
     return row
 

@@ -215,10 +215,10 @@ def op_events(folder: str) -> list[dict]:
     ]
 
 
-def trace_summary(folder: str, top: int = 15) -> list[dict]:
-    """The ops of a profiler trace (`op_events`) that took the most time in total."""
+def top_ops(events: list[dict], top: int = 15) -> list[dict]:
+    """The ops of a profiler trace (its `op_events`) that took the most time in total."""
     total, calls = collections.Counter(), collections.Counter()
-    for e in op_events(folder):
+    for e in events:
         total[e["name"]] += e["dur"]
         calls[e["name"]] += 1
     return [
@@ -249,7 +249,7 @@ def _covered(spans: list[tuple[float, float]]) -> float:
 
 
 def print_top(ops: list[dict]) -> None:
-    """One line per op of `trace_summary`: its total ms, its calls and its name."""
+    """One line per op of `top_ops`: its total ms, its calls and its name."""
     for r in ops:
         print(f"{r['ms']:>10.1f} ms {r['calls']:>7} x  {r['op'][:90]}")
 
@@ -374,7 +374,7 @@ def main() -> None:
             if args.json:  # after every row, so that a run cut short keeps what it measured
                 write_json(args.json, result)
     if args.trace:
-        result["trace_top"] = trace_summary(args.trace)
+        result["trace_top"] = top_ops(op_events(args.trace))
         result["trace_devices"] = device_time(args.trace)
         print(f"\nprofile of one PPO chunk of '{variants[0]}' (top ops, total ms; {args.trace}):")
         print_top(result["trace_top"])
