@@ -1,6 +1,7 @@
 """The robots are sharded over every local device; results match the single-device run."""
 
 import concurrent.futures
+import gzip
 import json
 import subprocess
 import sys
@@ -202,36 +203,47 @@ def test_a_crashed_scaling_worker_is_named_by_its_signal():
     assert scaling.failure(0, "a warning") is None
 
 
+def trace_op(pid: int, name: str, ts: float, dur: float) -> dict:
+    """An op of a profiler trace: process `pid`, from `ts` for `dur` microseconds."""
+    return {"ph": "X", "pid": pid, "name": name, "ts": ts, "dur": dur}
+
+
+GPU_PROCESS = {"name": "process_name", "ph": "M", "pid": 1, "args": {"name": "/device:GPU:0"}}
+
+
+def write_trace(folder: Path, events: list[dict]) -> str:
+    """`events` written under `folder` as JAX's profiler writes a trace; the folder, as read."""
+    profile = folder / "plugins" / "profile"
+    profile.mkdir(parents=True)
+    with gzip.open(profile / "x.trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    return str(folder)
+
+
 def test_trace_device_time_on_a_hand_made_trace(tmp_path):
     """benchmarks/throughput.py's per-accelerator profile summary on a hand-made trace: the span
     from first op to last, busy as the union of overlapping ops, the time in collective ops;
     host processes are left out."""
-    import gzip
-    import json
-
     throughput = benchmark_script("throughput")
-    op = lambda pid, name, ts, dur: {"ph": "X", "pid": pid, "name": name, "ts": ts, "dur": dur}  # noqa: E731
     events = [
-        {"name": "process_name", "ph": "M", "pid": 1, "args": {"name": "/device:GPU:0"}},
+        GPU_PROCESS,
         {"name": "process_name", "ph": "M", "pid": 2, "args": {"name": "/host:CPU"}},
-        op(1, "loop_fusion", 0, 2000),
-        op(1, "gemm_fusion", 1000, 2000),  # overlaps the first: busy 0-3 ms
-        op(1, "ncclDevKernel_AllReduce_Sum_f32", 5000, 4000),  # 5-9 ms
-        op(1, "all_reduce_30_fusion", 9000, 1000),  # 9-10 ms
-        op(1, "ncclDevKernel_AllReduce_Sum_f32", 9500, 500),  # within the one before: counted once
-        op(1, "a_long_op_that_starts_early", 500, 11500),  # ends last: the span runs to 12 ms
-        op(2, "host_work", 0, 50000),
+        trace_op(1, "loop_fusion", 0, 2000),
+        trace_op(1, "gemm_fusion", 1000, 2000),  # overlaps the first: busy 0-3 ms
+        trace_op(1, "ncclDevKernel_AllReduce_Sum_f32", 5000, 4000),  # 5-9 ms
+        trace_op(1, "all_reduce_30_fusion", 9000, 1000),  # 9-10 ms
+        # within the one before: counted once
+        trace_op(1, "ncclDevKernel_AllReduce_Sum_f32", 9500, 500),
+        trace_op(1, "a_long_op_that_starts_early", 500, 11500),  # ends last: the span runs to 12 ms
+        trace_op(2, "host_work", 0, 50000),
     ]
-    folder = tmp_path / "plugins" / "profile"
-    folder.mkdir(parents=True)
-    with gzip.open(folder / "x.trace.json.gz", "wt") as f:
-        json.dump({"traceEvents": events}, f)
-    rows = throughput.device_time(str(tmp_path))
+    trace = write_trace(tmp_path, events)
+    rows = throughput.device_time(trace)
     assert rows == [
         {"device": "/device:GPU:0", "span_ms": 12.0, "busy_ms": 12.0, "collective_ms": 5.0}
     ]
-    assert len(throughput.op_events(str(tmp_path))) == 6  # the device's ops, not the host's
-    top = throughput.top_ops(throughput.op_events(str(tmp_path)), top=2)
+    assert len(throughput.op_events(trace)) == 6  # the device's ops, not the host's
+    top = throughput.top_ops(throughput.op_events(trace), top=2)
     assert top == [
         {"op": "a_long_op_that_starts_early", "ms": 11.5, "calls": 1},
         {"op": "ncclDevKernel_AllReduce_Sum_f32", "ms": 4.5, "calls": 2},
@@ -253,9 +265,6 @@ def test_env_rollout_mjx_share_on_a_hand_made_trace(tmp_path):
     """`env_rollout.mjx_share`: a profile's kernels looked up in the program's HLO by name
     (its dots and dashes written as underscores), MJX's where their op came from inside
     `mjx.step`, counted and timed a step."""
-    import gzip
-    import json
-
     env_rollout = benchmark_script("env_rollout")
     program = "\n".join(
         [
@@ -268,8 +277,8 @@ def test_env_rollout_mjx_share_on_a_hand_made_trace(tmp_path):
             'forward/mul"}',
         ]
     )
-    op = lambda name, dur: {"ph": "X", "pid": 1, "name": name, "ts": 0, "dur": dur}  # noqa: E731
-    events = [{"name": "process_name", "ph": "M", "pid": 1, "args": {"name": "/device:GPU:0"}}]
+    op = lambda name, dur: trace_op(1, name, 0, dur)  # noqa: E731
+    events = [GPU_PROCESS]
     for _ in range(2):  # two steps
         events += [
             op("loop_add_fusion_1", 3.0),
@@ -278,10 +287,6 @@ def test_env_rollout_mjx_share_on_a_hand_made_trace(tmp_path):
             op("loop_mul_fusion", 4.0),  # a scope named like MJX's, but not its step
             op("MemcpyD2D", 2.0),  # in no program
         ]
-    folder = tmp_path / "plugins" / "profile"
-    folder.mkdir(parents=True)
-    with gzip.open(folder / "x.trace.json.gz", "wt") as f:
-        json.dump({"traceEvents": events}, f)
-    events = benchmark_script("throughput").op_events(str(tmp_path))
+    events = benchmark_script("throughput").op_events(write_trace(tmp_path, events))
     share = env_rollout.mjx_share(events, program, steps=2)
     assert share == {"ops_per_step": 2.0, "us_per_step": 4.0, "all_us_per_step": 20.0}
